@@ -1,0 +1,69 @@
+"""``ivc info FILE``: what a session file holds and what it still lacks."""
+
+from __future__ import annotations
+
+import json
+
+import click
+import numpy as np
+
+from ivc import session as session_io
+from ivc.session import STEPS, Session
+
+
+def summarise(s: Session) -> dict:
+    """A JSON-ready summary of a session: per step frames, sensors, rate, valid fraction."""
+    steps = {}
+    for name, step in s.steps.items():
+        kinds = [k for k in ("signal", "position") if getattr(step, k) is not None]
+        duration = float(step.time[-1] - step.time[0]) if step.n_frames > 1 else 0.0
+        steps[name] = {
+            "frames": step.n_frames,
+            "sensors": step.n_sensors,
+            "sample_rate_hz": step.sample_rate_hz,
+            "duration_s": duration,
+            "valid_fraction": float(np.mean(step.valid_mask)) if step.n_frames else 0.0,
+            "data": "+".join("pose" if k == "position" else k for k in kinds),
+            "truth": name in s.truth,
+        }
+    return {
+        "hemisphere": s.hemisphere,
+        "steps": steps,
+        "missing_for_fit": s.missing_for_fit(),
+        "has_check": "check" in s.steps,
+    }
+
+
+def render(path: str, summary: dict) -> str:
+    lines = [f"{path}: ivc session (format {session_io.FORMAT_VERSION}), hemisphere {summary['hemisphere']}", ""]
+    header = f"{'step':<18}{'frames':>9}{'sensors':>9}{'rate Hz':>9}{'seconds':>9}{'valid %':>9}  data"
+    lines.append(header)
+    lines.append("-" * len(header))
+    for name in STEPS:
+        info = summary["steps"].get(name)
+        if info is None:
+            lines.append(f"{name:<18}{'—':>9}")
+            continue
+        truth = "  +truth" if info["truth"] else ""
+        lines.append(
+            f"{name:<18}{info['frames']:>9}{info['sensors']:>9}{info['sample_rate_hz']:>9.1f}"
+            f"{info['duration_s']:>9.2f}{100 * info['valid_fraction']:>9.1f}  {info['data']}{truth}"
+        )
+    lines.append("")
+    if summary["missing_for_fit"]:
+        lines.append("Missing before `ivc fit` can run:")
+        lines.extend(f"  - {m}" for m in summary["missing_for_fit"])
+    else:
+        lines.append("Ready for `ivc fit`.")
+    if not summary["has_check"]:
+        lines.append("No `check` step: `ivc evaluate` needs one (a check file with truth).")
+    return "\n".join(lines)
+
+
+@click.command()
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+def info(file: str, as_json: bool) -> None:
+    """Summarise a session FILE: steps, frames, sensors, rates, valid fraction, what is missing."""
+    summary = summarise(session_io.read(file))
+    click.echo(json.dumps(summary, indent=2) if as_json else render(file, summary))

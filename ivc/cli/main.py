@@ -1,0 +1,41 @@
+"""Entry point and shared behaviour of the ``ivc`` command line."""
+
+from __future__ import annotations
+
+import click
+
+from ivc import __version__
+from ivc.session import SessionError
+
+
+class IvcGroup(click.Group):
+    """A click group that turns the library's data errors into one-line CLI errors."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except (SessionError, FileNotFoundError, FileExistsError, ValueError) as error:
+            raise click.ClickException(str(error)) from None
+
+
+@click.group(cls=IvcGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="ivc")
+def cli() -> None:
+    """Correct AC electromagnetic tracker poses near metal (interpolation-volume calibration).
+
+    The pipeline: `ivc collect` records the protocol into a session file,
+    `ivc info` says what a session holds and what it still lacks.
+    """
+
+
+def _register() -> None:
+    from ivc.cli import info
+
+    cli.add_command(info.info)
+
+
+_register()
+
+
+def main() -> None:
+    cli()

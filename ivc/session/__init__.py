@@ -1,0 +1,30 @@
+"""The HDF5 session file every command reads and writes (docs/session-format.md)."""
+
+from ivc.session.io import add_step, atomic_path, read, write
+from ivc.session.model import (
+    CUBE_SENSORS,
+    FIT_STEPS,
+    FORMAT_VERSION,
+    STEP_DESCRIPTIONS,
+    STEPS,
+    Session,
+    SessionError,
+    Step,
+    Truth,
+)
+
+__all__ = [
+    "CUBE_SENSORS",
+    "FIT_STEPS",
+    "FORMAT_VERSION",
+    "STEPS",
+    "STEP_DESCRIPTIONS",
+    "Session",
+    "SessionError",
+    "Step",
+    "Truth",
+    "add_step",
+    "atomic_path",
+    "read",
+    "write",
+]

@@ -1,0 +1,227 @@
+"""Read and write session files (docs/session-format.md).
+
+Every write is atomic: the new file is written beside the target under a temporary
+name and renamed over it only once complete and valid, so an interrupted write
+leaves the previous file as it was. A step that is already in a file is never
+replaced unless the caller passes ``force=True``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ivc.session.model import (
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    STEPS,
+    Session,
+    SessionError,
+    Step,
+    Truth,
+    validate_step,
+)
+
+_STEP_DATASETS = ("time", "signal", "position", "quaternion", "valid")
+_STEP_ATTRS = ("sample_rate_hz", "sensor_ids", "description")
+_FILE_ATTRS = ("ivc_format", "ivc_format_version", "length_unit", "hemisphere")
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, copy_existing: bool = False) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it over ``path`` on success.
+
+    With ``copy_existing`` the temporary file starts as a copy of ``path``. On any
+    exception the temporary file is removed and ``path`` is untouched.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        if copy_existing:
+            shutil.copyfile(path, tmp)
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _decode(value):
+    if isinstance(value, bytes):
+        return value.decode()
+    if isinstance(value, np.ndarray) and value.dtype.kind in "OS":
+        return [v.decode() if isinstance(v, bytes) else str(v) for v in value.tolist()]
+    return value
+
+
+def _read_dataset(group: h5py.Group, name: str, required: bool = False):
+    if name not in group:
+        if required:
+            raise SessionError(f"{group.name}/{name}: missing dataset")
+        return None
+    item = group[name]
+    if not isinstance(item, h5py.Dataset):
+        raise SessionError(f"{item.name}: expected a dataset, found a group")
+    return item[()]
+
+
+def read(path: str | os.PathLike) -> Session:
+    """Read and validate a session file.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist.
+    SessionError
+        The file is not a session file of a version this ivc reads, or breaks the
+        format; the message names the dataset and the problem.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such session file")
+    try:
+        handle = h5py.File(path, "r")
+    except OSError as error:
+        raise SessionError(f"{path}: not an HDF5 file ({error})") from None
+    with handle as h5:
+        attrs = {key: _decode(value) for key, value in h5.attrs.items()}
+        kind = attrs.get("ivc_format")
+        if kind != FORMAT_NAME:
+            found = f"an ivc {kind!r} file" if kind else "a file without the ivc_format attribute"
+            raise SessionError(f"{path}: / attribute ivc_format: expected 'session', this is {found}")
+        version = int(attrs.get("ivc_format_version", -1))
+        if version != FORMAT_VERSION:
+            hint = "upgrade ivc to read it" if version > FORMAT_VERSION else "it is not a version ivc ever wrote"
+            raise SessionError(
+                f"{path}: / attribute ivc_format_version = {version}: this ivc reads {FORMAT_VERSION}; {hint}"
+            )
+        if attrs.get("length_unit", "m") != "m":
+            raise SessionError(
+                f"{path}: / attribute length_unit = {attrs['length_unit']!r}: positions must be in metres ('m')"
+            )
+        session = Session(
+            hemisphere=attrs.get("hemisphere", "+x"),
+            attrs={k: v for k, v in attrs.items() if k not in _FILE_ATTRS},
+        )
+        steps = h5.get("steps", {})
+        for name in _ordered(steps):
+            group = steps[name]
+            step_attrs = {key: _decode(value) for key, value in group.attrs.items()}
+            valid = _read_dataset(group, "valid")
+            session.steps[name] = Step(
+                time=_read_dataset(group, "time", required=True),
+                signal=_read_dataset(group, "signal"),
+                position=_read_dataset(group, "position"),
+                quaternion=_read_dataset(group, "quaternion"),
+                valid=valid,
+                sample_rate_hz=float(step_attrs.get("sample_rate_hz", np.nan)),
+                sensor_ids=step_attrs.get("sensor_ids"),
+                description=step_attrs.get("description", ""),
+                attrs={k: v for k, v in step_attrs.items() if k not in _STEP_ATTRS},
+            )
+        for name, group in h5.get("truth", {}).items():
+            session.truth[name] = Truth(
+                position=_read_dataset(group, "position", required=True),
+                quaternion=_read_dataset(group, "quaternion", required=True),
+            )
+    session.validate()
+    return session
+
+
+def _write_step(h5: h5py.File, name: str, step: Step) -> None:
+    group = h5.require_group("steps").create_group(name)
+    for dataset in _STEP_DATASETS:
+        value = getattr(step, dataset)
+        if value is not None:
+            group.create_dataset(dataset, data=value)
+    group.attrs["sample_rate_hz"] = float(step.sample_rate_hz)
+    group.attrs["sensor_ids"] = list(step.names)
+    group.attrs["description"] = step.description
+    for key, value in step.attrs.items():
+        group.attrs[key] = value
+
+
+def _write_truth(h5: h5py.File, name: str, truth: Truth) -> None:
+    group = h5.require_group("truth").create_group(name)
+    group.create_dataset("position", data=truth.position)
+    group.create_dataset("quaternion", data=truth.quaternion)
+
+
+def _write_header(h5: h5py.File, session: Session) -> None:
+    h5.attrs["ivc_format"] = FORMAT_NAME
+    h5.attrs["ivc_format_version"] = FORMAT_VERSION
+    h5.attrs["length_unit"] = "m"
+    h5.attrs["hemisphere"] = session.hemisphere
+    for key, value in session.attrs.items():
+        h5.attrs[key] = value
+
+
+def write(session: Session, path: str | os.PathLike, *, overwrite: bool = False) -> None:
+    """Write a whole session atomically; refuse to replace an existing file unless ``overwrite``."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path}: exists; add steps to it with add_step, or pass overwrite=True (--force)")
+    session.validate()
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
+        _write_header(h5, session)
+        for name in _ordered(session.steps):
+            _write_step(h5, name, session.steps[name])
+        for name in _ordered(session.truth):
+            _write_truth(h5, name, session.truth[name])
+
+
+def _ordered(names) -> list[str]:
+    return sorted(names, key=lambda n: STEPS.index(n) if n in STEPS else len(STEPS))
+
+
+def add_step(
+    path: str | os.PathLike,
+    name: str,
+    step: Step,
+    truth: Truth | None = None,
+    *,
+    hemisphere: str = "+x",
+    force: bool = False,
+) -> None:
+    """Add one step (and its truth) to a session file, creating the file if needed.
+
+    Everything already in the file is kept as it is. A step that already exists is
+    replaced only with ``force``. The hemisphere of an existing file must match.
+    """
+    path = Path(path)
+    validate_step(name, step)
+    if not path.exists():
+        session = Session(hemisphere=hemisphere, steps={name: step}, truth={name: truth} if truth else {})
+        write(session, path)
+        return
+    existing = read(path)
+    if existing.hemisphere != hemisphere:
+        raise SessionError(
+            f"{path}: / attribute hemisphere = {existing.hemisphere!r} but this step was solved in {hemisphere!r}"
+        )
+    if name in existing.steps and not force:
+        raise FileExistsError(f"{path}: step {name!r} is already recorded; pass --force to replace it")
+    existing.steps[name] = step
+    existing.truth.pop(name, None)
+    if truth is not None:
+        existing.truth[name] = truth
+    existing.validate()
+    with atomic_path(path, copy_existing=True) as tmp:
+        with h5py.File(tmp, "r+") as h5:
+            for root in ("steps", "truth"):
+                if root in h5 and name in h5[root]:
+                    del h5[root][name]
+            _write_step(h5, name, step)
+            if truth is not None:
+                _write_truth(h5, name, truth)
+        read(tmp)  # the file about to replace the old one must itself be valid

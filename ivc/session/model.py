@@ -1,0 +1,237 @@
+"""In-memory form of the session file (docs/session-format.md) and its validation.
+
+A :class:`Session` is a set of protocol :class:`Step` recordings plus optional
+:class:`Truth` for simulations. Validation raises :class:`SessionError` with the
+HDF5 path of the offending dataset, what is wrong, and what to do about it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ivc.dipole import HEMISPHERES, signal_from_pose
+
+FORMAT_NAME = "session"
+FORMAT_VERSION = 1
+
+#: the protocol steps of seed 001 ch. 4.4.3, in recording order
+STEPS = ("cube_calibration", "cube_survey", "wand_calibration", "wand_sweep", "check")
+#: the steps ``ivc fit`` needs; ``check`` is for ``ivc evaluate``
+FIT_STEPS = STEPS[:4]
+CUBE_SENSORS = 8
+STEP_DESCRIPTIONS = {
+    "cube_calibration": "interpolation cube, free space, static",
+    "cube_survey": "interpolation cube at its declared pose in the distorted volume, static",
+    "wand_calibration": "mapping wand, free space, static",
+    "wand_sweep": "mapping wand, sensor 0 inside the cube, far end sweeping the distorted volume",
+    "check": "independent poses in the distorted volume, for evaluation",
+}
+#: unit quaternions are accepted within this much of norm 1
+QUATERNION_NORM_TOLERANCE = 1e-6
+
+
+class SessionError(ValueError):
+    """A session file, or data about to be written to one, breaks the format."""
+
+
+@dataclass
+class Truth:
+    """True poses of a step (simulations and precision rigs only; never used to fit)."""
+
+    position: NDArray[np.float64]  # (F, N, 3) metres, source frame
+    quaternion: NDArray[np.float64]  # (F, N, 4) [w, x, y, z]
+
+
+@dataclass
+class Step:
+    """One protocol step: F frames of N sensors.
+
+    Holds ``signal`` (F, N, 3, 3), or ``position`` (F, N, 3, metres) with
+    ``quaternion`` (F, N, 4), or both. ``valid`` (F, N) marks dropped or saturated
+    samples False; non-finite values are allowed only there.
+    """
+
+    time: NDArray[np.float64]
+    signal: NDArray[np.float64] | None = None
+    position: NDArray[np.float64] | None = None
+    quaternion: NDArray[np.float64] | None = None
+    valid: NDArray[np.bool_] | None = None
+    sample_rate_hz: float = 240.0
+    sensor_ids: list[str] | None = None
+    description: str = ""
+    attrs: dict = field(default_factory=dict)
+
+    @property
+    def n_frames(self) -> int:
+        return int(np.shape(self.time)[0])
+
+    @property
+    def n_sensors(self) -> int:
+        data = self.signal if self.signal is not None else self.position
+        return 0 if data is None else int(np.shape(data)[1])
+
+    @property
+    def valid_mask(self) -> NDArray[np.bool_]:
+        """``valid``, or all True when the step has none."""
+        if self.valid is None:
+            return np.ones((self.n_frames, self.n_sensors), dtype=bool)
+        return np.asarray(self.valid, dtype=bool)
+
+    @property
+    def names(self) -> list[str]:
+        return self.sensor_ids if self.sensor_ids is not None else [str(i) for i in range(self.n_sensors)]
+
+    def signal_matrices(self) -> NDArray[np.float64]:
+        """Signal matrices, rebuilt from the reported poses when the step has none (MATH.md §9)."""
+        if self.signal is not None:
+            return self.signal
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return signal_from_pose(self.position, self.quaternion)
+
+
+@dataclass
+class Session:
+    """A whole session file: steps, truth, and the declared hemisphere."""
+
+    hemisphere: str = "+x"
+    steps: dict[str, Step] = field(default_factory=dict)
+    truth: dict[str, Truth] = field(default_factory=dict)
+    attrs: dict = field(default_factory=dict)
+
+    def missing_for_fit(self) -> list[str]:
+        """What is still missing before ``ivc fit`` can run, as sentences; empty when ready."""
+        missing = [
+            f"step {name!r} ({STEP_DESCRIPTIONS[name]}): record it with `ivc collect {name}`"
+            for name in FIT_STEPS
+            if name not in self.steps
+        ]
+        survey = self.steps.get("cube_survey")
+        if survey is not None and not {"declared_position", "declared_quaternion"} <= survey.attrs.keys():
+            missing.append("cube_survey has no declared cube pose (declared_position, declared_quaternion)")
+        return missing
+
+    def validate(self) -> None:
+        """Raise :class:`SessionError` for anything that breaks the format."""
+        if self.hemisphere not in HEMISPHERES:
+            raise SessionError(f"/ attribute hemisphere = {self.hemisphere!r}: must be one of {', '.join(HEMISPHERES)}")
+        for name, step in self.steps.items():
+            validate_step(name, step)
+        for name, truth in self.truth.items():
+            if name not in self.steps:
+                raise SessionError(f"/truth/{name}: truth for a step the session does not have")
+            validate_truth(name, truth, self.steps[name])
+        calibration, sweep = self.steps.get("wand_calibration"), self.steps.get("wand_sweep")
+        if calibration is not None and sweep is not None and calibration.n_sensors != sweep.n_sensors:
+            raise SessionError(
+                f"/steps/wand_sweep: {sweep.n_sensors} sensors but wand_calibration has "
+                f"{calibration.n_sensors}; both steps must record the same wand"
+            )
+
+
+def _check_shape(path: str, array, shape: tuple) -> np.ndarray:
+    """``array`` as float64 with ``shape`` (None entries free), or a SessionError naming ``path``."""
+    a = np.asarray(array)
+    if a.dtype.kind not in "fiu":
+        raise SessionError(f"{path}: expected numbers, got dtype {a.dtype}")
+    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape, strict=True)):
+        want = "(" + ", ".join("any" if s is None else str(s) for s in shape) + ")"
+        raise SessionError(f"{path}: shape {a.shape}, expected {want}")
+    return a
+
+
+def _check_finite(path: str, a: np.ndarray, valid: np.ndarray) -> None:
+    bad = ~np.isfinite(a).reshape(a.shape[:2] + (-1,)).all(axis=-1) & valid
+    if bad.any():
+        frame, sensor = np.argwhere(bad)[0]
+        raise SessionError(
+            f"{path}: {int(bad.sum())} valid samples hold NaN or inf (first at frame {frame}, sensor {sensor}); "
+            "mark dropped samples with valid = False"
+        )
+
+
+def _check_unit_quaternions(path: str, q: np.ndarray, valid: np.ndarray) -> None:
+    with np.errstate(invalid="ignore"):
+        off = np.abs(np.linalg.norm(q, axis=-1) - 1.0)
+    bad = (off > QUATERNION_NORM_TOLERANCE) & valid
+    if bad.any():
+        raise SessionError(
+            f"{path}: {int(bad.sum())} quaternions are not unit norm (off by up to {off[bad].max():.3g}); "
+            "quaternions are [w, x, y, z] and must be normalised"
+        )
+
+
+def validate_step(name: str, step: Step) -> None:
+    """Check one step against the format; raise :class:`SessionError` naming the dataset."""
+    base = f"/steps/{name}"
+    if name not in STEPS:
+        raise SessionError(f"{base}: unknown step; the steps are {', '.join(STEPS)}")
+    time = _check_shape(f"{base}/time", step.time, (None,))
+    frames = time.shape[0]
+    if frames == 0:
+        raise SessionError(f"{base}/time: the step has no frames")
+    if not np.all(np.isfinite(time)):
+        raise SessionError(f"{base}/time: holds NaN or inf")
+    if np.any(np.diff(time) < 0):
+        raise SessionError(f"{base}/time: goes backwards at frame {int(np.argmax(np.diff(time) < 0)) + 1}")
+    if step.signal is None and step.position is None and step.quaternion is None:
+        raise SessionError(f"{base}: holds neither signal nor position + quaternion")
+    if (step.position is None) != (step.quaternion is None):
+        missing = "quaternion" if step.quaternion is None else "position"
+        raise SessionError(f"{base}/{missing}: missing; a reported pose needs both position and quaternion")
+    sensors = step.n_sensors
+    if step.valid is None:
+        valid = np.ones((frames, sensors), dtype=bool)
+    else:
+        valid = np.asarray(step.valid)
+        if valid.dtype != bool:
+            raise SessionError(f"{base}/valid: dtype {valid.dtype}, expected bool")
+        if valid.ndim >= 1 and valid.shape[0] != frames:
+            raise SessionError(f"{base}/valid: {valid.shape[0]} frames but time has {frames}")
+        if valid.shape != (frames, sensors):
+            raise SessionError(f"{base}/valid: shape {valid.shape}, expected ({frames}, {sensors}) like the data")
+    for dataset, tail in (("signal", (3, 3)), ("position", (3,)), ("quaternion", (4,))):
+        value = getattr(step, dataset)
+        if value is None:
+            continue
+        a = np.asarray(value)
+        if a.ndim >= 1 and a.shape[0] != frames:
+            raise SessionError(f"{base}/{dataset}: {a.shape[0]} frames but time has {frames}")
+        a = _check_shape(f"{base}/{dataset}", a, (frames, sensors) + tail)
+        _check_finite(f"{base}/{dataset}", a, valid)
+    if step.quaternion is not None:
+        _check_unit_quaternions(f"{base}/quaternion", np.asarray(step.quaternion), valid)
+    if name.startswith("cube_") and sensors != CUBE_SENSORS:
+        raise SessionError(f"{base}: {sensors} sensors; the interpolation cube has {CUBE_SENSORS}")
+    if not (np.isfinite(step.sample_rate_hz) and step.sample_rate_hz > 0):
+        raise SessionError(f"{base} attribute sample_rate_hz = {step.sample_rate_hz}: must be a positive rate in Hz")
+    if step.sensor_ids is not None and (len(step.sensor_ids) != sensors or len(set(step.sensor_ids)) != sensors):
+        raise SessionError(f"{base} attribute sensor_ids: needs {sensors} distinct names, got {list(step.sensor_ids)}")
+    if name == "cube_survey":
+        _validate_declared_pose(base, step.attrs)
+
+
+def _validate_declared_pose(base: str, attrs: dict) -> None:
+    for key, size in (("declared_position", 3), ("declared_quaternion", 4)):
+        if key not in attrs:
+            raise SessionError(
+                f"{base} attribute {key}: missing; the cube survey needs the cube's declared pose in the source frame"
+            )
+        value = np.asarray(attrs[key], dtype=float)
+        if value.shape != (size,) or not np.all(np.isfinite(value)):
+            raise SessionError(f"{base} attribute {key}: expected {size} finite numbers, got {value}")
+    if abs(np.linalg.norm(attrs["declared_quaternion"]) - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise SessionError(f"{base} attribute declared_quaternion: not a unit quaternion")
+
+
+def validate_truth(name: str, truth: Truth, step: Step) -> None:
+    base = f"/truth/{name}"
+    shape = (step.n_frames, step.n_sensors)
+    position = _check_shape(f"{base}/position", truth.position, shape + (3,))
+    quaternion = _check_shape(f"{base}/quaternion", truth.quaternion, shape + (4,))
+    everywhere = np.ones(shape, dtype=bool)
+    _check_finite(f"{base}/position", position, everywhere)
+    _check_finite(f"{base}/quaternion", quaternion, everywhere)
+    _check_unit_quaternions(f"{base}/quaternion", quaternion, everywhere)
