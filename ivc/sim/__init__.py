@@ -1,0 +1,6 @@
+"""Stage 6a: a simulated AC tracker in a distorted room (conductors, ferrous objects, noise, fixtures)."""
+
+from ivc.sim.protocol import DEFAULT_FRAMES, Simulator
+from ivc.sim.scene import Scene, SceneError, builtin_scenes, load_scene
+
+__all__ = ["DEFAULT_FRAMES", "Scene", "SceneError", "Simulator", "builtin_scenes", "load_scene"]

@@ -1,0 +1,114 @@
+"""Simulate the six-step protocol (seed 001 ch. 4.4.3) in a scene, step by step.
+
+A :class:`Simulator` is fixed by its scene and seed: the fixtures' true geometry, the
+cube's placement error and each step's noise come from separate random streams, so a
+step simulated alone equals the same step simulated within the whole protocol, and
+the same seed always gives the same session.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from ivc import rotations
+from ivc.session import STEP_DESCRIPTIONS, Step, Truth
+from ivc.sim import rig, tracker
+from ivc.sim.field import SecondaryField
+from ivc.sim.scene import Scene
+
+DEFAULT_FRAMES = {
+    "cube_calibration": 2000,
+    "cube_survey": 500,
+    "wand_calibration": 500,
+    "wand_sweep": 100_000,
+    "check": 10_000,
+}
+_STREAMS = {
+    "cube": 1, "wand": 2, "placement": 3, "cube_calibration": 10, "cube_survey": 11,
+    "wand_calibration": 12, "wand_sweep": 13, "check": 14,
+}
+Progress = Callable[[str], None]
+
+
+class Simulator:
+    """A simulated tracker, fixtures and room for one scene and seed."""
+
+    def __init__(self, scene: Scene, seed: int = 0):
+        self.scene = scene
+        self.seed = int(seed)
+        self.cube = rig.make_cube(scene.cube, self._rng("cube"))
+        self.wand = rig.make_wand(scene.wand, self._rng("wand"))
+        self._secondary: SecondaryField | None = None
+
+    def _rng(self, purpose: str) -> np.random.Generator:
+        return np.random.default_rng([self.seed, _STREAMS[purpose]])
+
+    @property
+    def secondary(self) -> SecondaryField:
+        """The scene's secondary field, solved on first use."""
+        if self._secondary is None:
+            self._secondary = self.scene.secondary_field()
+        return self._secondary
+
+    def true_cube_frame(self) -> tuple[np.ndarray, np.ndarray]:
+        """True pose ``(r_0, T_I)`` of the cube fixture frame (MATH.md §5) during the survey."""
+        body_position, body_quaternion = rig.cube_body_pose(self.scene.cube)
+        origin, T_body = rig.fixture_frame(self.cube.body_positions)
+        R = rotations.to_matrix(body_quaternion)
+        return body_position + R @ origin, R @ T_body
+
+    def declared_cube_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """The user's declared cube pose: the true one with a realistic placement error.
+
+        Returns ``(declared_position (3,), declared_quaternion (4,))``.
+        """
+        rng = self._rng("placement")
+        r0, T_I = self.true_cube_frame()
+        position = r0 + self.scene.cube.placement_sigma * rng.standard_normal(3)
+        tilt = rotations.from_rotvec(self.scene.cube.placement_sigma_rad * rng.standard_normal(3))
+        return position, rotations.canonical(rotations.multiply(tilt, rotations.from_matrix(T_I)))
+
+    def step(self, name: str, frames: int | None = None) -> tuple[Step, Truth]:
+        """Simulate one protocol step; returns the recorded step and its truth."""
+        if name not in DEFAULT_FRAMES:
+            raise ValueError(f"unknown step {name!r}; the steps are {', '.join(DEFAULT_FRAMES)}")
+        frames = DEFAULT_FRAMES[name] if frames is None else int(frames)
+        if frames < 1:
+            raise ValueError(f"{name}: frames must be at least 1, got {frames}")
+        rng = self._rng(name)
+        scene = self.scene
+        attrs = {}
+        if name == "cube_calibration":
+            body = (np.asarray(scene.cube.center), rotations.random(1, rng)[0])
+            positions, quaternions = self._static(self.cube, *body, frames)
+        elif name == "cube_survey":
+            positions, quaternions = self._static(self.cube, *rig.cube_body_pose(scene.cube), frames)
+            declared_position, declared_quaternion = self.declared_cube_pose()
+            attrs = {"declared_position": declared_position, "declared_quaternion": declared_quaternion}
+        elif name == "wand_calibration":
+            positions, quaternions = self._static(self.wand, scene.cube.center, rotations.random(1, rng)[0], frames)
+        elif name == "wand_sweep":
+            positions, quaternions = self.wand.sensor_poses(*rig.sweep_motion(scene, frames, rng))
+        else:
+            positions, quaternions = rig.check_poses(scene, frames, rng)
+        distorted = name in ("cube_survey", "wand_sweep", "check")
+        step = tracker.measure(
+            positions,
+            quaternions,
+            secondary=self.secondary if distorted else None,
+            noise=scene.noise,
+            rate_hz=scene.sweep_rate_hz,
+            hemisphere=scene.hemisphere,
+            rng=rng,
+            description=f"simulated: {STEP_DESCRIPTIONS[name]} (scene {scene.name!r}, seed {self.seed})",
+            sensor_prefix="cube" if name.startswith("cube") else ("wand" if name.startswith("wand") else "check"),
+        )
+        step.attrs.update(attrs)
+        return step, Truth(positions, quaternions)
+
+    @staticmethod
+    def _static(fixture: rig.RigidFixture, position, quaternion, frames: int):
+        positions, quaternions = fixture.sensor_poses(np.asarray(position)[None], np.asarray(quaternion)[None])
+        return np.repeat(positions, frames, axis=0), np.repeat(quaternions, frames, axis=0)
