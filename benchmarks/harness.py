@@ -42,7 +42,8 @@ class Figure:
         status = {True: "PASS", False: "FAIL", None: ""}[self.passed]
         baseline = f"{self.baseline_name} {self.baseline_value:.4g}" if self.baseline_name else "-"
         ratio = f"{self.ratio:.2f}x" if self.ratio == self.ratio else "-"
-        return f"{self.name:<44} {self.value:>12.4g} {self.unit:<10} {baseline:<34} {ratio:>8}  {self.target:<24} {status}"
+        return (f"{self.name:<44} {self.value:>12.4g} {self.unit:<10} {baseline:<34} {ratio:>8}  "
+                f"{self.target:<24} {status}")
 
 
 HEADER = f"{'figure':<44} {'value':>12} {'unit':<10} {'baseline (same run)':<34} {'ratio':>8}  {'target':<24} status"

@@ -47,7 +47,7 @@ def render(path: str, summary: dict) -> str:
         truth = "  +truth" if info["truth"] else ""
         lines.append(
             f"{name:<18}{info['frames']:>9}{info['sensors']:>9}{info['sample_rate_hz']:>9.1f}"
-            f"{info['duration_s']:>9.2f}{100 * info['valid_fraction']:>9.1f}  {info['data']}{truth}"
+            f"{info['duration_s']:>9.2f}{100 * info['valid_fraction']:>9.2f}  {info['data']}{truth}"
         )
     lines.append("")
     if summary["missing_for_fit"]:

@@ -23,14 +23,16 @@ class IvcGroup(click.Group):
 def cli() -> None:
     """Correct AC electromagnetic tracker poses near metal (interpolation-volume calibration).
 
-    The pipeline: `ivc collect` records the protocol into a session file,
-    `ivc info` says what a session holds and what it still lacks.
+    The pipeline: `ivc collect` records the protocol into a session file (from the
+    built-in simulator or a real tracker's recording); `ivc info` says what a session
+    holds and what it still lacks.
     """
 
 
 def _register() -> None:
-    from ivc.cli import info
+    from ivc.cli import collect, info
 
+    cli.add_command(collect.collect)
     cli.add_command(info.info)
 
 

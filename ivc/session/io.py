@@ -46,6 +46,9 @@ def atomic_path(path: str | os.PathLike, copy_existing: bool = False) -> Iterato
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
     try:
         if copy_existing:
             shutil.copyfile(path, tmp)

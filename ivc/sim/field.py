@@ -58,7 +58,10 @@ class SecondaryField:
         return G
 
     def tabulate(self, progress=None) -> None:
-        """Tabulate the eddy-current part on the region-of-interest grid (done once)."""
+        """Tabulate the eddy-current part on the region-of-interest grid (done once).
+
+        ``progress(done, total)`` is called after each slab of the grid.
+        """
         if self.dipoles is None or self.roi is None or self._coefficients is not None:
             return
         lower, upper = (np.asarray(c, float) for c in self.roi)
@@ -71,7 +74,7 @@ class SecondaryField:
         for i in range(shape[0]):  # one slab at a time, so progress can be shown
             values[i] = self.dipoles.field(nodes[i])
             if progress is not None:
-                progress(1 / shape[0])
+                progress(i + 1, shape[0])
         self._coefficients = np.stack(
             [ndimage.spline_filter(values[..., a, b], order=3, mode="nearest") for a in range(3) for b in range(3)]
         )

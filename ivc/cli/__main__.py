@@ -1,0 +1,3 @@
+from ivc.cli import main
+
+main()

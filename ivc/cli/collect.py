@@ -1,0 +1,156 @@
+"""``ivc collect``: record protocol steps into a session file, from the simulator or a recording."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import numpy as np
+from tqdm import tqdm
+
+from ivc import rotations
+from ivc import session as session_io
+from ivc.collect import check_step, replay
+from ivc.session import STEPS, Session, SessionError, Step, Truth
+from ivc.sim import Simulator, load_scene
+
+
+def _floats(count: int):
+    def parse(ctx, param, value):
+        if value is None:
+            return None
+        try:
+            numbers = np.array([float(v) for v in value.replace(" ", "").split(",")])
+        except ValueError:
+            raise click.BadParameter(f"expected {count} comma-separated numbers, got {value!r}") from None
+        if numbers.shape != (count,):
+            raise click.BadParameter(f"expected {count} comma-separated numbers, got {value!r}")
+        return numbers
+
+    return parse
+
+
+def _parse_source(source: str) -> tuple[str, str | None]:
+    kind, _, argument = source.partition(":")
+    if kind == "sim":
+        return kind, argument or None
+    if kind == "replay" and argument:
+        return kind, argument
+    raise click.BadParameter(f"{source!r}: use sim, sim:SCENE (a built-in name or a .toml file) or replay:FILE",
+                             param_hint="--source")
+
+
+class _SimulatorProgress:
+    """Builds the simulator once and shows what the slow parts are doing."""
+
+    def __init__(self, scene_name: str | None, seed: int):
+        self.scene = load_scene(scene_name)
+        self.simulator = Simulator(self.scene, seed)
+
+    def prepare(self, distorted: bool) -> None:
+        if not distorted or self.simulator._secondary is not None:
+            return
+        click.echo(f"Solving eddy currents in scene {self.scene.name!r} ...", err=True)
+        field = self.simulator.secondary
+        if field.dipoles is not None and field.roi is not None:
+            with tqdm(desc="tabulating the secondary field", unit="slab", leave=False) as bar:
+
+                def advance(done: int, total: int) -> None:
+                    bar.total = total
+                    bar.update(done - bar.n)
+
+                field.tabulate(progress=advance)
+
+
+def _summary(name: str, step: Step, truth: Truth | None) -> str:
+    text = f"{name}: {step.n_frames} frames x {step.n_sensors} sensors, {100 * step.valid_mask.mean():.2f}% valid"
+    if truth is not None and step.position is not None:
+        ok = step.valid_mask
+        error = np.linalg.norm(step.position - truth.position, axis=-1)[ok]
+        angle = rotations.angle_between(step.quaternion, truth.quaternion)[ok]
+        text += (f"; tracker's own (dipole) error: median {1000 * np.median(error):.1f} mm, "
+                 f"{1000 * np.median(angle):.1f} mrad")
+    return text
+
+
+def _record(name, sim, kind, argument, frames, rate, declared_position, declared_quaternion):
+    if kind == "sim":
+        sim.prepare(name in ("cube_survey", "wand_sweep", "check"))
+        step, truth = sim.simulator.step(name, frames)
+    else:
+        step, truth = replay(argument, name, rate)
+        if frames is not None:
+            raise click.BadParameter("--frames is for simulated sources; a replay keeps every frame")
+    if name == "cube_survey":
+        if declared_position is not None:
+            step.attrs["declared_position"] = declared_position
+        if declared_quaternion is not None:
+            if abs(np.linalg.norm(declared_quaternion) - 1) > 1e-6:
+                raise click.BadParameter("must be a unit quaternion w,x,y,z", param_hint="--declared-quaternion")
+            step.attrs["declared_quaternion"] = rotations.canonical(declared_quaternion)
+        if "declared_position" not in step.attrs or "declared_quaternion" not in step.attrs:
+            raise click.UsageError(
+                "cube_survey needs the cube's declared pose: pass --declared-position x,y,z (metres) and "
+                "--declared-quaternion w,x,y,z (the cube fixture frame, origin at sensor 0, in the source frame)"
+            )
+    return step, truth
+
+
+@click.command()
+@click.argument("step", type=click.Choice([*STEPS, "protocol"]))
+@click.option("--source", default="sim", show_default=True, help="sim, sim:SCENE (name or .toml), or replay:FILE "
+              "(a session .h5 or a recording .csv).")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Session file to add to.")
+@click.option("--frames", type=int, help="Frames to simulate (default: the step's protocol default).")
+@click.option("--sweep-frames", type=int, help="protocol: frames of the wand sweep (default 100,000).")
+@click.option("--check-frames", type=int, help="protocol: check poses (default 10,000).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Simulator seed.")
+@click.option("--hemisphere", help="Hemisphere of a replayed recording (default +x; a scene declares its own).")
+@click.option("--rate", type=float, help="Sample rate (Hz) of a replayed CSV (default: inferred from its times).")
+@click.option("--declared-position", callback=_floats(3), help="cube_survey: declared cube position x,y,z in m.")
+@click.option("--declared-quaternion", callback=_floats(4), help="cube_survey: declared cube orientation w,x,y,z.")
+@click.option("--force", is_flag=True, help="Replace a step that is already in the session file.")
+def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemisphere, rate, declared_position,
+            declared_quaternion, force):
+    """Record protocol STEP (or the whole `protocol`) into the session file OUTPUT.
+
+    The protocol (seed 001 ch. 4.4.3): cube_calibration (free space), cube_survey (cube at
+    its declared pose in the distorted room), wand_calibration (free space), wand_sweep
+    (wand sensor 0 inside the cube, far end sweeping), check (independent poses).
+    """
+    kind, argument = _parse_source(source)
+    sim = _SimulatorProgress(argument, seed) if kind == "sim" else None
+    hemisphere = hemisphere or (sim.scene.hemisphere if sim else "+x")
+    output = Path(output)
+    if step == "protocol":
+        if kind != "sim":
+            raise click.UsageError("`ivc collect protocol` simulates; replay a recording one step at a time")
+        if output.exists() and not force:
+            raise FileExistsError(f"{output}: exists; choose a new file or pass --force to replace it")
+        counts = {"wand_sweep": sweep_frames, "check": check_frames}
+        collected = Session(hemisphere=hemisphere, attrs={"scene": sim.scene.name, "seed": seed})
+        for name in tqdm(STEPS, desc="protocol", unit="step"):
+            new, truth = _record(name, sim, kind, argument, counts.get(name, frames), rate, declared_position,
+                                 declared_quaternion)
+            for warning in check_step(name, new, collected, hemisphere):
+                click.echo(f"warning: {warning}", err=True)
+            collected.steps[name] = new
+            if truth is not None:
+                collected.truth[name] = truth
+        session_io.write(collected, output, overwrite=force)
+        for name in STEPS:
+            click.echo(_summary(name, collected.steps[name], collected.truth.get(name)))
+        click.echo(f"wrote {output}")
+        return
+    existing = session_io.read(output) if output.exists() else None
+    if existing is not None and step in existing.steps and not force:
+        raise FileExistsError(f"{output}: step {step!r} is already recorded; pass --force to replace it")
+    new, truth = _record(step, sim, kind, argument, frames, rate, declared_position, declared_quaternion)
+    for warning in check_step(step, new, existing or Session(hemisphere=hemisphere), hemisphere):
+        click.echo(f"warning: {warning}", err=True)
+    try:
+        session_io.add_step(output, step, new, truth, hemisphere=hemisphere, force=force)
+    except SessionError as error:
+        raise SessionError(f"{error} (nothing was written)") from None
+    click.echo(_summary(step, new, truth))
+    click.echo(f"wrote {step} to {output}")

@@ -1,0 +1,62 @@
+"""Plain-word checks of a recorded step, run while collecting (seed 001 ch. 4.4.3).
+
+They warn and do not refuse: a user may know better (a short test capture, say), and
+``ivc fit`` refuses later what it cannot use.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ivc import dipole, rotations
+from ivc.session import STEPS, Session, Step
+
+#: the seed's minimum frame counts
+MIN_FRAMES = {"cube_calibration": 1000}
+DEFAULT_MIN_FRAMES = 100
+STATIC_STEPS = ("cube_calibration", "cube_survey", "wand_calibration")
+#: a static fixture whose sensors move more than this was not static (well above tracker jitter)
+STATIC_POSITION_SPREAD = 0.002  # m, 99th minus 1st percentile
+STATIC_ANGLE_SPREAD = 0.02  # rad
+INVALID_FRACTION_WARNING = 0.01
+
+
+def _poses(step: Step, hemisphere: str) -> tuple[np.ndarray, np.ndarray]:
+    if step.position is not None:
+        return step.position, step.quaternion
+    with np.errstate(invalid="ignore"):
+        position, T = dipole.closed_form_pose(step.signal, hemisphere)
+        return position, rotations.from_matrix(T)
+
+
+def check_step(name: str, step: Step, session: Session | None = None, hemisphere: str = "+x") -> list[str]:
+    """Warnings, in plain words, about a step about to be added to ``session``."""
+    warnings = []
+    minimum = MIN_FRAMES.get(name, DEFAULT_MIN_FRAMES)
+    if name != "check" and step.n_frames < minimum:
+        warnings.append(f"{name} has {step.n_frames} frames; the method wants at least {minimum}")
+    valid = step.valid_mask
+    for k, sensor in enumerate(step.names):
+        bad = 1.0 - valid[:, k].mean()
+        if bad > INVALID_FRACTION_WARNING:
+            warnings.append(f"sensor {sensor} was dropped or saturated in {100 * bad:.1f}% of {name}'s frames")
+    if name in STATIC_STEPS:
+        position, quaternion = _poses(step, hemisphere)
+        for k, sensor in enumerate(step.names):
+            ok = valid[:, k]
+            if ok.sum() < 2:
+                continue
+            p = position[ok, k]
+            spread = np.max(np.percentile(p, 99, axis=0) - np.percentile(p, 1, axis=0))
+            angles = rotations.angle_between(quaternion[ok, k], rotations.mean(quaternion[ok, k]))
+            if spread > STATIC_POSITION_SPREAD or np.percentile(angles, 99) > STATIC_ANGLE_SPREAD:
+                warnings.append(
+                    f"the fixture was not static during {name}: sensor {sensor} moved {1000 * spread:.1f} mm "
+                    f"and {1000 * np.percentile(angles, 99):.0f} mrad; record it again with the fixture still"
+                )
+                break
+    if session is not None:
+        earlier = [s for s in STEPS[: STEPS.index(name)] if s != "check" and s not in session.steps]
+        if earlier and name != "check":
+            warnings.append(f"{name} recorded before {', '.join(earlier)}: the protocol's order is {', '.join(STEPS)}")
+    return warnings
