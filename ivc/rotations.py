@@ -3,7 +3,7 @@
 Conventions (docs/conventions.md):
 
 * A quaternion is ``[w, x, y, z]``: scalar first, Hamilton product, unit norm,
-  canonical sign ``w >= 0``.
+  canonical sign ``w >= 0`` (see :func:`canonical` for rotations by pi).
 * ``to_matrix(q)`` (the seed's ``QtoT``) is the rotation matrix ``T`` whose columns
   are the sensor's axes written in the source frame, so ``T`` maps sensor-frame
   vectors into the source frame, and ``to_matrix(p ⊗ q) = to_matrix(p) @ to_matrix(q)``.
@@ -25,11 +25,23 @@ FloatArray = NDArray[np.float64]
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 
 
+#: below this, a component counts as zero when choosing the canonical sign
+_SIGN_TOLERANCE = 1e-12
+
+
 def canonical(q: ArrayLike) -> FloatArray:
-    """Normalise quaternions to unit norm and flip their sign so that ``w >= 0``."""
+    """Normalise quaternions to unit norm and choose the sign with ``w >= 0``.
+
+    For rotations by pi (``|w|`` below 1e-12) ``w >= 0`` does not fix the sign: then the
+    first of x, y, z that is not (numerically) zero is made positive, so that ``q`` and
+    ``−q`` of one rotation always map to the same quaternion.
+    """
     q = np.asarray(q, dtype=float)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0.0, -q, q)
+    significant = np.abs(q) > _SIGN_TOLERANCE
+    first = np.argmax(significant, axis=-1)[..., None]
+    deciding = np.take_along_axis(q, first, axis=-1)
+    return np.where(deciding < 0.0, -q, q)
 
 
 def multiply(p: ArrayLike, q: ArrayLike) -> FloatArray:

@@ -1,5 +1,7 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from ivc import rotations as R
@@ -123,3 +125,17 @@ def test_nearest_rotation(rng):
     assert np.all(R.angle_between_matrices(P, T) < 5e-3)
     # a reflection is turned into the nearest proper rotation
     assert np.linalg.det(R.nearest_rotation(np.diag([1.0, 1.0, -1.0]))) == pytest.approx(1.0)
+
+
+quaternion_components = st.lists(st.floats(-1, 1, allow_nan=False), min_size=4, max_size=4).filter(
+    lambda v: np.linalg.norm(v) > 1e-3
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(quaternion_components, quaternion_components)
+def test_property_round_trip_and_composition(a, b):
+    p, q = R.canonical(a), R.canonical(b)
+    np.testing.assert_allclose(R.from_matrix(R.to_matrix(q)), q, atol=1e-12)
+    np.testing.assert_allclose(R.to_matrix(R.multiply(p, q)), R.to_matrix(p) @ R.to_matrix(q), atol=1e-12)
+    assert abs(R.angle_between(p, q) - R.angle_between_matrices(R.to_matrix(p), R.to_matrix(q))) < 1e-7
