@@ -5,6 +5,7 @@ import pytest
 
 from ivc import dipole
 from ivc import rotations as R
+from ivc.fixtures import CUBE_BITS, fixture_frame
 from ivc.sim import Scene, Simulator, rig
 from ivc.sim.scene import NoiseSpec, SceneError, scene_from_dict
 from ivc.sim.tracker import measure
@@ -40,12 +41,12 @@ def test_same_seed_same_data_and_steps_are_independent():
 def test_cube_geometry_numbering_and_fixture_frame(free_space):
     cube = free_space.cube
     spec = free_space.scene.cube
-    nominal = spec.edge * rig.CUBE_BITS
+    nominal = spec.edge * CUBE_BITS
     offsets = np.linalg.norm(cube.body_positions - nominal, axis=1)
     assert np.all(offsets < 6 * spec.mounting_sigma) and np.any(offsets > 0)
     # n = 4x + 2y + z: sensor 4 along X from sensor 0, 2 along Y, 1 along Z
-    np.testing.assert_array_equal(rig.CUBE_BITS[[4, 2, 1]], np.eye(3))
-    origin, T_I = rig.fixture_frame(cube.body_positions)
+    np.testing.assert_array_equal(CUBE_BITS[[4, 2, 1]], np.eye(3))
+    origin, T_I = fixture_frame(cube.body_positions)
     np.testing.assert_allclose(T_I.T @ T_I, np.eye(3), atol=1e-15)
     assert np.linalg.det(T_I) == pytest.approx(1.0)
     along_x = T_I.T @ (cube.body_positions[4] - origin)

@@ -13,6 +13,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ivc import rotations
+from ivc.fixtures import fixture_frame
 from ivc.session import STEP_DESCRIPTIONS, Step, Truth
 from ivc.sim import rig, tracker
 from ivc.sim.field import SecondaryField
@@ -55,7 +56,7 @@ class Simulator:
     def true_cube_frame(self) -> tuple[np.ndarray, np.ndarray]:
         """True pose ``(r_0, T_I)`` of the cube fixture frame (MATH.md §5) during the survey."""
         body_position, body_quaternion = rig.cube_body_pose(self.scene.cube)
-        origin, T_body = rig.fixture_frame(self.cube.body_positions)
+        origin, T_body = fixture_frame(self.cube.body_positions)
         R = rotations.to_matrix(body_quaternion)
         return body_position + R @ origin, R @ T_body
 

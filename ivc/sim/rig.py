@@ -13,9 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ivc import rotations
+from ivc.fixtures.cube import CUBE_BITS
 from ivc.sim.scene import CubeSpec, Scene, WandSpec
-
-CUBE_BITS = np.array([[(n >> 2) & 1, (n >> 1) & 1, n & 1] for n in range(8)], dtype=float)
 
 
 @dataclass
@@ -54,21 +53,6 @@ def cube_body_pose(spec: CubeSpec) -> tuple[np.ndarray, np.ndarray]:
     """Body pose (origin at nominal vertex 0) that puts the nominal cube centre at ``spec.center``."""
     R = rotations.to_matrix(spec.quaternion)
     return spec.center - R @ np.full(3, spec.edge / 2), spec.quaternion.copy()
-
-
-def fixture_frame(body_positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The cube fixture frame of MATH.md §5 (corrected eq. 78-83) from sensor positions in any frame.
-
-    Origin at sensor 0; x along sensor 4 − sensor 0, z normal to the X-Y edge plane.
-    Returns ``(origin (3,), T_I (3, 3))``.
-    """
-    r_a = body_positions[4] - body_positions[0]
-    r_b = body_positions[2] - body_positions[0]
-    ux = r_a / np.linalg.norm(r_a)
-    uz = np.cross(r_a, r_b)
-    uz /= np.linalg.norm(uz)
-    uy = np.cross(uz, ux)
-    return body_positions[0].copy(), np.stack([ux, uy, uz], axis=1)
 
 
 def _smooth_offsets(times: np.ndarray, amplitude: float, rng: np.random.Generator, components: int = 3):
