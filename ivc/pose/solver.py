@@ -1,0 +1,155 @@
+"""Sensor pose with a known secondary field, batched over frames (seed 001 eq. 91-93, MATH.md §4).
+
+Model: ``S = Tᵀ M(r)`` with ``M(r) = f_D(r) + g(r)``. ``min ‖S − Tᵀ M(r)‖_F`` is solved
+by Levenberg-Marquardt over position and a rotation increment (``T ← T exp([ω]×)``)
+with the analytic Jacobian of ``M``, the orientation starting from the orthogonal
+Procrustes solution ``T = polar(M Sᵀ)`` at the seed, and every frame of the batch
+stepping together as arrays. (Holding ``T`` fixed while stepping ``r`` converges only
+linearly here: position and orientation are strongly coupled through ``f_D``.)
+
+``method="joint"`` (default) minimises the full signal residual. ``method="two-stage"`` is
+the seed's: position from the rotation-invariant ``‖SᵀS − MᵀM‖_F`` (eq. 92), then
+orientation (eq. 93), kept for comparison.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ivc import dipole, rotations
+
+FieldModel = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+METHODS = ("joint", "two-stage")
+
+
+def dipole_plus(secondary: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None) -> FieldModel:
+    """``r -> (M, ∂M/∂r)`` for ``M = f_D + g``, from ``secondary(r) -> (g, ∂g/∂r)`` (None: free space)."""
+
+    def model(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        M, dM = dipole.field(r), dipole.field_jacobian(r)
+        if secondary is not None:
+            g, dg = secondary(r)
+            M, dM = M + g, dM + dg
+        return M, dM
+
+    return model
+
+
+@dataclass
+class PoseSolution:
+    """Solved poses of a batch: position (F, 3) m, rotation (F, 3, 3), and per-frame diagnostics."""
+
+    position: np.ndarray
+    rotation: np.ndarray
+    converged: np.ndarray  # (F,) bool
+    iterations: np.ndarray  # (F,) int
+    residual: np.ndarray  # (F,) rms(Λ) / rms(S), Λ = M(r) − T S (eq. 99)
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        return rotations.from_matrix(self.rotation)
+
+
+def procrustes(M: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """Rotation ``T`` minimising ``‖S − Tᵀ M‖_F``: ``U diag(1, 1, det(U Vᵀ)) Vᵀ`` of ``M Sᵀ``."""
+    return rotations.nearest_rotation(M @ np.swapaxes(S, -1, -2))
+
+
+_SKEW = np.array(  # [e_a]× for a = x, y, z
+    [[[0, 0, 0], [0, 0, -1], [0, 1, 0]], [[0, 0, 1], [0, 0, 0], [-1, 0, 0]], [[0, -1, 0], [1, 0, 0], [0, 0, 0]]],
+    dtype=float,
+)
+
+
+def _residual_joint(S, M, dM, T):
+    """e = S − Tᵀ M(r) and its Jacobian in (δr, ω), with T ← T exp([ω]×): ∂e/∂ω_a = [e_a]× Tᵀ M."""
+    P = np.swapaxes(T, -1, -2) @ M
+    e = S - P
+    J_r = -np.einsum("fai,fajk->fijk", T, dM)
+    J_w = np.einsum("aij,fjk->fika", _SKEW, P)
+    return e.reshape(len(S), 9), np.concatenate([J_r, J_w], axis=-1).reshape(len(S), 9, 6)
+
+
+def _residual_two_stage(S, M, dM, T):
+    B = np.swapaxes(S, -1, -2) @ S
+    e = B - np.swapaxes(M, -1, -2) @ M  # eq. 92, rotation invariant: T plays no part
+    MtdM = np.einsum("fai,fajk->fijk", M, dM)
+    J = -(MtdM + np.swapaxes(MtdM, 1, 2))
+    return e.reshape(len(S), 9), J.reshape(len(S), 9, 3)
+
+
+def solve_pose(
+    S: np.ndarray,
+    model: FieldModel,
+    initial_position: np.ndarray,
+    *,
+    method: str = "joint",
+    max_iterations: int = 60,
+    step_tolerance: float = 1e-9,
+) -> PoseSolution:
+    """Solve ``S`` (F, 3, 3) for pose, starting at ``initial_position`` (F, 3) metres.
+
+    ``model(r)`` gives ``M = f_D + g`` (F, 3, 3) and ``∂M/∂r`` (F, 3, 3, 3). A frame has
+    converged when its position step falls below ``step_tolerance`` metres (or its cost
+    can no longer decrease) within ``max_iterations``. Non-finite input frames are
+    returned as NaN, not converged.
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; use one of {', '.join(METHODS)}")
+    residual_fn = _residual_joint if method == "joint" else _residual_two_stage
+    S = np.asarray(S, float)
+    r = np.array(initial_position, dtype=float)
+    F = len(S)
+    finite = np.all(np.isfinite(S.reshape(F, -1)), axis=1) & np.all(np.isfinite(r), axis=1)
+    S = np.where(finite[:, None, None], S, np.eye(3))  # placeholders, never reported
+    active = finite.copy()
+    converged = np.zeros(F, dtype=bool)
+    iterations = np.zeros(F, dtype=int)
+    damping = np.full(F, 1e-3)
+    cost = np.full(F, np.inf)
+    M, dM = model(np.where(finite[:, None], r, 1.0))
+    T = procrustes(M, S)
+    e, J = residual_fn(S, M, dM, T)
+    cost[finite] = np.sum(e[finite] ** 2, axis=1)
+    unknowns = J.shape[-1]
+    for _ in range(max_iterations):
+        idx = np.flatnonzero(active)
+        if len(idx) == 0:
+            break
+        Ja, ea = J[idx], e[idx]
+        H = np.einsum("fki,fkj->fij", Ja, Ja)
+        g = np.einsum("fki,fk->fi", Ja, ea)
+        diag = np.einsum("fii->fi", H)
+        scale = np.maximum(diag, 1e-30 * diag.max(axis=1, keepdims=True))  # Marquardt's diagonal scaling
+        A = H + (damping[idx, None] * scale)[:, :, None] * np.eye(unknowns)
+        step = -np.linalg.solve(A, g[..., None])[..., 0]
+        trial_r = r[idx] + step[:, :3]
+        Mt, dMt = model(trial_r)
+        if unknowns == 6:
+            trial_T = T[idx] @ rotations.to_matrix(rotations.from_rotvec(step[:, 3:]))
+        else:
+            trial_T = procrustes(Mt, S[idx])
+        et, Jt = residual_fn(S[idx], Mt, dMt, trial_T)
+        trial_cost = np.sum(et**2, axis=1)
+        better = trial_cost <= cost[idx]
+        accept = idx[better]
+        r[accept], T[accept] = trial_r[better], trial_T[better]
+        e[accept], J[accept], cost[accept] = et[better], Jt[better], trial_cost[better]
+        damping[accept] = np.maximum(damping[accept] * 0.3, 1e-12)
+        damping[idx[~better]] *= 10.0
+        iterations[idx] += 1
+        small = np.linalg.norm(step[:, :3], axis=1) < step_tolerance
+        stuck = ~better & (damping[idx] > 1e8)  # no step decreases the cost: at the numerical minimum
+        done = idx[(better & small) | stuck]
+        converged[done] = True
+        active[done] = False
+    M, _ = model(np.where(finite[:, None], r, 1.0))
+    T = procrustes(M, S)
+    r[~finite] = np.nan
+    T[~finite] = np.nan
+    lam = M - T @ S  # eq. 99
+    rms_s = np.sqrt(np.mean(S**2, axis=(1, 2)))
+    return PoseSolution(r, T, converged & finite, iterations, np.sqrt(np.mean(lam**2, axis=(1, 2))) / rms_s)
