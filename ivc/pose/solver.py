@@ -47,6 +47,8 @@ class PoseSolution:
     converged: np.ndarray  # (F,) bool
     iterations: np.ndarray  # (F,) int
     residual: np.ndarray  # (F,) rms(Λ) / rms(S), Λ = M(r) − T S (eq. 99)
+    position_sigma: np.ndarray  # (F,) m, estimated standard error of the position
+    angle_sigma: np.ndarray  # (F,) rad, estimated standard error of the orientation
 
     @property
     def quaternion(self) -> np.ndarray:
@@ -146,10 +148,26 @@ def solve_pose(
         done = idx[(better & small) | stuck]
         converged[done] = True
         active[done] = False
-    M, _ = model(np.where(finite[:, None], r, 1.0))
+    M, dM = model(np.where(finite[:, None], r, 1.0))
     T = procrustes(M, S)
+    position_sigma, angle_sigma = _standard_errors(S, M, dM, T)
     r[~finite] = np.nan
     T[~finite] = np.nan
     lam = M - T @ S  # eq. 99
     rms_s = np.sqrt(np.mean(S**2, axis=(1, 2)))
-    return PoseSolution(r, T, converged & finite, iterations, np.sqrt(np.mean(lam**2, axis=(1, 2))) / rms_s)
+    residual = np.sqrt(np.mean(lam**2, axis=(1, 2))) / rms_s
+    return PoseSolution(r, T, converged & finite, iterations, residual, position_sigma, angle_sigma)
+
+
+def _standard_errors(S, M, dM, T) -> tuple[np.ndarray, np.ndarray]:
+    """Position (m) and orientation (rad) standard errors from the 6-DOF fit.
+
+    ``Cov = σ² (JᵀJ)⁻¹`` with ``σ²`` the residual variance per degree of freedom
+    (9 residuals, 6 unknowns): what the signal residual says about the pose's error.
+    """
+    e, J = _residual_joint(S, M, dM, T)
+    sigma2 = np.sum(e**2, axis=1) / 3.0
+    with np.errstate(invalid="ignore"):
+        covariance = np.linalg.pinv(np.einsum("fki,fkj->fij", J, J)) * sigma2[:, None, None]
+        diag = np.einsum("fii->fi", covariance)
+        return np.sqrt(diag[:, :3].sum(axis=1)), np.sqrt(diag[:, 3:].sum(axis=1))
