@@ -97,3 +97,27 @@ def test_fixture_model_names_missing_steps(small_session):
     with pytest.raises(ValueError, match="ivc collect cube_survey"):
         FixtureModel.from_session(partial)
     assert CubeCalibration.from_step(session.steps["cube_calibration"]).frames.min() > 900
+
+
+def test_fixtures_cli_reports_calibration_and_truth(small_session, tmp_path):
+    import json
+
+    from click.testing import CliRunner
+
+    from ivc import session as session_io
+    from ivc.cli import cli
+
+    _, data = small_session
+    path = tmp_path / "s.h5"
+    session_io.write(data, path)
+    result = CliRunner().invoke(cli, ["fixtures", str(path)])
+    assert result.exit_code == 0, result.output
+    assert "fitted perfect cube edge" in result.output and "wand sensor 7 position" in result.output
+    report = json.loads(CliRunner().invoke(cli, ["fixtures", str(path), "--json", "--compare-cubes", "500"]).output)
+    assert report["sweep"]["converged_fraction"] > 0.999
+    assert report["samples"]["kept"] + sum(report["samples"]["dropped"].values()) == report["samples"]["total"]
+    assert report["truth"]["sensor0_position_mm"]["p50"] < 0.3
+    assert set(report["cube_choices"]) == {"averaged", "optimised", "ideal"}
+    # the averaged vertices are the sensors' real positions: they beat the ideal cube
+    choices = report["cube_choices"]
+    assert choices["averaged"]["sensor0_position_mm"]["p50"] < choices["ideal"]["sensor0_position_mm"]["p50"]

@@ -30,9 +30,10 @@ def cli() -> None:
 
 
 def _register() -> None:
-    from ivc.cli import collect, info
+    from ivc.cli import collect, fixtures, info
 
     cli.add_command(collect.collect)
+    cli.add_command(fixtures.fixtures)
     cli.add_command(info.info)
 
 
