@@ -9,6 +9,7 @@ from tqdm import tqdm
 
 from ivc import session as session_io
 from ivc.fixtures import VERTEX_CHOICES
+from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import Gates
 from ivc.fixtures.report import fixture_report
 from ivc.pose import METHODS
@@ -24,7 +25,8 @@ def _row(label: str, values: dict, unit: str) -> str:
 def render(report: dict) -> str:
     cube, wand, sweep, samples = report["cube"], report["wand"], report["sweep"], report["samples"]
     lines = [
-        f"Interpolation cube (vertices: {cube['vertices']}); fitted perfect cube edge {cube['fitted_edge_mm']:.2f} mm",
+        f"Interpolation cube (vertices: {cube['vertices']}, {cube['interpolant']} interpolant); "
+        f"fitted perfect cube edge {cube['fitted_edge_mm']:.2f} mm",
         "  sensor   residual x      y      z    |r| mm   frames   G at vertex (% primary) +- s.e.",
     ]
     for n in range(8):
@@ -69,6 +71,8 @@ def render(report: dict) -> str:
 @click.argument("session_file", type=click.Path(dir_okay=False))
 @click.option("--vertices", type=click.Choice(VERTEX_CHOICES), default="averaged", show_default=True,
               help="Cube vertex positions: the sensors' averaged ones, the optimised perfect cube, or the ideal cube.")
+@click.option("--interpolant", type=click.Choice(list(INTERPOLANTS)), default="harmonic", show_default=True,
+              help="Field inside the cube: harmonic (curl/div-free, follows curvature) or trilinear (the seed's).")
 @click.option("--method", type=click.Choice(METHODS), default="joint", show_default=True,
               help="Pose solve in the cube: joint 6-DOF, or the seed's two-stage (eq. 92 then 93).")
 @click.option("--max-residual", type=float, default=Gates.max_residual, show_default=True,
@@ -77,11 +81,12 @@ def render(report: dict) -> str:
               help="Gate: largest estimated sample error (eq. 101), mm.")
 @click.option("--compare-cubes", type=int, default=0, help="Also compare the cube vertex choices on this many frames.")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
-def fixtures(session_file, vertices, method, max_residual, max_error_mm, compare_cubes, as_json):
+def fixtures(session_file, vertices, interpolant, method, max_residual, max_error_mm, compare_cubes, as_json):
     """Calibrate the cube and wand of SESSION_FILE, solve the sweep, and report what a map would be built from."""
     data = session_io.read(session_file)
     frames = data.steps["wand_sweep"].n_frames if "wand_sweep" in data.steps else 0
     gates = Gates(max_residual=max_residual, max_error=max_error_mm / 1000)
     with tqdm(total=frames, desc="solving the sweep", unit="frame", leave=False, disable=as_json) as bar:
-        report = fixture_report(data, vertices, method, gates, compare_cubes, progress=bar.update)
+        report = fixture_report(data, vertices, method, gates, compare_cubes, progress=bar.update,
+                                interpolant=interpolant)
     click.echo(json.dumps(report, indent=2) if as_json else render(report))
