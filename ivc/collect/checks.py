@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ivc import dipole, rotations
+from ivc import rotations
 from ivc.session import STEPS, Session, Step
 
 #: the seed's minimum frame counts
@@ -19,14 +19,6 @@ STATIC_STEPS = ("cube_calibration", "cube_survey", "wand_calibration")
 STATIC_POSITION_SPREAD = 0.002  # m, 99th minus 1st percentile
 STATIC_ANGLE_SPREAD = 0.02  # rad
 INVALID_FRACTION_WARNING = 0.01
-
-
-def _poses(step: Step, hemisphere: str) -> tuple[np.ndarray, np.ndarray]:
-    if step.position is not None:
-        return step.position, step.quaternion
-    with np.errstate(invalid="ignore"):
-        position, T = dipole.closed_form_pose(step.signal, hemisphere)
-        return position, rotations.from_matrix(T)
 
 
 def check_step(name: str, step: Step, session: Session | None = None, hemisphere: str = "+x") -> list[str]:
@@ -41,7 +33,7 @@ def check_step(name: str, step: Step, session: Session | None = None, hemisphere
         if bad > INVALID_FRACTION_WARNING:
             warnings.append(f"sensor {sensor} was dropped or saturated in {100 * bad:.1f}% of {name}'s frames")
     if name in STATIC_STEPS:
-        position, quaternion = _poses(step, hemisphere)
+        position, quaternion = step.poses(hemisphere)
         for k, sensor in enumerate(step.names):
             ok = valid[:, k]
             if ok.sum() < 2:

@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from ivc.dipole import HEMISPHERES, signal_from_pose
+from ivc import rotations
+from ivc.dipole import HEMISPHERES, closed_form_pose, signal_from_pose
 
 FORMAT_NAME = "session"
 FORMAT_VERSION = 1
@@ -90,6 +91,15 @@ class Step:
             return self.signal
         with np.errstate(invalid="ignore", divide="ignore"):
             return signal_from_pose(self.position, self.quaternion)
+
+    def poses(self, hemisphere: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Positions (F, N, 3) and quaternions (F, N, 4): the reported ones, or, when the step
+        has signals only, their closed-form dipole solution (MATH.md §3; exact in free space)."""
+        if self.position is not None:
+            return self.position, self.quaternion
+        with np.errstate(invalid="ignore"):
+            position, T = closed_form_pose(self.signal, hemisphere)
+            return position, rotations.from_matrix(T)
 
 
 @dataclass
