@@ -24,7 +24,7 @@ def test_triangle_potential_against_adaptive_quadrature():
     got = eddy.triangle_potential(points, np.repeat(tri[None], len(points), axis=0))
     want = [reference(x) for x in points]
     np.testing.assert_allclose(got, want, rtol=1e-8)
-    # the compiled scalar form agrees with the vectorised one
+    # the near-pair kernel is the area times the 7-point quadrature of that exact potential
     values = np.empty(1)
     corners = np.stack([tri, tri + [0.0, 0.0, 0.3]])
     eddy._near_pair_kernel(corners, np.array([1]), np.array([0]), eddy.QUAD_BARY, eddy.QUAD_WEIGHTS, values)

@@ -45,6 +45,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from ivc import dipole
+from ivc.dipole._kernels import _field_entries
 
 #: Dunavant's degree-5 rule on a triangle: barycentric points and weights (sum 1)
 _A1, _B1, _W1 = 0.059715871789770, 0.470142064105115, 0.132394152788506
@@ -67,33 +68,11 @@ def triangle_potential(x: np.ndarray, tri: np.ndarray) -> np.ndarray:
     edge's line, ``l±`` the distances along it to the edge ends and ``R±`` to the ends,
     ``I = Σ_edges t0 ln((R+ + l+)/(R− + l−)) − |h| [atan(t0 l+/(R0² + |h| R+)) − atan(t0 l−/(R0² + |h| R−))]``.
     """
-    v0, v1, v2 = tri[:, 0], tri[:, 1], tri[:, 2]
-    n = np.cross(v1 - v0, v2 - v0)
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    h = np.einsum("ki,ki->k", x - v0, n)
-    rho = x - h[:, None] * n
-    ah = np.abs(h)
-    total = np.zeros(len(x))
-    for a, b in ((v0, v1), (v1, v2), (v2, v0)):
-        edge = b - a
-        lhat = edge / np.linalg.norm(edge, axis=1, keepdims=True)
-        uhat = np.cross(lhat, n)  # outward in-plane normal of the edge
-        t0 = np.einsum("ki,ki->k", a - rho, uhat)
-        l_plus = np.einsum("ki,ki->k", b - rho, lhat)
-        l_minus = np.einsum("ki,ki->k", a - rho, lhat)
-        r_plus = np.linalg.norm(x - b, axis=1)
-        r_minus = np.linalg.norm(x - a, axis=1)
-        r0sq = t0 * t0 + h * h
-        with np.errstate(divide="ignore", invalid="ignore"):
-            # (R+ + l+)/(R- + l-) = (R- - l-)/(R+ - l+): use whichever does not cancel
-            forward = np.log((r_plus + l_plus) / (r_minus + l_minus))
-            backward = np.log((r_minus - l_minus) / (r_plus - l_plus))
-            log_term = np.where(l_plus + l_minus >= 0, forward, backward)
-            atan_term = np.arctan(t0 * l_plus / (r0sq + ah * r_plus)) - np.arctan(t0 * l_minus / (r0sq + ah * r_minus))
-        scale = np.maximum(np.linalg.norm(edge, axis=1), 1e-300)
-        on_line = np.abs(t0) <= 1e-12 * scale
-        total += np.where(on_line, 0.0, t0 * log_term) - ah * np.where(on_line, 0.0, atan_term)
-    return total
+    x = np.ascontiguousarray(x, dtype=float)
+    tri = np.ascontiguousarray(tri, dtype=float)
+    out = np.empty(len(x))
+    _potential_kernel(x, tri, out)
+    return out
 
 
 @dataclass
@@ -271,15 +250,7 @@ def _dipole_sum_kernel(points, centres, moments, out):  # pragma: no cover - com
             x = px - centres[f, 0]
             y = py - centres[f, 1]
             z = pz - centres[f, 2]
-            rho2 = x * x + y * y + z * z
-            inv3 = 1.0 / (rho2 * np.sqrt(rho2))
-            inv5 = 3.0 * inv3 / rho2
-            f00 = inv5 * x * x - inv3
-            f11 = inv5 * y * y - inv3
-            f22 = inv5 * z * z - inv3
-            f01 = inv5 * x * y
-            f02 = inv5 * x * z
-            f12 = inv5 * y * z
+            f00, f11, f22, f01, f02, f12 = _field_entries(x, y, z)
             for j in range(3):
                 m0 = moments[f, 0, j]
                 m1 = moments[f, 1, j]
@@ -294,7 +265,7 @@ def _dipole_sum_kernel(points, centres, moments, out):  # pragma: no cover - com
 
 @numba.njit(inline="always")
 def _potential_one(x0, x1, x2, tri):
-    """Scalar form of :func:`triangle_potential` at (x0, x1, x2) (the compiled path for many pairs)."""
+    """:func:`triangle_potential` of one triangle (3, 3) at one point (x0, x1, x2)."""
     e10, e11, e12 = tri[1, 0] - tri[0, 0], tri[1, 1] - tri[0, 1], tri[1, 2] - tri[0, 2]
     e20, e21, e22 = tri[2, 0] - tri[0, 0], tri[2, 1] - tri[0, 1], tri[2, 2] - tri[0, 2]
     n0, n1, n2 = e11 * e22 - e12 * e21, e12 * e20 - e10 * e22, e10 * e21 - e11 * e20
@@ -326,6 +297,12 @@ def _potential_one(x0, x1, x2, tri):
         atan_term = np.arctan(t0 * l_plus / (r0sq + ah * r_plus)) - np.arctan(t0 * l_minus / (r0sq + ah * r_minus))
         total += t0 * log_term - ah * atan_term
     return total
+
+
+@numba.njit(parallel=True, cache=True)
+def _potential_kernel(x, tri, out):  # pragma: no cover - compiled
+    for k in numba.prange(x.shape[0]):
+        out[k] = _potential_one(x[k, 0], x[k, 1], x[k, 2], tri[k])
 
 
 @numba.njit(parallel=True, cache=True)
