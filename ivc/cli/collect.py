@@ -46,10 +46,12 @@ class _SimulatorProgress:
     def __init__(self, scene_name: str | None, seed: int):
         self.scene = load_scene(scene_name)
         self.simulator = Simulator(self.scene, seed)
+        self.prepared = False
 
     def prepare(self, distorted: bool) -> None:
-        if not distorted or self.simulator._secondary is not None:
+        if not distorted or self.prepared:
             return
+        self.prepared = True
         click.echo(f"Solving eddy currents in scene {self.scene.name!r} ...", err=True)
         field = self.simulator.secondary
         if field.dipoles is not None and field.roi is not None:

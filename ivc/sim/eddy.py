@@ -35,6 +35,7 @@ Approximations (documented in docs/simulator.md):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numba
 import numpy as np
@@ -110,22 +111,22 @@ class ConductorMesh:
             offset += len(v)
         return cls(np.concatenate(vertices), np.concatenate(faces), np.concatenate(rho), np.concatenate(free))
 
-    @property
+    @cached_property
     def corners(self) -> np.ndarray:
         return self.vertices[self.faces]  # (F, 3, 3)
 
-    @property
+    @cached_property
     def areas(self) -> np.ndarray:
         c = self.corners
         return 0.5 * np.linalg.norm(np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]), axis=1)
 
-    @property
+    @cached_property
     def normals(self) -> np.ndarray:
         c = self.corners
         n = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
-    @property
+    @cached_property
     def centroids(self) -> np.ndarray:
         return self.corners.mean(axis=1)
 

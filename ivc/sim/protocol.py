@@ -8,7 +8,7 @@ the same seed always gives the same session.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from functools import cached_property
 
 import numpy as np
 
@@ -30,7 +30,6 @@ _STREAMS = {
     "cube": 1, "wand": 2, "placement": 3, "cube_calibration": 10, "cube_survey": 11,
     "wand_calibration": 12, "wand_sweep": 13, "check": 14,
 }
-Progress = Callable[[str], None]
 
 
 class Simulator:
@@ -41,17 +40,14 @@ class Simulator:
         self.seed = int(seed)
         self.cube = rig.make_cube(scene.cube, self._rng("cube"))
         self.wand = rig.make_wand(scene.wand, self._rng("wand"))
-        self._secondary: SecondaryField | None = None
 
     def _rng(self, purpose: str) -> np.random.Generator:
         return np.random.default_rng([self.seed, _STREAMS[purpose]])
 
-    @property
+    @cached_property
     def secondary(self) -> SecondaryField:
         """The scene's secondary field, solved on first use."""
-        if self._secondary is None:
-            self._secondary = self.scene.secondary_field()
-        return self._secondary
+        return self.scene.secondary_field()
 
     def true_cube_frame(self) -> tuple[np.ndarray, np.ndarray]:
         """True pose ``(r_0, T_I)`` of the cube fixture frame (MATH.md §5) during the survey."""
