@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ivc import rotations
 from ivc.dipole import _kernels
 
 FloatArray = NDArray[np.float64]
@@ -112,6 +113,4 @@ def signal_from_pose(position: ArrayLike, quaternion: ArrayLike) -> FloatArray:
     For trackers that report poses only: if the unit's own solver inverts the dipole
     model, this is the signal it measured (up to the hemisphere sign of ``r``).
     """
-    from ivc import rotations
-
     return signal(position, rotations.to_matrix(quaternion))
