@@ -165,40 +165,44 @@ def _rotation_polar_factor(K, X, work, out):
             out[i, j] = X[i, j]
 
 
+@numba.njit(inline="always")
+def closed_form_one(s, hemisphere, r_out, T_out, work_a, work_b, v, B, F, K):
+    """Closed-form dipole pose (MATH.md section 3) of one signal matrix s, into r_out (3,) and T_out (3, 3).
+
+    ``work_a``, ``work_b``, ``B``, ``F``, ``K`` are (3, 3) and ``v`` (3,) scratch arrays.
+    """
+    for i in range(3):
+        for j in range(3):
+            B[i, j] = s[0, i] * s[0, j] + s[1, i] * s[1, j] + s[2, i] * s[2, j]
+    tr = B[0, 0] + B[1, 1] + B[2, 2]
+    _principal_eigenvector(B, work_a, work_b, v)
+    sign = 1.0
+    if v[0] * hemisphere[0] + v[1] * hemisphere[1] + v[2] * hemisphere[2] < 0.0:
+        sign = -1.0
+    rng = sign * (6.0 / tr) ** (1.0 / 6.0)  # eq. 75
+    x = rng * v[0]
+    y = rng * v[1]
+    z = rng * v[2]
+    r_out[0] = x
+    r_out[1] = y
+    r_out[2] = z
+    f00, f11, f22, f01, f02, f12 = _field_entries(x, y, z)
+    # K = f_D(r) Sᵀ; the rotation maximising tr(Tᵀ K) minimises ‖S − Tᵀ f_D‖
+    F[0, 0] = f00
+    F[1, 1] = f11
+    F[2, 2] = f22
+    F[0, 1] = F[1, 0] = f01
+    F[0, 2] = F[2, 0] = f02
+    F[1, 2] = F[2, 1] = f12
+    for i in range(3):
+        for j in range(3):
+            K[i, j] = F[i, 0] * s[j, 0] + F[i, 1] * s[j, 1] + F[i, 2] * s[j, 2]
+    _rotation_polar_factor(K, work_a, work_b, T_out)
+
+
 @numba.njit(**_OPTS)
 def closed_form_pose_kernel(S, hemisphere, r_out, T_out):  # pragma: no cover - compiled
     """Closed-form dipole pose (MATH.md section 3) of each S[n]."""
     for n in numba.prange(S.shape[0]):
-        s = S[n]
-        B = np.empty((3, 3))
-        for i in range(3):
-            for j in range(3):
-                B[i, j] = s[0, i] * s[0, j] + s[1, i] * s[1, j] + s[2, i] * s[2, j]
-        tr = B[0, 0] + B[1, 1] + B[2, 2]
-        work_a = np.empty((3, 3))
-        work_b = np.empty((3, 3))
-        v = np.empty(3)
-        _principal_eigenvector(B, work_a, work_b, v)
-        if v[0] * hemisphere[0] + v[1] * hemisphere[1] + v[2] * hemisphere[2] < 0.0:
-            v = -v
-        rng = (6.0 / tr) ** (1.0 / 6.0)  # eq. 75
-        x = rng * v[0]
-        y = rng * v[1]
-        z = rng * v[2]
-        r_out[n, 0] = x
-        r_out[n, 1] = y
-        r_out[n, 2] = z
-        f00, f11, f22, f01, f02, f12 = _field_entries(x, y, z)
-        # K = f_D(r) Sᵀ; the rotation maximising tr(Tᵀ K) minimises ‖S − Tᵀ f_D‖
-        F = np.empty((3, 3))
-        F[0, 0] = f00
-        F[1, 1] = f11
-        F[2, 2] = f22
-        F[0, 1] = F[1, 0] = f01
-        F[0, 2] = F[2, 0] = f02
-        F[1, 2] = F[2, 1] = f12
-        K = np.empty((3, 3))
-        for i in range(3):
-            for j in range(3):
-                K[i, j] = F[i, 0] * s[j, 0] + F[i, 1] * s[j, 1] + F[i, 2] * s[j, 2]
-        _rotation_polar_factor(K, work_a, work_b, T_out[n])
+        closed_form_one(S[n], hemisphere, r_out[n], T_out[n], np.empty((3, 3)), np.empty((3, 3)), np.empty(3),
+                        np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)))

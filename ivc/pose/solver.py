@@ -66,7 +66,7 @@ _SKEW = np.array(  # [e_a]× for a = x, y, z
 )
 
 
-def _residual_joint(S, M, dM, T):
+def signal_residual(S: np.ndarray, M: np.ndarray, dM: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """e = S − Tᵀ M(r) and its Jacobian in (δr, ω), with T ← T exp([ω]×): ∂e/∂ω_a = [e_a]× Tᵀ M."""
     P = np.swapaxes(T, -1, -2) @ M
     e = S - P
@@ -101,7 +101,7 @@ def solve_pose(
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; use one of {', '.join(METHODS)}")
-    residual_fn = _residual_joint if method == "joint" else _residual_two_stage
+    residual_fn = signal_residual if method == "joint" else _residual_two_stage
     S = np.asarray(S, float)
     r = np.array(initial_position, dtype=float)
     F = len(S)
@@ -165,7 +165,7 @@ def _standard_errors(S, M, dM, T) -> tuple[np.ndarray, np.ndarray]:
     ``Cov = σ² (JᵀJ)⁻¹`` with ``σ²`` the residual variance per degree of freedom
     (9 residuals, 6 unknowns): what the signal residual says about the pose's error.
     """
-    e, J = _residual_joint(S, M, dM, T)
+    e, J = signal_residual(S, M, dM, T)
     sigma2 = np.sum(e**2, axis=1) / 3.0
     with np.errstate(invalid="ignore"):
         covariance = np.linalg.pinv(np.einsum("fki,fkj->fij", J, J)) * sigma2[:, None, None]

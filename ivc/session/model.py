@@ -7,7 +7,7 @@ HDF5 path of the offending dataset, what is wrong, and what to do about it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -85,6 +85,12 @@ class Step:
     def names(self) -> list[str]:
         return self.sensor_ids if self.sensor_ids is not None else [str(i) for i in range(self.n_sensors)]
 
+    def select(self, frames: slice | NDArray) -> Step:
+        """The same step restricted to some frames (a slice, indices or a boolean mask)."""
+        cut = {k: (None if getattr(self, k) is None else getattr(self, k)[frames])
+               for k in ("time", "signal", "position", "quaternion", "valid")}
+        return replace(self, **cut)
+
     def signal_matrices(self) -> NDArray[np.float64]:
         """Signal matrices, rebuilt from the reported poses when the step has none (MATH.md §9)."""
         if self.signal is not None:
@@ -122,6 +128,14 @@ class Session:
         if survey is not None and not {"declared_position", "declared_quaternion"} <= survey.attrs.keys():
             missing.append("cube_survey has no declared cube pose (declared_position, declared_quaternion)")
         return missing
+
+    def select_frames(self, step: str, frames: slice | NDArray) -> Session:
+        """A copy in which ``step`` (and its truth) keeps only some frames."""
+        steps = dict(self.steps, **{step: self.steps[step].select(frames)})
+        truth = dict(self.truth)
+        if step in truth:
+            truth[step] = Truth(truth[step].position[frames], truth[step].quaternion[frames])
+        return Session(self.hemisphere, steps, truth, self.attrs)
 
     def validate(self) -> None:
         """Raise :class:`SessionError` for anything that breaks the format."""

@@ -1,0 +1,15 @@
+"""Stage 5: corrected poses from live or recorded measurements with a look-up table."""
+
+from ivc.correct.solver import (
+    FLAG_NAMES,
+    HIGH_RESIDUAL,
+    INVALID_INPUT,
+    NOT_CONVERGED,
+    OUTSIDE,
+    Correction,
+    Corrector,
+    describe,
+)
+
+__all__ = ["FLAG_NAMES", "HIGH_RESIDUAL", "INVALID_INPUT", "NOT_CONVERGED", "OUTSIDE", "Correction", "Corrector",
+           "describe"]

@@ -1,0 +1,359 @@
+"""Compiled per-frame correction: the pose that explains S with the dipole field plus the mapped
+secondary field (MATH.md §4 and §9), one frame at a time, parallel over frames.
+
+Per frame: a seed (the previous pose of the same sensor, or else a fixed-point start:
+closed-form dipole pose of ``S − Tᵀ g(r)``, repeated), then Levenberg-Marquardt over
+position and a rotation increment ``T ← T exp([ω]×)`` on the 9 residuals
+``e = S − Tᵀ (f_D(r) + g(r))`` with analytic Jacobians.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from ivc.dipole._kernels import _field_entries, _rotation_polar_factor, closed_form_one
+from ivc.lut._kernels import grid_point
+
+FIXED_POINT_STEPS = 2
+
+
+@numba.njit(inline="always")
+def _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz):
+    """M = f_D(r) + g(r) (3, 3) and ∂M/∂r (3, 3, 3); returns whether r is in the mapped volume."""
+    x, y, z = r[0], r[1], r[2]
+    f00, f11, f22, f01, f02, f12 = _field_entries(x, y, z)
+    M[0, 0] = f00
+    M[1, 1] = f11
+    M[2, 2] = f22
+    M[0, 1] = M[1, 0] = f01
+    M[0, 2] = M[2, 0] = f02
+    M[1, 2] = M[2, 1] = f12
+    rho2 = x * x + y * y + z * z
+    inv5 = 1.0 / (rho2 * rho2 * np.sqrt(rho2))
+    inv7 = inv5 / rho2
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                s = 0.0
+                if i == k:
+                    s += r[j]
+                if j == k:
+                    s += r[i]
+                if i == j:
+                    s += r[k]
+                dM[i, j, k] = 3.0 * s * inv5 - 15.0 * r[i] * r[j] * r[k] * inv7
+    mapped = grid_point(padded, valid_cells, origin, spacing, shape, r, cubic, g, dg, wx, wy, wz, dx, dy, dz)
+    for i in range(3):
+        for j in range(3):
+            M[i, j] += g[3 * i + j]
+            for k in range(3):
+                dM[i, j, k] += dg[3 * i + j, k]
+    return mapped
+
+
+@numba.njit(inline="always")
+def _residual(S, M, dM, T, e, J):
+    """e = S − Tᵀ M (9,) and its Jacobian (9, 6) in (δr, ω)."""
+    for i in range(3):
+        for j in range(3):
+            p = T[0, i] * M[0, j] + T[1, i] * M[1, j] + T[2, i] * M[2, j]
+            e[3 * i + j] = S[i, j] - p
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                J[3 * i + j, k] = -(T[0, i] * dM[0, j, k] + T[1, i] * dM[1, j, k] + T[2, i] * dM[2, j, k])
+    # ∂e/∂ω_a = [e_a]× P with P = Tᵀ M = S − e
+    for j in range(3):
+        p0 = S[0, j] - e[j]
+        p1 = S[1, j] - e[3 + j]
+        p2 = S[2, j] - e[6 + j]
+        # a = x: rows (0, −p2, p1); a = y: (p2, 0, −p0); a = z: (−p1, p0, 0)
+        J[j, 3] = 0.0
+        J[3 + j, 3] = -p2
+        J[6 + j, 3] = p1
+        J[j, 4] = p2
+        J[3 + j, 4] = 0.0
+        J[6 + j, 4] = -p0
+        J[j, 5] = -p1
+        J[3 + j, 5] = p0
+        J[6 + j, 5] = 0.0
+
+
+@numba.njit(inline="always")
+def _cost(e):
+    c = 0.0
+    for a in range(9):
+        c += e[a] * e[a]
+    return c
+
+
+@numba.njit(inline="always")
+def _solve6(A, b, x):
+    """x = A⁻¹ b for a symmetric positive definite 6x6 A (Cholesky, in place on A). False if not PD."""
+    n = 6
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= A[j, k] * A[j, k]
+        if not s > 0.0:
+            return False
+        A[j, j] = np.sqrt(s)
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for k in range(j):
+                s -= A[i, k] * A[j, k]
+            A[i, j] = s / A[j, j]
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= A[i, k] * x[k]
+        x[i] = s / A[i, i]
+    for i in range(n - 1, -1, -1):
+        s = x[i]
+        for k in range(i + 1, n):
+            s -= A[k, i] * x[k]
+        x[i] = s / A[i, i]
+    return True
+
+
+@numba.njit(inline="always")
+def _rotate_increment(T, w, out):
+    """out = T exp([w]×) (Rodrigues: exp([w]×) = I + a [w]× + b [w]×²)."""
+    angle2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    if angle2 < 1e-24:
+        a, b = 1.0, 0.5
+    else:
+        angle = np.sqrt(angle2)
+        a, b = np.sin(angle) / angle, (1.0 - np.cos(angle)) / angle2
+    x, y, z = w[0], w[1], w[2]
+    r00 = 1.0 - b * (y * y + z * z)
+    r11 = 1.0 - b * (x * x + z * z)
+    r22 = 1.0 - b * (x * x + y * y)
+    r01 = -a * z + b * x * y
+    r10 = a * z + b * x * y
+    r02 = a * y + b * x * z
+    r20 = -a * y + b * x * z
+    r12 = -a * x + b * y * z
+    r21 = a * x + b * y * z
+    for i in range(3):
+        t0, t1, t2 = T[i, 0], T[i, 1], T[i, 2]
+        out[i, 0] = t0 * r00 + t1 * r10 + t2 * r20
+        out[i, 1] = t0 * r01 + t1 * r11 + t2 * r21
+        out[i, 2] = t0 * r02 + t1 * r12 + t2 * r22
+
+
+@numba.njit
+def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
+                r, T):
+    """Correct one frame: S (3, 3), seed (3,) (NaN: no warm start) -> r (3,), T (3, 3) written in place.
+
+    Returns (converged, iterations, relative residual rms(M − T S)/rms(S), mapped).
+    """
+    M = np.empty((3, 3))
+    dM = np.empty((3, 3, 3))
+    g = np.empty(9)
+    dg = np.empty((9, 3))
+    wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
+    work_a, work_b, B, F, K = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    v = np.empty(3)
+    Sc = np.empty((3, 3))
+    if np.isfinite(seed[0]) and np.isfinite(seed[1]) and np.isfinite(seed[2]):
+        for a in range(3):
+            r[a] = seed[a]
+    else:
+        closed_form_one(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
+        for _ in range(FIXED_POINT_STEPS):  # MATH.md §9: subtract Tᵀ g(r), re-solve the dipole pose
+            grid_point(padded, valid_cells, origin, spacing, shape, r, cubic, g, dg, wx, wy, wz, dx, dy, dz)
+            for i in range(3):
+                for j in range(3):
+                    Sc[i, j] = S[i, j] - (T[0, i] * g[j] + T[1, i] * g[3 + j] + T[2, i] * g[6 + j])
+            closed_form_one(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
+    _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
+    for i in range(3):
+        for j in range(3):
+            K[i, j] = M[i, 0] * S[j, 0] + M[i, 1] * S[j, 1] + M[i, 2] * S[j, 2]
+    _rotation_polar_factor(K, work_a, work_b, T)
+    e = np.empty(9)
+    J = np.empty((9, 6))
+    _residual(S, M, dM, T, e, J)
+    cost = _cost(e)
+    et = np.empty(9)
+    Jt = np.empty((9, 6))
+    H = np.empty((6, 6))
+    grad = np.empty(6)
+    step = np.empty(6)
+    rt = np.empty(3)
+    Tt = np.empty((3, 3))
+    damping = 1e-3
+    converged = False
+    iterations = 0
+    while iterations < max_iterations:
+        iterations += 1
+        for a in range(6):
+            grad[a] = 0.0
+            for k in range(9):
+                grad[a] -= J[k, a] * e[k]
+            for b in range(a + 1):
+                s = 0.0
+                for k in range(9):
+                    s += J[k, a] * J[k, b]
+                H[a, b] = s
+                H[b, a] = s
+        scale_max = 0.0
+        for a in range(6):
+            scale_max = max(scale_max, H[a, a])
+        for a in range(6):
+            H[a, a] += damping * max(H[a, a], 1e-30 * scale_max)
+        if not _solve6(H, grad, step):
+            damping *= 10.0
+            if damping > 1e8:
+                break
+            continue
+        for a in range(3):
+            rt[a] = r[a] + step[a]
+        _rotate_increment(T, step[3:], Tt)
+        _model(rt, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
+        _residual(S, M, dM, Tt, et, Jt)
+        trial = _cost(et)
+        small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance
+        if trial <= cost:
+            for a in range(3):
+                r[a] = rt[a]
+            for i in range(3):
+                for j in range(3):
+                    T[i, j] = Tt[i, j]
+            for k in range(9):
+                e[k] = et[k]
+                for a in range(6):
+                    J[k, a] = Jt[k, a]
+            cost = trial
+            damping = max(damping * 0.3, 1e-12)
+            if small:
+                converged = True
+                break
+        else:
+            damping *= 10.0
+            if damping > 1e8:  # no step lowers the cost: at the numerical minimum
+                converged = True
+                break
+    mapped = _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
+    lam = 0.0
+    s2 = 0.0
+    for i in range(3):
+        for j in range(3):
+            p = T[i, 0] * S[0, j] + T[i, 1] * S[1, j] + T[i, 2] * S[2, j]
+            lam += (M[i, j] - p) ** 2
+            s2 += S[i, j] ** 2
+    return converged, iterations, np.sqrt(lam / s2), mapped
+
+
+@numba.njit(inline="always")
+def quaternion_of(T, q):
+    """Canonical unit quaternion of a rotation matrix, as ivc.rotations.from_matrix (Shepperd, then the
+    sign rule of ivc.rotations.canonical), into q (4,)."""
+    t00, t11, t22 = T[0, 0], T[1, 1], T[2, 2]
+    d21, d02, d10 = T[2, 1] - T[1, 2], T[0, 2] - T[2, 0], T[1, 0] - T[0, 1]
+    s01, s02, s12 = T[0, 1] + T[1, 0], T[0, 2] + T[2, 0], T[1, 2] + T[2, 1]
+    sq0, sq1, sq2, sq3 = 1.0 + t00 + t11 + t22, 1.0 + t00 - t11 - t22, 1.0 - t00 + t11 - t22, 1.0 - t00 - t11 + t22
+    largest = 0
+    top = sq0
+    if sq1 > top:
+        largest, top = 1, sq1
+    if sq2 > top:
+        largest, top = 2, sq2
+    if sq3 > top:
+        largest, top = 3, sq3
+    big = 0.5 * np.sqrt(max(top, 0.0))
+    k = 0.25 / big
+    if largest == 0:
+        q[0], q[1], q[2], q[3] = big, d21 * k, d02 * k, d10 * k
+    elif largest == 1:
+        q[0], q[1], q[2], q[3] = d21 * k, big, s01 * k, s02 * k
+    elif largest == 2:
+        q[0], q[1], q[2], q[3] = d02 * k, s01 * k, big, s12 * k
+    else:
+        q[0], q[1], q[2], q[3] = d10 * k, s02 * k, s12 * k, big
+    norm = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    sign = 1.0
+    for a in range(4):
+        if abs(q[a] / norm) > 1e-12:
+            if q[a] < 0.0:
+                sign = -1.0
+            break
+    for a in range(4):
+        q[a] = sign * q[a] / norm
+
+
+@numba.njit
+def correct_best(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
+                 retry_residual, r, T):
+    """correct_one, retried when the result is poor (not converged, or residual above ``retry_residual``).
+
+    Distortion makes the dipole field's near-mirror images (the position reflected across the
+    planes through the hemisphere axis) into local minima with small residuals; the retries
+    start from the cold fixed-point seed and from those reflections, and the lowest residual
+    among the converged solutions wins.
+    """
+    c, it, res, m = correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic,
+                                max_iterations, tolerance, r, T)
+    if c and res <= retry_residual:
+        return c, it, res, m
+    best_r = r.copy()
+    best_T = T.copy()
+    best = (c, it, res, m)
+    trial_r = np.empty(3)
+    trial_T = np.empty((3, 3))
+    candidates = np.empty((4, 3))
+    for a in range(3):
+        candidates[0, a] = np.nan
+    axis = 0
+    for a in range(3):
+        if hemisphere[a] != 0.0:
+            axis = a
+    for k in range(1, 4):
+        for a in range(3):
+            candidates[k, a] = r[a]
+        other = 0
+        for a in range(3):
+            if a != axis:
+                other += 1
+                if (k == 1 and other == 1) or (k == 2 and other == 2) or k == 3:
+                    candidates[k, a] = -r[a]
+    for k in range(4):
+        if k > 0 and not (np.isfinite(candidates[k, 0]) and np.isfinite(candidates[k, 1])
+                          and np.isfinite(candidates[k, 2])):
+            continue
+        c2, it2, res2, m2 = correct_one(S, candidates[k], hemisphere, padded, valid_cells, origin, spacing, shape,
+                                        cubic, max_iterations, tolerance, trial_r, trial_T)
+        it += it2
+        if (c2 and not best[0]) or (c2 == best[0] and res2 < best[2]):
+            best = (c2, it, res2, m2)
+            best_r[:] = trial_r
+            best_T[:, :] = trial_T
+    r[:] = best_r
+    T[:, :] = best_T
+    return best[0], it, best[2], best[3]
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def correct_kernel(S, seeds, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
+                   tolerance, retry_residual, r_out, T_out, q_out, converged, iterations, residual,
+                   mapped):  # pragma: no cover - compiled
+    for n in numba.prange(S.shape[0]):
+        converged[n], iterations[n], residual[n], mapped[n] = correct_best(
+            S[n], seeds[n], hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
+            retry_residual, r_out[n], T_out[n])
+        quaternion_of(T_out[n], q_out[n])
+
+
+@numba.njit(cache=True, nogil=True)
+def correct_serial(S, seeds, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
+                   tolerance, retry_residual, r_out, T_out, q_out, converged, iterations, residual,
+                   mapped):  # pragma: no cover - compiled
+    """The same as correct_kernel on the calling thread: no thread start-up, for a few frames at a time."""
+    for n in range(S.shape[0]):
+        converged[n], iterations[n], residual[n], mapped[n] = correct_best(
+            S[n], seeds[n], hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
+            retry_residual, r_out[n], T_out[n])
+        quaternion_of(T_out[n], q_out[n])

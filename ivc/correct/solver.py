@@ -1,0 +1,130 @@
+"""Corrected poses from measured signals and a look-up table (MATH.md §9), batched or streaming.
+
+Every result carries per-sample flags; a pose is never returned without them:
+
+``OUTSIDE``        the corrected position is outside the mapped volume (the table says nothing there)
+``NOT_CONVERGED``  the solve did not converge
+``HIGH_RESIDUAL``  the model explains the signal poorly: rms(M − T S)/rms(S) above the threshold
+``INVALID_INPUT``  the signal (or reported pose) is not finite, or the sample was marked invalid
+
+Flags combine bitwise; 0 means the pose is trusted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ivc import dipole
+from ivc.correct import _kernels
+from ivc.dipole.pose import hemisphere_vector
+from ivc.lut.grid import GridField
+from ivc.lut.table import LookupTable
+
+OUTSIDE, NOT_CONVERGED, HIGH_RESIDUAL, INVALID_INPUT = 1, 2, 4, 8
+FLAG_NAMES = {OUTSIDE: "outside the mapped volume", NOT_CONVERGED: "not converged",
+              HIGH_RESIDUAL: "residual too high", INVALID_INPUT: "invalid input"}
+#: default residual threshold, rms(M − T S)/rms(S)
+MAX_RESIDUAL = 1e-3
+MAX_ITERATIONS = 50
+STEP_TOLERANCE = 1e-7  # m: a tenth of a micrometre
+
+
+def describe(flags: int) -> str:
+    """Plain words for a flag value."""
+    return ", ".join(name for bit, name in FLAG_NAMES.items() if flags & bit) or "ok"
+
+
+@dataclass
+class Correction:
+    """Corrected poses (..., 3) m and (..., 4) [w, x, y, z], with ``flags`` (...) uint8, the relative
+    ``residual`` and the solver's ``iterations``. Non-finite input gives NaN poses flagged INVALID_INPUT."""
+
+    position: np.ndarray
+    quaternion: np.ndarray
+    flags: np.ndarray
+    residual: np.ndarray
+    iterations: np.ndarray
+
+    @property
+    def ok(self) -> np.ndarray:
+        return self.flags == 0
+
+
+class Corrector:
+    """Applies a table to measurements: :meth:`batch` for arrays of frames, :meth:`update` for a live stream.
+
+    ``interpolation``: ``cubic`` (default) or ``linear``. ``hemisphere``: where the sensors are
+    (default: the table's). ``max_residual``: the HIGH_RESIDUAL threshold.
+    """
+
+    def __init__(self, table: LookupTable | GridField, hemisphere: str | None = None, interpolation: str = "cubic",
+                 max_residual: float = MAX_RESIDUAL, max_iterations: int = MAX_ITERATIONS):
+        self.field = table.field(interpolation) if isinstance(table, LookupTable) else table
+        hemisphere = hemisphere or (table.hemisphere if isinstance(table, LookupTable) else "+x")
+        self.hemisphere = hemisphere
+        self._h = hemisphere_vector(hemisphere)
+        self.max_residual = float(max_residual)
+        self.max_iterations = int(max_iterations)
+        self._previous: dict = {}
+
+    def _run(self, S: np.ndarray, seeds: np.ndarray, serial: bool) -> Correction:
+        f = self.field
+        n = len(S)
+        r, T, q = np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 4))
+        converged, iterations = np.empty(n, dtype=bool), np.empty(n, dtype=np.int64)
+        residual, mapped = np.empty(n), np.empty(n, dtype=bool)
+        finite = np.all(np.isfinite(S.reshape(n, 9)), axis=1)
+        S = np.where(finite[:, None, None], S, np.eye(3))
+        kernel = _kernels.correct_serial if serial else _kernels.correct_kernel
+        kernel(S, seeds, self._h, f._padded, f.valid_cells, f._origin, f.grid.spacing, f._shape,
+               f.interpolation == "cubic", self.max_iterations, STEP_TOLERANCE, self.max_residual, r, T, q, converged,
+               iterations, residual, mapped)
+        flags = (np.where(mapped, 0, OUTSIDE) | np.where(converged, 0, NOT_CONVERGED)
+                 | np.where(residual <= self.max_residual, 0, HIGH_RESIDUAL)).astype(np.uint8)
+        flags[~finite] = INVALID_INPUT
+        if not finite.all():
+            r[~finite], q[~finite], residual[~finite] = np.nan, np.nan, np.nan
+        return Correction(r, q, flags, residual, iterations)
+
+    def batch(self, S: np.ndarray, valid: np.ndarray | None = None, seeds: np.ndarray | None = None) -> Correction:
+        """Correct signal matrices ``S`` (..., 3, 3), each frame on its own (no warm start unless ``seeds``,
+        positions (..., 3) m). Samples with ``valid`` False are flagged INVALID_INPUT."""
+        S = np.asarray(S, float)
+        if S.shape[-2:] != (3, 3):
+            raise ValueError(f"signal matrices must have shape (..., 3, 3), got {S.shape}")
+        lead = S.shape[:-2]
+        flat = np.ascontiguousarray(S.reshape(-1, 3, 3))
+        if valid is not None:
+            flat = np.where(np.asarray(valid, bool).reshape(-1)[:, None, None], flat, np.nan)
+        seed = np.full((len(flat), 3), np.nan) if seeds is None else np.ascontiguousarray(
+            np.asarray(seeds, float).reshape(-1, 3))
+        out = self._run(flat, seed, serial=len(flat) < 64)
+        return Correction(out.position.reshape(*lead, 3), out.quaternion.reshape(*lead, 4), out.flags.reshape(lead),
+                          out.residual.reshape(lead), out.iterations.reshape(lead))
+
+    def batch_poses(self, position: np.ndarray, quaternion: np.ndarray, valid: np.ndarray | None = None) -> Correction:
+        """Correct tracker-reported poses: the signal is rebuilt as ``S = Tᵀ f_D(r)`` (MATH.md §9)."""
+        return self.batch(dipole.signal_from_pose(position, quaternion), valid)
+
+    def update(self, S: np.ndarray, sensors: list | tuple | None = None) -> Correction:
+        """Correct the latest frame of a stream: ``S`` (N, 3, 3), one per sensor, in one call.
+
+        Each sensor is seeded by its own previous good pose (keyed by ``sensors``, default
+        0..N−1) and falls back to a cold start when that fails.
+        """
+        S = np.ascontiguousarray(np.asarray(S, float).reshape(-1, 3, 3))
+        keys = range(len(S)) if sensors is None else sensors
+        seeds = np.array([self._previous.get(k, (np.nan, np.nan, np.nan)) for k in keys], dtype=float)
+        out = self._run(S, seeds, serial=True)
+        for n, key in enumerate(keys):
+            if out.flags[n] == 0:
+                self._previous[key] = out.position[n]
+            else:
+                self._previous.pop(key, None)
+        return out
+
+    def reset(self) -> None:
+        """Forget every sensor's warm start (after a gap in the stream)."""
+        self._previous.clear()

@@ -1,0 +1,115 @@
+"""Compiled evaluation of a field tabulated on a regular grid (numba, parallel over points).
+
+The table is ``padded``: (nx + 2, ny + 2, nz + 2, C) with one ghost node on every face,
+so that the 4-node Catmull-Rom stencil of every cell is in range. Node ``(i, j, k)`` of
+the grid is ``padded[i + 1, j + 1, k + 1]``.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+_OPTS = dict(parallel=True, cache=True, nogil=True)
+
+
+@numba.njit(inline="always")
+def _cell(p, origin, spacing, n):
+    """Cell index in [0, n − 2] and the local coordinate clamped to [0, 1], and whether p is in the grid."""
+    u = (p - origin) / spacing
+    i = int(np.floor(u))
+    inside = 0.0 <= u <= n - 1.0
+    if i < 0:
+        i = 0
+    elif i > n - 2:
+        i = n - 2
+    t = u - i
+    if t < 0.0:
+        t = 0.0
+    elif t > 1.0:
+        t = 1.0
+    return i, t, inside
+
+
+@numba.njit(inline="always")
+def _weights(t, cubic, w, dw):
+    """Stencil weights of nodes i − 1 .. i + 2 at local coordinate t, and their derivatives in t.
+
+    Cubic: Catmull-Rom (interpolating, C1, exact for quadratics). Otherwise linear.
+    """
+    if cubic:
+        t2 = t * t
+        t3 = t2 * t
+        w[0] = 0.5 * (-t3 + 2.0 * t2 - t)
+        w[1] = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0)
+        w[2] = 0.5 * (-3.0 * t3 + 4.0 * t2 + t)
+        w[3] = 0.5 * (t3 - t2)
+        dw[0] = 0.5 * (-3.0 * t2 + 4.0 * t - 1.0)
+        dw[1] = 0.5 * (9.0 * t2 - 10.0 * t)
+        dw[2] = 0.5 * (-9.0 * t2 + 8.0 * t + 1.0)
+        dw[3] = 0.5 * (3.0 * t2 - 2.0 * t)
+    else:
+        w[0] = 0.0
+        w[1] = 1.0 - t
+        w[2] = t
+        w[3] = 0.0
+        dw[0] = 0.0
+        dw[1] = -1.0
+        dw[2] = 1.0
+        dw[3] = 0.0
+
+
+@numba.njit(inline="always")
+def grid_point(padded, valid_cells, origin, spacing, shape, p, cubic, value, gradient, wx, wy, wz, dx, dy, dz):
+    """Value (C,) and gradient (C, 3) of the table at one point p; returns whether p is in a valid cell."""
+    i, tx, in_x = _cell(p[0], origin[0], spacing, shape[0])
+    j, ty, in_y = _cell(p[1], origin[1], spacing, shape[1])
+    k, tz, in_z = _cell(p[2], origin[2], spacing, shape[2])
+    _weights(tx, cubic, wx, dx)
+    _weights(ty, cubic, wy, dy)
+    _weights(tz, cubic, wz, dz)
+    C = padded.shape[3]
+    for c in range(C):
+        value[c] = 0.0
+        gradient[c, 0] = 0.0
+        gradient[c, 1] = 0.0
+        gradient[c, 2] = 0.0
+    for a in range(4):
+        if wx[a] == 0.0 and dx[a] == 0.0:
+            continue
+        for b in range(4):
+            if wy[b] == 0.0 and dy[b] == 0.0:
+                continue
+            for d in range(4):
+                if wz[d] == 0.0 and dz[d] == 0.0:
+                    continue
+                w = wx[a] * wy[b] * wz[d]
+                gx = dx[a] * wy[b] * wz[d]
+                gy = wx[a] * dy[b] * wz[d]
+                gz = wx[a] * wy[b] * dz[d]
+                node = padded[i + a, j + b, k + d]
+                for c in range(C):
+                    v = node[c]
+                    value[c] += w * v
+                    gradient[c, 0] += gx * v
+                    gradient[c, 1] += gy * v
+                    gradient[c, 2] += gz * v
+    for c in range(C):
+        gradient[c, 0] /= spacing
+        gradient[c, 1] /= spacing
+        gradient[c, 2] /= spacing
+    return in_x and in_y and in_z and valid_cells[i, j, k]
+
+
+@numba.njit(**_OPTS)
+def grid_kernel(padded, valid_cells, origin, spacing, shape, points, cubic, values, gradients, inside):
+    """Table value, gradient and validity at every point (N, 3)."""
+    for n in numba.prange(points.shape[0]):
+        wx = np.empty(4)
+        wy = np.empty(4)
+        wz = np.empty(4)
+        dx = np.empty(4)
+        dy = np.empty(4)
+        dz = np.empty(4)
+        inside[n] = grid_point(padded, valid_cells, origin, spacing, shape, points[n], cubic, values[n],
+                               gradients[n], wx, wy, wz, dx, dy, dz)

@@ -1,0 +1,224 @@
+"""From a session to a look-up table: map the sweep, fit the secondary field on a grid, refine (``ivc fit``).
+
+Stages: the fixtures are calibrated and the sweep solved through the cube
+(:mod:`ivc.fixtures.mapping`); the gated samples are fitted on the grid by the chosen
+method; then, optionally, the wand frames are re-solved as rigid bodies against the map
+and the map refitted until it stops changing (:mod:`ivc.lut.refine`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+
+from ivc import __version__, dipole
+from ivc.fixtures.mapping import DROP_REASONS, FixtureModel, Gates, map_sweep
+from ivc.lut.fit_harmonic import fit_harmonic
+from ivc.lut.fit_poly import fit_poly
+from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
+from ivc.lut.refine import resolve_sweep
+from ivc.lut.samples import FieldSamples, pose_equivalent_rms
+from ivc.lut.support import MIN_SUPPORT, node_support
+from ivc.lut.table import LookupTable
+from ivc.session import Session, SessionError
+
+METHODS = ("harmonic", "poly")
+#: fewest gated samples worth fitting, and the smallest fraction of the sweep that may pass the gates
+MIN_SAMPLES = 2_000
+MIN_KEPT_FRACTION = 0.05
+#: refinement stops when the map changes by less than this, pose-equivalent RMS over valid nodes (m)
+REFINE_TOLERANCE = 5e-6
+
+#: what to redo when most samples fail a gate
+_ADVICE = {
+    "invalid sample": "the sweep's samples are mostly invalid (dropped or saturated): redo `ivc collect wand_sweep`",
+    "sensor 0 invalid": "wand sensor 0 was mostly invalid: redo `ivc collect wand_sweep`",
+    "not converged": "sensor 0's pose did not converge in the cube: check `ivc fixtures` and redo cube_survey or "
+                     "wand_sweep",
+    "outside the cube": "sensor 0 was mostly outside the cube: redo `ivc collect wand_sweep` keeping wand sensor 0 "
+                        "inside the cube",
+    "residual too high": "the cube field does not explain sensor 0's signal (rms(Λ) too high): redo "
+                         "`ivc collect cube_survey` (and check the declared cube pose), or raise --max-residual",
+    "estimated error too high": "the estimated sample errors exceed the gate: redo `ivc collect wand_calibration` and "
+                                "`ivc collect wand_sweep` more slowly, or raise --max-error-mm",
+}
+
+Progress = Callable[[str, int], Callable[[int], None]]
+
+
+@dataclass
+class FitOptions:
+    """``method``: harmonic (default) or poly. ``degree``: harmonic degree (None: cross-validated) or the
+    polynomial degree (default 2). ``radius``: poly neighbourhood, m (default: the spacing).
+    ``origin``/``shape``: a user grid (else derived from the data, one-cell margin).
+    ``max_frames``: the sweep is decimated to at most this many frames (every k-th frame).
+    At 240 Hz consecutive frames are a fraction of a millimetre apart, so this loses no
+    coverage; it bounds the time of the sweep solve, the fit and the refinement."""
+
+    method: str = "harmonic"
+    spacing: float = DEFAULT_SPACING
+    origin: tuple[float, float, float] | None = None
+    shape: tuple[int, int, int] | None = None
+    degree: int | None = None
+    radius: float | None = None
+    refine: bool = True
+    max_refinements: int = 3
+    min_support: int = MIN_SUPPORT
+    folds: int = 5
+    max_residual: float = Gates.max_residual
+    max_error: float = Gates.max_error
+    max_frames: int = 25_000
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f"unknown fit method {self.method!r}; use one of {', '.join(METHODS)}")
+        if (self.origin is None) != (self.shape is None):
+            raise ValueError("a user grid needs both an origin and a shape")
+
+
+def _noop(desc: str, total: int) -> Callable[[int], None]:
+    return lambda n: None
+
+
+def _grid_cross_validation(samples: FieldSamples, grid: Grid, fit: Callable, folds: int) -> float:
+    """K-fold CV of a grid fit: held-out samples against the table interpolated without them (m)."""
+    fold = samples.folds(folds)
+    predicted = np.full_like(samples.fields, np.nan)
+    for f in range(folds):
+        held = fold == f
+        values = fit(samples.subset(~held))
+        table = GridField(grid, values, np.all(np.isfinite(values.reshape(*grid.shape, 9)), axis=-1))
+        g, _, mapped = table.evaluate(samples.positions[held])
+        g[~mapped] = np.nan
+        predicted[held] = g
+    precision = samples.weights() / samples.leverage() ** 2
+    return pose_equivalent_rms(samples, predicted, precision)
+
+
+def tabulate(samples: FieldSamples, grid: Grid, options: FitOptions,
+             progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, dict]:
+    """Fit the samples by ``options.method``; node values (nx, ny, nz, 3, 3) and the fit report."""
+    if options.method == "harmonic":
+        model, report = fit_harmonic(samples, options.degree, folds=options.folds, progress=progress)
+        return model(grid.nodes()), report
+    degree = 2 if options.degree is None else options.degree
+    radius = grid.spacing if options.radius is None else options.radius
+
+    def fit(part: FieldSamples) -> np.ndarray:
+        return fit_poly(part, grid, degree, radius)
+
+    values = fit_poly(samples, grid, degree, radius, progress=progress)
+    report = {"degree": degree, "degree_chosen_by": "user" if options.degree is not None else "default",
+              "radius_mm": 1000 * radius, "cv_folds": options.folds,
+              "cv_rms_mm": 1000 * _grid_cross_validation(samples, grid, fit, options.folds)}
+    return values, report
+
+
+def map_change(grid: Grid, before: np.ndarray, after: np.ndarray, valid: np.ndarray) -> float:
+    """Pose-equivalent RMS difference of two tables over valid nodes (m)."""
+    nodes = grid.nodes()[valid]
+    leverage = np.linalg.norm(nodes, axis=1) / (3 * np.linalg.norm(dipole.field(nodes), axis=(1, 2)))
+    return float(np.sqrt(np.mean((leverage * np.linalg.norm(after[valid] - before[valid], axis=(1, 2))) ** 2)))
+
+
+def file_digest(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _check_enough(kept: int, total: int, dropped: dict[str, int]) -> None:
+    if kept >= MIN_SAMPLES and kept >= MIN_KEPT_FRACTION * total:
+        return
+    reason = max(DROP_REASONS, key=lambda k: dropped.get(k, 0))
+    detail = ", ".join(f"{n} {k}" for k, n in dropped.items() if n)
+    raise SessionError(f"only {kept} of {total} wand samples passed the gates (dropped: {detail}); need at least "
+                       f"{max(MIN_SAMPLES, int(MIN_KEPT_FRACTION * total))}. Most were dropped as {reason!r}: "
+                       f"{_ADVICE[reason]}")
+
+
+def fit_lut(session: Session, options: FitOptions | None = None, source: str | Path | None = None,
+            progress: Progress | None = None) -> LookupTable:
+    """Build the look-up table of ``session`` (which must hold the fixture steps and the sweep).
+
+    ``source``: the session's file, recorded (with its SHA-256) in the table's provenance.
+    ``progress(description, total)`` returns an update callback per stage.
+    """
+    options = options or FitOptions()
+    progress = progress or _noop
+    missing = session.missing_for_fit()
+    if missing:
+        raise SessionError("cannot fit a map; the session is missing:\n  " + "\n  ".join(missing))
+    model = FixtureModel.from_session(session)
+    recorded = session.steps["wand_sweep"].n_frames
+    stride = max(1, -(-recorded // options.max_frames))
+    if stride > 1:
+        session = session.select_frames("wand_sweep", slice(None, None, stride))
+    sweep = session.steps["wand_sweep"]
+    gates = Gates(max_residual=options.max_residual, max_error=options.max_error)
+    mapping = map_sweep(session, model, gates, progress=progress("solving the sweep in the cube", sweep.n_frames))
+    _check_enough(mapping.kept, mapping.keep.size, mapping.dropped)
+    samples = FieldSamples.from_mapping(mapping)
+    if options.origin is not None:
+        grid = Grid(np.asarray(options.origin, float), options.spacing, tuple(options.shape))
+    else:
+        grid = Grid.around(samples.positions, options.spacing)
+    outside = int(np.sum(~grid.contains(samples.positions)))
+    values, report = tabulate(samples, grid, options, progress(f"fitting ({options.method})", len(samples)))
+    support = node_support(grid, samples.positions)
+    valid = (support >= options.min_support) & np.all(np.isfinite(values.reshape(*grid.shape, 9)), axis=-1)
+    history = []
+    if options.refine:
+        S = sweep.signal_matrices()
+        position0, rotation0 = mapping.positions[:, 0], mapping.rotations[:, 0]
+        for iteration in range(1, options.max_refinements + 1):
+            table = GridField(grid, values, valid)
+            r0, T0, ok = resolve_sweep(S, sweep.valid_mask, model.wand, model.interpolant.value_and_jacobian,
+                                       table.value_and_jacobian, position0, rotation0,
+                                       progress(f"refinement {iteration}: rigid wand solve", len(S)))
+            positions, rots = model.wand.propagate(np.where(ok[:, None], r0, 0.0),
+                                                   np.where(ok[:, None, None], T0, np.eye(3)))
+            keep = mapping.keep & ok[:, None]
+            frame, sensor = np.nonzero(keep)
+            fields = rots[frame, sensor] @ S[frame, sensor] - dipole.field(positions[frame, sensor])
+            samples = FieldSamples(positions[frame, sensor], fields, mapping.error_estimate[frame, sensor], frame,
+                                   sensor)
+            new_values, report = tabulate(samples, grid, options,
+                                          progress(f"refinement {iteration}: refit", len(samples)))
+            change = map_change(grid, values, new_values, valid)
+            moved = np.linalg.norm(r0[ok] - position0[ok], axis=1)
+            history.append({"iteration": iteration, "frames_converged": int(ok.sum()),
+                            "sensor0_moved_median_mm": float(1000 * np.median(moved)),
+                            "map_change_mm": 1000 * change, "cv_rms_mm": report["cv_rms_mm"]})
+            values, position0, rotation0 = new_values, np.where(ok[:, None], r0, position0), np.where(
+                ok[:, None, None], T0, rotation0)
+            support = node_support(grid, samples.positions)
+            valid = (support >= options.min_support) & np.all(np.isfinite(values.reshape(*grid.shape, 9)), axis=-1)
+            if change < REFINE_TOLERANCE:
+                break
+    fit = {
+        "method": options.method, **report,
+        "frames": {"recorded": recorded, "used": sweep.n_frames, "stride": stride},
+        "samples": {"total": int(mapping.keep.size), "kept": mapping.kept, "used": len(samples),
+                    "outside_grid": outside, "dropped": mapping.dropped},
+        "refinement": history,
+        "grid_from": "user" if options.origin is not None else "data (one-cell margin)",
+        "min_support": options.min_support,
+        "valid_nodes": int(valid.sum()),
+    }
+    provenance = {
+        "ivc_version": __version__,
+        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "parameters": {k: v for k, v in asdict(options).items()},
+        "fixtures": {"vertices": model.vertices, "interpolant": type(model.interpolant).__name__},
+    }
+    if source is not None:
+        provenance.update(input=str(source), input_sha256=file_digest(source))
+    return LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance)

@@ -1,0 +1,151 @@
+"""The physics-constrained fit: each source column of ``G`` is the gradient of a harmonic potential.
+
+Inside the source-free mapped volume every column of ``G`` is a magnetic field, so it
+is ``∇Φ_j`` with ``Φ_j`` harmonic (MATH.md §8). ``Φ_j`` is expanded in the regular
+solid harmonics of degree 1..L about the centre of the data (``ivc.lut.harmonics``):
+``(L + 1)² − 1`` coefficients per column, shared basis, weighted least squares.
+
+The degree is chosen by K-fold cross-validation. The folds' normal equations are
+accumulated once; the held-out weighted residual of fold ``f`` follows exactly from
+them, ``yᵀy_f − 2 cᵀ Xᵀy_f + cᵀ XᵀX_f c``, so all degrees are scored for the cost of
+one pass over the data. Outliers are down-weighted by Huber iteratively reweighted
+least squares on the pose-equivalent residual.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ivc.lut import harmonics
+from ivc.lut.samples import ERROR_FLOOR, FieldSamples
+
+MAX_DEGREE = 10
+CHUNK = 20_000
+HUBER_K = 3.0
+ROBUST_ITERATIONS = 2
+RIDGE = 1e-10  # relative Tikhonov term: keeps high degrees solvable where the data are thin
+
+
+@dataclass
+class HarmonicModel:
+    """``G(r) = Σ_k ∇Φ_k((r − centre) / scale) c_k`` with ``coefficients`` (K, 3)."""
+
+    centre: np.ndarray
+    scale: float
+    degree: int
+    coefficients: np.ndarray
+
+    def __call__(self, r: np.ndarray) -> np.ndarray:
+        r = np.asarray(r, float)
+        flat = r.reshape(-1, 3)
+        out = np.empty((len(flat), 3, 3))
+        for start in range(0, len(flat), CHUNK):
+            basis = harmonics.gradients((flat[start : start + CHUNK] - self.centre) / self.scale, self.degree)
+            out[start : start + CHUNK] = np.einsum("nki,kj->nij", basis, self.coefficients)
+        return out.reshape(*r.shape[:-1], 3, 3)
+
+
+@dataclass
+class _Normal:
+    """Per-fold normal equations at the maximum degree: XᵀWX (k, K, K), XᵀWy (k, K, 3), yᵀWy (k,), Σν (k,)."""
+
+    gram: np.ndarray
+    rhs: np.ndarray
+    yy: np.ndarray
+    count: np.ndarray
+
+
+def _accumulate(samples, base, folds, k, centre, scale, degree, robust, progress) -> tuple[_Normal, np.ndarray]:
+    """One pass over the data: the fold normal equations, and the weights used.
+
+    With ``robust = (coefficients, cut)``, each sample's weight is Huber-reduced by its
+    standardised pose-equivalent residual under ``coefficients`` (cut in the same units).
+    """
+    K = harmonics.count(degree)
+    normal = _Normal(np.zeros((k, K, K)), np.zeros((k, K, 3)), np.zeros(k), np.zeros(k))
+    weights = base.copy()
+    for f in range(k):
+        members = np.flatnonzero(folds == f)
+        for start in range(0, len(members), CHUNK):
+            part = members[start : start + CHUNK]
+            basis = harmonics.gradients((samples.positions[part] - centre) / scale, degree)  # (n, K, 3)
+            if robust is not None:
+                coefficients, cut = robust
+                residual = _standardised_residual(samples, part, basis[:, : len(coefficients)], coefficients)
+                weights[part] *= np.minimum(1.0, cut / np.maximum(residual, 1e-300))
+            root = np.sqrt(weights[part])
+            X = (basis * root[:, None, None]).transpose(0, 2, 1).reshape(-1, K)  # rows (sample, component)
+            Y = (samples.fields[part] * root[:, None, None]).reshape(-1, 3)  # columns: source coil
+            normal.gram[f] += X.T @ X
+            normal.rhs[f] += X.T @ Y
+            normal.yy[f] += np.sum(Y**2)
+            normal.count[f] += np.sum(weights[part] / samples.leverage_of(part) ** 2)
+            if progress is not None:
+                progress(len(part))
+    return normal, weights
+
+
+def _standardised_residual(samples, part, basis, coefficients) -> np.ndarray:
+    """``λ |G_model − G|_F / σ`` of the samples in ``part``: a residual in units of the sample's error."""
+    predicted = np.einsum("nki,kj->nij", basis, coefficients)
+    sigma = np.sqrt(samples.error[part] ** 2 + ERROR_FLOOR**2)
+    return samples.leverage_of(part) * np.linalg.norm(predicted - samples.fields[part], axis=(1, 2)) / sigma
+
+
+def _solve(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    ridge = RIDGE * np.trace(gram) / len(gram)
+    return np.linalg.solve(gram + ridge * np.eye(len(gram)), rhs)
+
+
+def _cv_scores(normal: _Normal, max_degree: int) -> dict[int, float]:
+    """Held-out pose-equivalent RMS (m) for each degree 1..max_degree."""
+    gram_all, rhs_all = normal.gram.sum(axis=0), normal.rhs.sum(axis=0)
+    scores = {}
+    for degree in range(1, max_degree + 1):
+        K = harmonics.count(degree)
+        sse = 0.0
+        for f in range(len(normal.gram)):
+            if normal.count[f] == 0:
+                continue
+            c = _solve(gram_all[:K, :K] - normal.gram[f, :K, :K], rhs_all[:K] - normal.rhs[f, :K])
+            sse += normal.yy[f] - 2 * np.sum(c * normal.rhs[f, :K]) + np.sum(c * (normal.gram[f, :K, :K] @ c))
+        scores[degree] = float(np.sqrt(max(sse, 0.0) / normal.count.sum()))
+    return scores
+
+
+def fit_harmonic(samples: FieldSamples, degree: int | None = None, max_degree: int = MAX_DEGREE, folds: int = 5,
+                 progress: Callable[[int], None] | None = None) -> tuple[HarmonicModel, dict]:
+    """Fit the harmonic model. ``degree=None`` chooses it by cross-validation (the lowest degree within
+    1% of the best score). Returns the model and a report: chosen degree, CV score per degree (mm),
+    samples down-weighted as outliers.
+    """
+    if len(samples) < 3 * harmonics.count(2):
+        raise ValueError(f"{len(samples)} samples are too few for a harmonic fit")
+    top = max_degree if degree is None else degree
+    centre = 0.5 * (samples.positions.min(axis=0) + samples.positions.max(axis=0))
+    scale = float(np.max(np.linalg.norm(samples.positions - centre, axis=1)))
+    fold = samples.folds(folds)
+    base = samples.weights()
+    robust = None
+    probe = np.random.default_rng(0).choice(len(samples), min(len(samples), CHUNK), replace=False)
+    for iteration in range(ROBUST_ITERATIONS + 1):
+        normal, weights = _accumulate(samples, base, fold, folds, centre, scale, top, robust, progress)
+        scores = _cv_scores(normal, top)
+        chosen = top
+        if degree is None:
+            best = min(scores.values())
+            chosen = min(d for d, s in scores.items() if s <= 1.01 * best)
+        K = harmonics.count(chosen)
+        coefficients = _solve(normal.gram.sum(axis=0)[:K, :K], normal.rhs.sum(axis=0)[:K])
+        if iteration < ROBUST_ITERATIONS:  # Huber cut from a probe of the residuals under this fit
+            basis = harmonics.gradients((samples.positions[probe] - centre) / scale, chosen)
+            cut = HUBER_K * 1.4826 * np.median(_standardised_residual(samples, probe, basis, coefficients))
+            robust = (coefficients, cut)
+    outliers = int(np.sum(weights < base * (1 - 1e-12)))
+    report = {"degree": chosen, "degree_chosen_by": "cross-validation" if degree is None else "user",
+              "cv_rms_mm": 1000 * scores[chosen], "cv_rms_mm_by_degree": {str(d): 1000 * s for d, s in scores.items()},
+              "cv_folds": folds, "outliers_downweighted": outliers}
+    return HarmonicModel(centre, scale, chosen, coefficients), report

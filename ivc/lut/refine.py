@@ -1,0 +1,115 @@
+"""Refinement beyond the seed: re-solve each wand frame as one rigid body against the current map.
+
+The seed's map trusts sensor 0's pose in the cube alone and carries every other sensor
+with it (eq. 97-98), so sensor 0's small orientation error grows along the wand. Once a
+first map exists, every sensor's signal says something about the wand's pose: the
+frame is re-solved as one rigid 6-DOF body, sensor 0 against dipole + cube field and
+sensors 1.. against dipole + map, all residuals relative to each sensor's rms(S). New
+samples ``G = T_n S_n − f_D(r_n)`` then give a new map; repeat until it stops changing.
+
+Perturbing sensor 0's pose by ``δ`` and ``T_0 ← T_0 exp([ω]×)`` moves sensor n by
+``δ − T_0 [b_n]× ω`` and turns it by ``T_n ← T_n exp([R_nᵀ ω]×)`` (``b_n``, ``R_n`` its
+calibrated pose in the wand frame), which chains the single-sensor Jacobians.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from ivc import dipole, rotations
+from ivc.fixtures.wand import WandCalibration
+from ivc.pose import signal_residual
+
+CHUNK_FRAMES = 5_000
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    zero = np.zeros_like(x)
+    return np.stack([np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)], -2)
+
+
+def _residuals(S, scale, valid, wand, cube_field, map_field, r0, T0):
+    """Stacked residuals (F, W·9) and Jacobian (F, W·9, 6) of the rigid wand."""
+    F, W = S.shape[:2]
+    positions, rots = wand.propagate(r0, T0)
+    M = dipole.field(positions)
+    dM = dipole.field_jacobian(positions)
+    g0, dg0 = cube_field(positions[:, 0])
+    g, dg = map_field(positions[:, 1:])
+    M[:, 0] += g0
+    dM[:, 0] += dg0
+    M[:, 1:] += g
+    dM[:, 1:] += dg
+    e, J = signal_residual(S.reshape(-1, 3, 3), M.reshape(-1, 3, 3), dM.reshape(-1, 3, 3, 3), rots.reshape(-1, 3, 3))
+    e, J = e.reshape(F, W, 9), J.reshape(F, W, 9, 6)
+    lever = -T0[:, None] @ _skew(wand.positions)[None]  # (F, W, 3, 3): ∂r_n/∂ω
+    J_w = J[..., :3] @ lever + J[..., 3:] @ np.swapaxes(wand.rotations, -1, -2)[None]
+    J = np.concatenate([J[..., :3], J_w], axis=-1)
+    w = (valid / scale)[..., None]
+    return (e * w).reshape(F, -1), (J * w[..., None]).reshape(F, -1, 6)
+
+
+def solve_rigid(S: np.ndarray, valid: np.ndarray, wand: WandCalibration, cube_field: Callable, map_field: Callable,
+                position0: np.ndarray, rotation0: np.ndarray, max_iterations: int = 30,
+                step_tolerance: float = 1e-9) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt for the wand's pose (sensor 0's) in every frame, from a starting pose.
+
+    ``S`` (F, W, 3, 3), ``valid`` (F, W); ``cube_field`` / ``map_field``: ``r -> (g, ∂g/∂r)``.
+    Returns sensor 0's position (F, 3), rotation (F, 3, 3) and per-frame convergence (F,).
+    """
+    valid = valid & np.all(np.isfinite(S.reshape(*S.shape[:2], -1)), axis=-1)
+    S = np.where(valid[..., None, None], S, 0.0)
+    scale = np.sqrt(np.mean(S**2, axis=(-1, -2)))
+    scale = np.where(valid, scale, 1.0)
+    r, T = position0.copy(), rotation0.copy()
+    F = len(S)
+    active = np.all(np.isfinite(r), axis=1) & valid[:, 0]
+    r[~active], T[~active] = np.nan, np.nan
+    converged = np.zeros(F, dtype=bool)
+    damping = np.full(F, 1e-3)
+    idx = np.flatnonzero(active)
+    e, J = np.zeros((F, S.shape[1] * 9)), np.zeros((F, S.shape[1] * 9, 6))
+    e[idx], J[idx] = _residuals(S[idx], scale[idx], valid[idx], wand, cube_field, map_field, r[idx], T[idx])
+    cost = np.sum(e**2, axis=1)
+    for _ in range(max_iterations):
+        idx = np.flatnonzero(active)
+        if len(idx) == 0:
+            break
+        Ja, ea = J[idx], e[idx]
+        H = np.einsum("fki,fkj->fij", Ja, Ja)
+        g = np.einsum("fki,fk->fi", Ja, ea)
+        diag = np.einsum("fii->fi", H)
+        A = H + (damping[idx, None] * np.maximum(diag, 1e-30 * diag.max(axis=1, keepdims=True)))[:, :, None] * np.eye(6)
+        step = -np.linalg.solve(A, g[..., None])[..., 0]
+        trial_r = r[idx] + step[:, :3]
+        trial_T = T[idx] @ rotations.to_matrix(rotations.from_rotvec(step[:, 3:]))
+        et, Jt = _residuals(S[idx], scale[idx], valid[idx], wand, cube_field, map_field, trial_r, trial_T)
+        trial_cost = np.sum(et**2, axis=1)
+        better = trial_cost <= cost[idx]
+        accept = idx[better]
+        r[accept], T[accept], e[accept], J[accept], cost[accept] = (trial_r[better], trial_T[better], et[better],
+                                                                    Jt[better], trial_cost[better])
+        damping[accept] = np.maximum(damping[accept] * 0.3, 1e-12)
+        damping[idx[~better]] *= 10.0
+        small = np.linalg.norm(step[:, :3], axis=1) < step_tolerance
+        done = idx[(better & small) | (~better & (damping[idx] > 1e8))]
+        converged[done] = True
+        active[done] = False
+    return r, T, converged
+
+
+def resolve_sweep(S: np.ndarray, valid: np.ndarray, wand: WandCalibration, cube_field: Callable, map_field: Callable,
+                  position0: np.ndarray, rotation0: np.ndarray,
+                  progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`solve_rigid` over a whole sweep in chunks (bounded memory), with progress."""
+    r, T, ok = np.empty_like(position0), np.empty_like(rotation0), np.zeros(len(S), dtype=bool)
+    for start in range(0, len(S), CHUNK_FRAMES):
+        part = slice(start, start + CHUNK_FRAMES)
+        r[part], T[part], ok[part] = solve_rigid(S[part], valid[part], wand, cube_field, map_field, position0[part],
+                                                 rotation0[part])
+        if progress is not None:
+            progress(len(S[part]))
+    return r, T, ok

@@ -1,0 +1,114 @@
+"""The look-up table of the room's secondary field, and its HDF5 file (docs/lut-format.md).
+
+A table holds, per node of a regular grid, the nine components of the source-frame
+secondary field ``G`` (same normalised units as ``f_D``, MATH.md §1), whether the node
+is supported by data, and how many samples supported it; plus how it was fitted and
+from what. Nothing in it is read from ``/truth``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ivc.lut.grid import Grid, GridField
+from ivc.session import SessionError, atomic_path
+
+FORMAT_NAME = "lut"
+FORMAT_VERSION = 1
+COMPONENTS = ("Gxx", "Gxy", "Gxz", "Gyx", "Gyy", "Gyz", "Gzx", "Gzy", "Gzz")
+
+
+class LutError(SessionError):
+    """A look-up table file is missing, malformed, or unusable for what was asked."""
+
+
+@dataclass
+class LookupTable:
+    """``values`` (nx, ny, nz, 3, 3): ``G[i, j]`` = field component ``i`` of source coil ``j``;
+    ``valid`` (nx, ny, nz) bool; ``support`` (nx, ny, nz) int: samples within one cell of the node.
+
+    ``fit``: method, degree, cross-validation score, samples used and dropped, refinement
+    history. ``provenance``: input file and its SHA-256, parameters, ivc version, time.
+    ``hemisphere``: the session's declared hemisphere, used to seed corrections.
+    """
+
+    grid: Grid
+    values: np.ndarray
+    valid: np.ndarray
+    support: np.ndarray
+    hemisphere: str = "+x"
+    fit: dict = field(default_factory=dict)
+    provenance: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.values = np.asarray(self.values, float)
+        self.valid = np.asarray(self.valid, bool)
+        self.support = np.asarray(self.support, np.int64)
+        shape = self.grid.shape
+        if self.values.shape != (*shape, 3, 3) or self.valid.shape != shape or self.support.shape != shape:
+            raise LutError(f"table arrays {self.values.shape}, {self.valid.shape}, {self.support.shape} do not "
+                           f"match the grid {shape}")
+        if not self.valid.any():
+            raise LutError("the table has no valid node: no data supports any part of the grid")
+        if not np.all(np.isfinite(self.values[self.valid])):
+            raise LutError("the table has non-finite values at valid nodes")
+
+    def field(self, interpolation: str = "cubic") -> GridField:
+        """The interpolated field ``g(r)`` with its Jacobian and the mapped-volume test."""
+        return GridField(self.grid, self.values, self.valid, interpolation)
+
+    @property
+    def mapped_fraction(self) -> float:
+        return float(self.valid.mean())
+
+
+def write(table: LookupTable, path: str | os.PathLike, *, overwrite: bool = False) -> None:
+    """Write ``table`` atomically; refuse to replace an existing file unless ``overwrite``."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists; pass --force to replace it")
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
+        h5.attrs.update(ivc_format=FORMAT_NAME, ivc_format_version=FORMAT_VERSION, length_unit="m",
+                        hemisphere=table.hemisphere, field_unit="normalised dipole units (f_D of MATH.md §2)")
+        grid = h5.create_group("grid")
+        grid.attrs.update(origin=table.grid.origin, spacing=table.grid.spacing, shape=np.array(table.grid.shape),
+                          index_order="x slowest, z fastest (seed eq. 105)")
+        h5.create_dataset("values", data=table.values, compression="gzip", shuffle=True)
+        h5["values"].attrs["components"] = np.array(COMPONENTS, dtype=h5py.string_dtype())
+        h5.create_dataset("valid", data=table.valid, compression="gzip")
+        h5.create_dataset("support", data=table.support.astype(np.int32), compression="gzip")
+        h5.create_group("fit").attrs["json"] = json.dumps(table.fit)
+        h5.create_group("provenance").attrs["json"] = json.dumps(table.provenance)
+
+
+def read(path: str | os.PathLike) -> LookupTable:
+    """Read a table written by :func:`write`; errors name the file and what is wrong."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such look-up table")
+    try:
+        h5 = h5py.File(path, "r")
+    except OSError as error:
+        raise LutError(f"{path}: not an HDF5 file ({error})") from None
+    with h5:
+        kind = h5.attrs.get("ivc_format")
+        kind = kind.decode() if isinstance(kind, bytes) else kind
+        if kind != FORMAT_NAME:
+            raise LutError(f"{path}: not an ivc look-up table (ivc_format = {kind!r}); make one with `ivc fit`")
+        version = int(h5.attrs.get("ivc_format_version", -1))
+        if version != FORMAT_VERSION:
+            raise LutError(f"{path}: look-up table format version {version}; this ivc reads {FORMAT_VERSION}")
+        try:
+            g = h5["grid"].attrs
+            grid = Grid(np.asarray(g["origin"]), float(g["spacing"]), tuple(np.asarray(g["shape"])))
+            return LookupTable(grid, h5["values"][()], h5["valid"][()], h5["support"][()],
+                               str(h5.attrs.get("hemisphere", "+x")), json.loads(h5["fit"].attrs["json"]),
+                               json.loads(h5["provenance"].attrs["json"]))
+        except KeyError as error:
+            raise LutError(f"{path}: missing {error.args[0]}") from None
