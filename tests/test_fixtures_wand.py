@@ -9,7 +9,7 @@ from ivc.fixtures.mapping import FixtureModel, Gates, map_sweep
 from ivc.fixtures.wand import WandCalibration
 from ivc.session import Session
 from ivc.sim import Scene, Simulator
-from ivc.sim.scene import NoiseSpec, scene_from_dict
+from ivc.sim.scene import NoiseSpec
 from tests.test_fixtures_cube import static_capture
 
 
@@ -35,19 +35,6 @@ def test_error_estimate_is_eq_101():
                                   np.ones(3))
     estimate = calibration.error_estimate(np.array([1e-4]), np.array([2e-3]))
     np.testing.assert_allclose(estimate, [[1e-4, 1e-4 + 0.1 * np.tan(2e-3), 1e-4 + 0.2 * np.tan(2e-3)]])
-
-
-@pytest.fixture(scope="module")
-def small_session():
-    scene = scene_from_dict({"conductor": [{"shape": "plate", "size": [1.0, 1.0], "position": [0.5, 0, -0.35],
-                                            "material": "aluminium", "resolution_mm": 80}]})
-    scene.tabulate = False
-    simulator = Simulator(scene, seed=9)
-    session = Session()
-    for name, frames in (("cube_calibration", 1000), ("cube_survey", 200), ("wand_calibration", 200),
-                         ("wand_sweep", 3000)):
-        session.steps[name], session.truth[name] = simulator.step(name, frames)
-    return simulator, session
 
 
 def test_sweep_mapping_keeps_clean_samples_and_estimates_fields(small_session):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from ivc import __version__
-from ivc.session import SessionError
+from ivc.session import SessionError  # LutError and CsvError are SessionErrors
 
 
 class IvcGroup(click.Group):
@@ -25,16 +25,19 @@ def cli() -> None:
 
     The pipeline: `ivc collect` records the protocol into a session file (from the
     built-in simulator or a real tracker's recording); `ivc info` says what a session
-    holds and what it still lacks.
+    holds and what it still lacks; `ivc fixtures` reports the fixture calibration;
+    `ivc fit` builds the secondary-field look-up table; `ivc correct` applies it;
+    `ivc evaluate` compares corrected with true poses. `ivc demo` runs it all on a
+    simulated room.
     """
 
 
 def _register() -> None:
-    from ivc.cli import collect, fixtures, info
+    from ivc.cli import collect, correct, demo, evaluate, fit, fixtures, info
 
-    cli.add_command(collect.collect)
-    cli.add_command(fixtures.fixtures)
-    cli.add_command(info.info)
+    for command in (collect.collect, correct.correct, demo.demo, evaluate.evaluate, fit.fit, fixtures.fixtures,
+                    info.info):
+        cli.add_command(command)
 
 
 _register()

@@ -33,14 +33,20 @@ class CsvError(SessionError):
     """A recording CSV is malformed; the message lists the bad lines."""
 
 
-def write_csv(step: Step, path: str | Path) -> None:
-    """Write a step as a recording CSV (floats with 17 significant digits: exact round trip)."""
+def write_csv(step: Step, path: str | Path, extra: dict[str, np.ndarray] | None = None) -> None:
+    """Write a step as a recording CSV (floats with 17 significant digits: exact round trip).
+
+    ``extra``: more columns after ``valid``, each an (F, N) array (written with ``str``).
+    """
+    extra = extra or {}
     columns = ["time", "sensor"]
     if step.position is not None:
         columns += POSE_COLUMNS
     if step.signal is not None:
         columns += SIGNAL_COLUMNS
     columns.append("valid")
+    columns += list(extra)
+    extras = [np.asarray(v).reshape(-1) for v in extra.values()]
     F, N = step.n_frames, step.n_sensors
     blocks = [np.repeat(step.time, N)[:, None]]
     if step.position is not None:
@@ -55,7 +61,7 @@ def write_csv(step: Step, path: str | Path) -> None:
         writer.writerow(columns)
         for k in range(len(numbers)):
             row = [repr(float(v)) for v in numbers[k]]
-            writer.writerow([row[0], names[k], *row[1:], "1" if valid[k] else "0"])
+            writer.writerow([row[0], names[k], *row[1:], "1" if valid[k] else "0", *(str(e[k]) for e in extras)])
 
 
 def read_csv(path: str | Path, sample_rate_hz: float | None = None) -> Step:

@@ -18,7 +18,7 @@ import numpy as np
 
 from ivc import __version__, dipole
 from ivc.fixtures.mapping import DROP_REASONS, FixtureModel, Gates, map_sweep
-from ivc.lut.fit_harmonic import fit_harmonic
+from ivc.lut.fit_harmonic import PASSES, fit_harmonic
 from ivc.lut.fit_poly import fit_poly
 from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
 from ivc.lut.refine import resolve_sweep
@@ -66,7 +66,7 @@ class FitOptions:
     shape: tuple[int, int, int] | None = None
     degree: int | None = None
     radius: float | None = None
-    refine: bool = True
+    refine: bool = False
     max_refinements: int = 3
     min_support: int = MIN_SUPPORT
     folds: int = 5
@@ -100,6 +100,11 @@ def _grid_cross_validation(samples: FieldSamples, grid: Grid, fit: Callable, fol
     return pose_equivalent_rms(samples, predicted, precision)
 
 
+def _work(options: FitOptions, samples: FieldSamples) -> int:
+    """Progress units of one fit: samples times passes (harmonic) or grid nodes (poly)."""
+    return len(samples) * PASSES if options.method == "harmonic" else 0
+
+
 def tabulate(samples: FieldSamples, grid: Grid, options: FitOptions,
              progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, dict]:
     """Fit the samples by ``options.method``; node values (nx, ny, nz, 3, 3) and the fit report."""
@@ -120,7 +125,8 @@ def tabulate(samples: FieldSamples, grid: Grid, options: FitOptions,
 
 
 def map_change(grid: Grid, before: np.ndarray, after: np.ndarray, valid: np.ndarray) -> float:
-    """Pose-equivalent RMS difference of two tables over valid nodes (m)."""
+    """Pose-equivalent RMS difference of two tables over the valid nodes where both are defined (m)."""
+    valid = valid & np.all(np.isfinite(after.reshape(*grid.shape, 9)), axis=-1)
     nodes = grid.nodes()[valid]
     leverage = np.linalg.norm(nodes, axis=1) / (3 * np.linalg.norm(dipole.field(nodes), axis=(1, 2)))
     return float(np.sqrt(np.mean((leverage * np.linalg.norm(after[valid] - before[valid], axis=(1, 2))) ** 2)))
@@ -171,7 +177,7 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
     else:
         grid = Grid.around(samples.positions, options.spacing)
     outside = int(np.sum(~grid.contains(samples.positions)))
-    values, report = tabulate(samples, grid, options, progress(f"fitting ({options.method})", len(samples)))
+    values, report = tabulate(samples, grid, options, progress(f"fitting ({options.method})", _work(options, samples)))
     support = node_support(grid, samples.positions)
     valid = (support >= options.min_support) & np.all(np.isfinite(values.reshape(*grid.shape, 9)), axis=-1)
     history = []
@@ -181,7 +187,7 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
         for iteration in range(1, options.max_refinements + 1):
             table = GridField(grid, values, valid)
             r0, T0, ok = resolve_sweep(S, sweep.valid_mask, model.wand, model.interpolant.value_and_jacobian,
-                                       table.value_and_jacobian, position0, rotation0,
+                                       table, position0, rotation0,
                                        progress(f"refinement {iteration}: rigid wand solve", len(S)))
             positions, rots = model.wand.propagate(np.where(ok[:, None], r0, 0.0),
                                                    np.where(ok[:, None, None], T0, np.eye(3)))
@@ -191,7 +197,7 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
             samples = FieldSamples(positions[frame, sensor], fields, mapping.error_estimate[frame, sensor], frame,
                                    sensor)
             new_values, report = tabulate(samples, grid, options,
-                                          progress(f"refinement {iteration}: refit", len(samples)))
+                                          progress(f"refinement {iteration}: refit", _work(options, samples)))
             change = map_change(grid, values, new_values, valid)
             moved = np.linalg.norm(r0[ok] - position0[ok], axis=1)
             history.append({"iteration": iteration, "frames_converged": int(ok.sum()),

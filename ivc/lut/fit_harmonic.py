@@ -26,6 +26,8 @@ MAX_DEGREE = 10
 CHUNK = 20_000
 HUBER_K = 3.0
 ROBUST_ITERATIONS = 2
+#: passes over the data per fit (for progress totals)
+PASSES = ROBUST_ITERATIONS + 1
 RIDGE = 1e-10  # relative Tikhonov term: keeps high degrees solvable where the data are thin
 
 
@@ -96,8 +98,11 @@ def _standardised_residual(samples, part, basis, coefficients) -> np.ndarray:
 
 
 def _solve(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    ridge = RIDGE * np.trace(gram) / len(gram)
-    return np.linalg.solve(gram + ridge * np.eye(len(gram)), rhs)
+    """Normal equations with every basis column scaled to unit norm first (solid harmonics of
+    high degree are tiny inside the unit ball), plus a small relative ridge."""
+    scale = np.sqrt(np.maximum(np.diag(gram), 1e-300))
+    scaled = gram / np.outer(scale, scale) + RIDGE * np.eye(len(gram))
+    return np.linalg.solve(scaled, rhs / scale[:, None]) / scale[:, None]
 
 
 def _cv_scores(normal: _Normal, max_degree: int) -> dict[int, float]:

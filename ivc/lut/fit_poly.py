@@ -3,8 +3,12 @@
 For node ``r_gp`` the samples within ``radius`` (the seed: 38.1 mm) fit each of the nine
 components of ``G`` with a polynomial of ``degree`` in ``(r − r_gp) / radius``, weighted;
 the node value is the constant term, ``G(r_gp) = f_P(0)ᵀ C``. The normal equations of
-eq. 106 are solved as a least-squares problem, never by forming an inverse. A node with
-fewer than three samples per coefficient is left unfitted (NaN, invalid).
+eq. 106 are solved as a least-squares problem, never by forming an inverse.
+
+A polynomial fitted to samples on one side of a node extrapolates to it, wildly at the
+edge of the data; so a node is fitted only when its neighbourhood has at least three
+samples per coefficient and samples in at least ``MIN_OCTANTS`` of the eight octants
+around it. Other nodes are left unfitted (NaN, invalid).
 """
 
 from __future__ import annotations
@@ -19,6 +23,8 @@ from ivc.lut.grid import Grid
 from ivc.lut.samples import FieldSamples
 
 SAMPLES_PER_COEFFICIENT = 3
+MIN_OCTANTS = 8
+MIN_PER_OCTANT = 3
 
 
 def monomials(x: np.ndarray, degree: int) -> np.ndarray:
@@ -44,8 +50,12 @@ def fit_poly(samples: FieldSamples, grid: Grid, degree: int = 2, radius: float |
     for n, index in enumerate(neighbours):
         if len(index) >= SAMPLES_PER_COEFFICIENT * terms:
             index = np.asarray(index)
+            offset = samples.positions[index] - nodes[n]
+            octant = (offset[:, 0] > 0) * 4 + (offset[:, 1] > 0) * 2 + (offset[:, 2] > 0)
+            if np.sum(np.bincount(octant, minlength=8) >= MIN_PER_OCTANT) < MIN_OCTANTS:
+                continue
             root = np.sqrt(weights[index])[:, None]
-            design = monomials((samples.positions[index] - nodes[n]) / radius, degree) * root
+            design = monomials(offset / radius, degree) * root
             coefficients, _, rank, _ = np.linalg.lstsq(design, targets[index] * root, rcond=None)
             if rank == terms:
                 values[n] = coefficients[0]

@@ -20,6 +20,7 @@ import numpy as np
 
 from ivc import dipole, rotations
 from ivc.fixtures.wand import WandCalibration
+from ivc.lut.grid import GridField
 from ivc.pose import signal_residual
 
 CHUNK_FRAMES = 5_000
@@ -38,7 +39,9 @@ def _residuals(S, scale, valid, wand, cube_field, map_field, r0, T0):
     M = dipole.field(positions)
     dM = dipole.field_jacobian(positions)
     g0, dg0 = cube_field(positions[:, 0])
-    g, dg = map_field(positions[:, 1:])
+    g, dg, mapped = map_field.evaluate(positions[:, 1:])
+    valid = valid.copy()
+    valid[:, 1:] &= mapped  # a sensor where the map says nothing does not pull the wand
     M[:, 0] += g0
     dM[:, 0] += dg0
     M[:, 1:] += g
@@ -52,12 +55,12 @@ def _residuals(S, scale, valid, wand, cube_field, map_field, r0, T0):
     return (e * w).reshape(F, -1), (J * w[..., None]).reshape(F, -1, 6)
 
 
-def solve_rigid(S: np.ndarray, valid: np.ndarray, wand: WandCalibration, cube_field: Callable, map_field: Callable,
+def solve_rigid(S: np.ndarray, valid: np.ndarray, wand: WandCalibration, cube_field: Callable, map_field: GridField,
                 position0: np.ndarray, rotation0: np.ndarray, max_iterations: int = 30,
                 step_tolerance: float = 1e-9) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Levenberg-Marquardt for the wand's pose (sensor 0's) in every frame, from a starting pose.
 
-    ``S`` (F, W, 3, 3), ``valid`` (F, W); ``cube_field`` / ``map_field``: ``r -> (g, ∂g/∂r)``.
+    ``S`` (F, W, 3, 3), ``valid`` (F, W); ``cube_field``: ``r -> (g, ∂g/∂r)``; ``map_field``: the current map.
     Returns sensor 0's position (F, 3), rotation (F, 3, 3) and per-frame convergence (F,).
     """
     valid = valid & np.all(np.isfinite(S.reshape(*S.shape[:2], -1)), axis=-1)
@@ -101,7 +104,7 @@ def solve_rigid(S: np.ndarray, valid: np.ndarray, wand: WandCalibration, cube_fi
     return r, T, converged
 
 
-def resolve_sweep(S: np.ndarray, valid: np.ndarray, wand: WandCalibration, cube_field: Callable, map_field: Callable,
+def resolve_sweep(S: np.ndarray, valid: np.ndarray, wand: WandCalibration, cube_field: Callable, map_field: GridField,
                   position0: np.ndarray, rotation0: np.ndarray,
                   progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`solve_rigid` over a whole sweep in chunks (bounded memory), with progress."""

@@ -1,0 +1,100 @@
+"""``ivc correct LUT INPUT -o OUTPUT``: corrected poses, with their flags, in the input's format."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import h5py
+import numpy as np
+
+from ivc import lut
+from ivc import session as session_io
+from ivc.collect.replay import read_csv, write_csv
+from ivc.correct import Corrector, describe
+from ivc.correct.solver import MAX_RESIDUAL, Correction
+from ivc.lut.build import file_digest
+from ivc.lut.grid import INTERPOLATIONS
+from ivc.session import Session, Step
+
+#: free-space steps: nothing to correct there
+_FREE_SPACE = ("cube_calibration", "wand_calibration")
+
+
+def corrected_step(step: Step, out: Correction, lut_file: str) -> Step:
+    """The step with its reported poses replaced by the corrected ones (signals kept as measured)."""
+    attrs = dict(step.attrs, corrected_with=str(lut_file))
+    return Step(step.time, step.signal, out.position, out.quaternion, step.valid_mask, step.sample_rate_hz,
+                step.sensor_ids, f"{step.description} (corrected by ivc)".strip(), attrs)
+
+
+def _summary(name: str, out: Correction) -> str:
+    flags = out.flags.reshape(-1)
+    counts = {describe(int(v)): int(n) for v, n in zip(*np.unique(flags[flags != 0], return_counts=True), strict=True)}
+    text = f"{name}: {flags.size} samples, {int(np.sum(flags == 0))} corrected"
+    return text + "".join(f"; {n} {k}" for k, n in counts.items())
+
+
+@click.command()
+@click.argument("lut_file", type=click.Path(dir_okay=False))
+@click.argument("input_file", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+              help="Corrected output: a session .h5 or a .csv, as the input.")
+@click.option("--step", "steps", multiple=True, help="Session input: step(s) to correct (default: every step "
+              "recorded in the distorted volume).")
+@click.option("--interpolation", type=click.Choice(INTERPOLATIONS), default="cubic", show_default=True)
+@click.option("--max-residual", type=float, default=MAX_RESIDUAL, show_default=True,
+              help="Flag corrections whose rms(M − T S)/rms(S) exceeds this.")
+@click.option("--hemisphere", help="Hemisphere of a CSV input (default: the table's).")
+@click.option("--force", is_flag=True, help="Replace OUTPUT if it exists (never the input).")
+def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, force):
+    """Correct the poses in INPUT_FILE (session .h5 or recording .csv) with LUT_FILE.
+
+    Every output sample carries flags: 0 = trusted; 1 outside the mapped volume, 2 not
+    converged, 4 residual too high, 8 invalid input (bits combine). Signals are used when
+    the input has them; otherwise the reported poses are turned back into signals through
+    the dipole model (MATH.md §9).
+    """
+    input_path, output_path = Path(input_file), Path(output)
+    if not input_path.exists():
+        raise FileNotFoundError(f"{input_path}: no such file")
+    if output_path.resolve() == input_path.resolve():
+        raise click.UsageError("OUTPUT must not be the input: raw recordings are never overwritten")
+    if output_path.exists() and not force:
+        raise FileExistsError(f"{output_path} exists; pass --force to replace it")
+    table = lut.read(lut_file)
+    if input_path.suffix.lower() == ".csv":
+        if output_path.suffix.lower() != ".csv":
+            raise click.UsageError("a CSV input is corrected into a CSV output (-o FILE.csv)")
+        step = read_csv(input_path)
+        corrector = Corrector(table, hemisphere or table.hemisphere, interpolation, max_residual)
+        out = corrector.batch(step.signal_matrices(), step.valid_mask)
+        fixed = corrected_step(step, out, lut_file)
+        fixed.signal = None
+        write_csv(fixed, output_path, {"flags": out.flags, "residual": out.residual})
+        click.echo(_summary(input_path.name, out))
+        click.echo(f"wrote {output_path}")
+        return
+    data = session_io.read(input_path)
+    names = list(steps) or [n for n in data.steps if n not in _FREE_SPACE]
+    unknown = [n for n in names if n not in data.steps]
+    if unknown:
+        raise click.UsageError(f"{input_path} has no step {', '.join(unknown)} (it has {', '.join(data.steps)})")
+    corrector = Corrector(table, data.hemisphere, interpolation, max_residual)
+    results = {}
+    for name in names:
+        step = data.steps[name]
+        results[name] = corrector.batch(step.signal_matrices(), step.valid_mask)
+        click.echo(_summary(name, results[name]))
+    corrected = Session(data.hemisphere, {n: corrected_step(data.steps[n], results[n], lut_file) for n in names},
+                        {n: data.truth[n] for n in names if n in data.truth},
+                        dict(data.attrs, corrected_with=str(lut_file), lut_sha256=file_digest(lut_file)))
+    with session_io.atomic_path(output_path) as tmp:
+        session_io.write(corrected, tmp, overwrite=True)
+        with h5py.File(tmp, "a") as h5:
+            for name, out in results.items():
+                h5[f"steps/{name}/flags"] = out.flags
+                h5[f"steps/{name}/flags"].attrs["meaning"] = ("0 trusted; bits: 1 outside the mapped volume, "
+                                                              "2 not converged, 4 residual too high, 8 invalid input")
+                h5[f"steps/{name}/residual"] = out.residual
+    click.echo(f"wrote {output_path}")

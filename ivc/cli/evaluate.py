@@ -1,0 +1,58 @@
+"""``ivc evaluate LUT CHECKFILE``: corrected against true poses, in the layout of the seed's Table 24."""
+
+from __future__ import annotations
+
+import json
+
+import click
+
+from ivc import lut
+from ivc import session as session_io
+from ivc.correct import Corrector
+from ivc.correct.evaluate import evaluate as evaluate_table
+from ivc.correct.solver import MAX_RESIDUAL
+from ivc.lut.grid import INTERPOLATIONS
+
+_COLUMNS = ("p25", "p50", "p75", "p95", "p99", "max")
+
+
+def _row(label: str, values: dict, unit: str) -> str:
+    if not values:
+        return f"  {label:<30}{'(no samples)':>54}"
+    return f"  {label:<30}" + "".join(f"{values[k]:>9.2f}" for k in _COLUMNS) + f"  {unit}"
+
+
+def render_table(report: dict) -> str:
+    flagged = ", ".join(f"{n} {k}" for k, n in report["flagged"].items() if n) or "none"
+    lines = [f"Check poses: {report['samples']}; corrected and trusted: {report['corrected']} (flagged: {flagged})",
+             f"IVC errors against {report['frame']}"
+             + (f"; declared cube pose off by {report['placement_error_mm']:.2f} mm at the check poses"
+                if "placement_error_mm" in report else ""),
+             "",
+             f"  {'':<30}" + "".join(f"{h:>9}" for h in ("25%", "50%", "75%", "95%", "99%", "max")),
+             _row("IVC position", report["ivc"]["position_mm"], "mm"),
+             _row("IVC orientation", report["ivc"]["orientation_mrad"], "mrad")]
+    if report["ivc"] is not report["ivc_raw"] and "placement_error_mm" in report:
+        lines += [_row("IVC position, raw truth", report["ivc_raw"]["position_mm"], "mm"),
+                  _row("IVC orientation, raw truth", report["ivc_raw"]["orientation_mrad"], "mrad")]
+    lines += [_row("dipole position (uncorrected)", report["dipole"]["position_mm"], "mm"),
+              _row("dipole orientation", report["dipole"]["orientation_mrad"], "mrad")]
+    return "\n".join(lines)
+
+
+@click.command()
+@click.argument("lut_file", type=click.Path(dir_okay=False))
+@click.argument("check_file", type=click.Path(dir_okay=False))
+@click.option("--step", default="check", show_default=True, help="Step of CHECK_FILE holding the check poses.")
+@click.option("--interpolation", type=click.Choice(INTERPOLATIONS), default="cubic", show_default=True,
+              help="Between grid nodes: Catmull-Rom cubic, or trilinear (the seed's).")
+@click.option("--max-residual", type=float, default=MAX_RESIDUAL, show_default=True,
+              help="Flag corrections whose rms(M − T S)/rms(S) exceeds this.")
+@click.option("--json", "as_json", is_flag=True, help="Print the table as JSON.")
+def evaluate(lut_file, check_file, step, interpolation, max_residual, as_json):
+    """Correct the check poses of CHECK_FILE with LUT_FILE and compare with their truth (seed Table 24)."""
+    table = lut.read(lut_file)
+    check = session_io.read(check_file)
+    corrector = Corrector(table, check.hemisphere, interpolation, max_residual)
+    report = evaluate_table(corrector, check, step)
+    click.echo(json.dumps(report, indent=2) if as_json else render_table(report))

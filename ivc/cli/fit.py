@@ -1,0 +1,100 @@
+"""``ivc fit SESSION -o LUT``: the room's secondary-field look-up table."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import click
+import numpy as np
+
+from ivc import lut
+from ivc import session as session_io
+from ivc.cli.progress import StageBars
+from ivc.lut.build import FitOptions
+
+
+def parse_grid(value: str | None) -> dict:
+    """``--grid``: ``SPACING`` or ``X0,Y0,Z0:NX,NY,NZ:SPACING`` (millimetres; origin = minimum corner)."""
+    if value is None:
+        return {}
+    try:
+        parts = value.split(":")
+        if len(parts) == 1:
+            return {"spacing": float(parts[0]) / 1000}
+        if len(parts) == 3:
+            origin = tuple(float(v) / 1000 for v in parts[0].split(","))
+            shape = tuple(int(v) for v in parts[1].split(","))
+            if len(origin) == 3 and len(shape) == 3:
+                return {"origin": origin, "shape": shape, "spacing": float(parts[2]) / 1000}
+    except ValueError:
+        pass
+    raise click.BadParameter("use SPACING or X0,Y0,Z0:NX,NY,NZ:SPACING, in millimetres (e.g. 38.1 or "
+                             "300,-200,-200:12,12,12:38.1)", param_hint="--grid")
+
+
+def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
+    fit, grid = table.fit, table.grid
+    samples, frames = fit["samples"], fit["frames"]
+    lines = [f"Sweep: {frames['used']} of {frames['recorded']} frames used (every {frames['stride']}); "
+             f"{samples['kept']} of {samples['total']} wand samples kept"]
+    for reason, count in samples["dropped"].items():
+        if count:
+            lines.append(f"  dropped {count:>8}: {reason}")
+    degree = f"degree {fit['degree']} ({fit['degree_chosen_by']})"
+    lines.append(f"Fit: {fit['method']}, {degree}; {fit['cv_folds']}-fold cross-validation RMS "
+                 f"{fit['cv_rms_mm']:.4f} mm (pose-equivalent)")
+    if fit.get("outliers_downweighted"):
+        lines.append(f"  {fit['outliers_downweighted']} samples down-weighted as outliers (Huber)")
+    for step in fit["refinement"]:
+        lines.append(f"  refinement {step['iteration']}: {step['frames_converged']} frames re-solved as rigid "
+                     f"wands, sensor 0 moved {step['sensor0_moved_median_mm']:.4f} mm (median), map changed "
+                     f"{step['map_change_mm']:.4f} mm, CV {step['cv_rms_mm']:.4f} mm")
+    extent = (grid.origin, grid.origin + grid.spacing * (np.array(grid.shape) - 1))
+    lines.append(f"Grid: {grid.shape[0]} x {grid.shape[1]} x {grid.shape[2]} nodes at {1000 * grid.spacing:.1f} mm "
+                 f"from ({', '.join(f'{1000 * v:.1f}' for v in extent[0])}) to "
+                 f"({', '.join(f'{1000 * v:.1f}' for v in extent[1])}) mm; {fit['valid_nodes']} nodes mapped "
+                 f"(support >= {fit['min_support']} samples), "
+                 f"{int((table.field().valid_cells).sum()) * (1000 * grid.spacing) ** 3 / 1e6:.1f} litres mapped")
+    if seconds is not None:
+        lines.append(f"Done in {seconds:.1f} s")
+    return "\n".join(lines)
+
+
+@click.command()
+@click.argument("session_file", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Look-up table file to write.")
+@click.option("--method", type=click.Choice(lut.METHODS), default="harmonic", show_default=True,
+              help="harmonic: curl/div-free solid-harmonic fit; poly: the seed's local polynomial regression.")
+@click.option("--grid", "grid_spec", help="SPACING, or X0,Y0,Z0:NX,NY,NZ:SPACING, in mm (default: 38.1 mm around "
+              "the data with a one-cell margin).")
+@click.option("--degree", type=int, help="harmonic: fixed degree (default: cross-validated); poly: degree (2).")
+@click.option("--refine/--no-refine", default=True, show_default=True,
+              help="Re-solve the wand frames as rigid bodies against the map and refit until it settles.")
+@click.option("--max-refinements", type=int, default=FitOptions.max_refinements, show_default=True)
+@click.option("--max-frames", type=int, default=FitOptions.max_frames, show_default=True,
+              help="Decimate the sweep to at most this many frames.")
+@click.option("--min-support", type=int, default=FitOptions.min_support, show_default=True,
+              help="Samples needed around a node for it to count as mapped.")
+@click.option("--max-residual", type=float, default=FitOptions.max_residual, show_default=True,
+              help="Gate: largest rms(Λ)/rms(S) of sensor 0's solve in the cube.")
+@click.option("--max-error-mm", type=float, default=1000 * FitOptions.max_error, show_default=True,
+              help="Gate: largest estimated sample error (eq. 101), mm.")
+@click.option("--force", is_flag=True, help="Replace OUTPUT if it exists.")
+@click.option("--json", "as_json", is_flag=True, help="Print the fit report as JSON.")
+def fit(session_file, output, method, grid_spec, degree, refine, max_refinements, max_frames, min_support,
+        max_residual, max_error_mm, force, as_json):
+    """Fit the secondary-field look-up table of SESSION_FILE and write it to OUTPUT."""
+    if not force and Path(output).exists():
+        raise FileExistsError(f"{output} exists; pass --force to replace it")
+    options = FitOptions(method=method, degree=degree, refine=refine, max_refinements=max_refinements,
+                         max_frames=max_frames, min_support=min_support, max_residual=max_residual,
+                         max_error=max_error_mm / 1000, **parse_grid(grid_spec))
+    data = session_io.read(session_file)
+    start = time.perf_counter()
+    with StageBars("sample", disable=as_json) as bars:
+        table = lut.fit_lut(data, options, source=session_file, progress=bars)
+    lut.write(table, output, overwrite=force)
+    seconds = time.perf_counter() - start
+    click.echo(json.dumps(table.fit, indent=2) if as_json else render_fit(table, seconds) + f"\nwrote {output}")

@@ -1,0 +1,130 @@
+"""Correction with a look-up table: exact recovery, flags, streaming, quaternions, and the CLI."""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ivc import dipole, rotations
+from ivc import session as session_io
+from ivc.cli import cli
+from ivc.collect.replay import write_csv
+from ivc.correct import HIGH_RESIDUAL, INVALID_INPUT, OUTSIDE, Corrector
+from ivc.correct._kernels import quaternion_of
+from ivc.lut import Grid, LookupTable
+from tests.test_lut import CENTRE, ball, quadratic_field
+
+
+@pytest.fixture(scope="module")
+def exact_table():
+    """A table holding a field exactly quadratic in r, which cubic interpolation reproduces exactly."""
+    grid = Grid(CENTRE - 0.25, 0.025, (21, 21, 21))
+    values = quadratic_field(grid.nodes().reshape(-1, 3)).reshape(*grid.shape, 3, 3)
+    return LookupTable(grid, values, np.ones(grid.shape, bool), np.full(grid.shape, 100))
+
+
+def distorted(rng, n, radius=0.18):
+    r = ball(rng, n, radius)
+    T = rotations.to_matrix(rotations.random(n, rng))
+    return r, T, dipole.signal(r, T, quadratic_field(r))
+
+
+def test_correction_recovers_exact_poses_when_the_table_is_the_true_field(exact_table, rng):
+    r, T, S = distorted(rng, 2000)
+    assert np.median(np.linalg.norm(dipole.closed_form_pose(S)[0] - r, axis=1)) > 5e-3  # a real distortion
+    out = Corrector(exact_table).batch(S)
+    assert np.all(out.flags == 0)
+    assert np.abs(out.position - r).max() < 1e-9
+    assert rotations.angle_between(out.quaternion, rotations.from_matrix(T)).max() < 1e-8
+    assert np.all(out.residual < 1e-8)
+
+
+def test_streaming_matches_batch_and_warm_starts(exact_table, rng):
+    r, T, S = distorted(rng, 400)
+    corrector = Corrector(exact_table)
+    batch = corrector.batch(S)
+    frames = S.reshape(100, 4, 3, 3)  # 4 sensors, 100 frames
+    streamed = [corrector.update(frame, sensors=["a", "b", "c", "d"]) for frame in frames]
+    np.testing.assert_allclose(np.concatenate([s.position for s in streamed]), batch.position, atol=1e-9)
+    assert all(np.all(s.flags == 0) for s in streamed)
+    corrector.reset()
+    assert corrector.update(frames[0], ["a", "b", "c", "d"]).flags.tolist() == [0, 0, 0, 0]
+
+
+def test_points_outside_the_map_and_bad_input_are_flagged_never_silently_returned(exact_table, rng):
+    r, T, S = distorted(rng, 3)
+    far = np.array([0.9, 0.3, 0.0])  # outside the grid
+    S_far = dipole.signal(far, T[0], quadratic_field(far[None])[0])
+    S_all = np.stack([S[0], S_far, np.full((3, 3), np.nan), S[1]])
+    out = Corrector(exact_table).batch(S_all, valid=np.array([True, True, True, False]))
+    assert out.flags.shape == out.residual.shape == (4,) and out.position.shape == (4, 3)
+    assert out.flags[0] == 0
+    assert out.flags[1] & OUTSIDE
+    assert out.flags[2] == INVALID_INPUT and np.all(np.isnan(out.position[2]))
+    assert out.flags[3] == INVALID_INPUT
+    # a signal no pose explains is flagged by its residual
+    kicked = S[2] + 0.05 * np.abs(S[2]).max() * np.array([[1, -1, 0], [0, 1, 1], [1, 0, -1.0]])
+    assert Corrector(exact_table).batch(kicked[None]).flags[0] & HIGH_RESIDUAL
+
+
+def test_pose_only_input_is_rebuilt_into_signals(exact_table, rng):
+    r, T, S = distorted(rng, 50)
+    p, R = dipole.closed_form_pose(S)  # what a commercial tracker reports
+    q = rotations.from_matrix(R)
+    corrector = Corrector(exact_table)
+    from_poses = corrector.batch_poses(p, q)
+    from_signal = corrector.batch(dipole.signal_from_pose(p, q))
+    np.testing.assert_array_equal(from_poses.position, from_signal.position)
+
+
+def test_compiled_quaternion_equals_the_reference(rng):
+    T = rotations.to_matrix(np.concatenate([rotations.random(500, rng), [[0, 1, 0, 0], [0, 0, -1, 1] / np.sqrt(2)],
+                                            [[1, 0, 0, 0]]]))
+    q = np.empty((len(T), 4))
+    for n in range(len(T)):
+        quaternion_of.py_func(T[n], q[n])
+    np.testing.assert_allclose(q, rotations.from_matrix(T), atol=1e-15)
+
+
+def test_cli_fit_correct_evaluate(small_session, tmp_path):
+    _, session = small_session
+    session_file, table_file = tmp_path / "s.h5", tmp_path / "lut.h5"
+    session_io.write(session, session_file)
+    runner = CliRunner()
+    result = runner.invoke(cli, ["fit", str(session_file), "-o", str(table_file), "--min-support", "5"])
+    assert result.exit_code == 0, result.output
+    assert "cross-validation RMS" in result.output and "wand samples kept" in result.output
+    again = runner.invoke(cli, ["fit", str(session_file), "-o", str(table_file)])
+    assert again.exit_code != 0 and "exists" in again.output
+
+    result = runner.invoke(cli, ["evaluate", str(table_file), str(session_file), "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output)
+    assert report["ivc"]["position_mm"]["p50"] < 0.2 * report["dipole"]["position_mm"]["p50"]
+    text = runner.invoke(cli, ["evaluate", str(table_file), str(session_file)]).output
+    assert "IVC position" in text and "dipole position (uncorrected)" in text and "99%" in text
+
+    out_file = tmp_path / "corrected.h5"
+    result = runner.invoke(cli, ["correct", str(table_file), str(session_file), "-o", str(out_file)])
+    assert result.exit_code == 0, result.output
+    corrected = session_io.read(out_file)
+    assert set(corrected.steps) == {"cube_survey", "wand_sweep", "check"}
+    import h5py
+    with h5py.File(out_file) as h5:
+        flags = h5["steps/check/flags"][()]
+    assert flags.shape == (300, 1)
+    ok = flags == 0
+    check_error = np.linalg.norm(corrected.steps["check"].position - session.truth["check"].position, axis=-1)
+    assert np.median(check_error[ok]) < 0.01
+    refused = runner.invoke(cli, ["correct", str(table_file), str(session_file), "-o", str(session_file), "--force"])
+    assert refused.exit_code != 0 and "never overwritten" in refused.output
+
+    csv_in, csv_out = tmp_path / "check.csv", tmp_path / "check_corrected.csv"
+    write_csv(session.steps["check"], csv_in)
+    result = runner.invoke(cli, ["correct", str(table_file), str(csv_in), "-o", str(csv_out)])
+    assert result.exit_code == 0, result.output
+    lines = csv_out.read_text().splitlines()
+    assert lines[0].endswith("valid,flags,residual") and len(lines) == 301
+    x_csv = np.array([float(line.split(",")[2]) for line in lines[1:]])
+    np.testing.assert_allclose(x_csv, corrected.steps["check"].position[:, 0, 0], atol=1e-12)
