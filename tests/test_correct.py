@@ -98,6 +98,9 @@ def test_cli_fit_correct_evaluate(small_session, tmp_path):
     again = runner.invoke(cli, ["fit", str(session_file), "-o", str(table_file)])
     assert again.exit_code != 0 and "exists" in again.output
 
+    described = runner.invoke(cli, ["info", str(table_file)])
+    assert described.exit_code == 0 and "look-up table" in described.output and "nodes mapped" in described.output
+
     result = runner.invoke(cli, ["evaluate", str(table_file), str(session_file), "--json"])
     assert result.exit_code == 0, result.output
     report = json.loads(result.output)

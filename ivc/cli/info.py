@@ -1,12 +1,14 @@
-"""``ivc info FILE``: what a session file holds and what it still lacks."""
+"""``ivc info FILE``: what a session file holds and what it still lacks (or what a look-up table holds)."""
 
 from __future__ import annotations
 
 import json
 
 import click
+import h5py
 import numpy as np
 
+from ivc import lut
 from ivc import session as session_io
 from ivc.session import STEPS, Session
 
@@ -64,6 +66,27 @@ def render(path: str, summary: dict) -> str:
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 def info(file: str, as_json: bool) -> None:
-    """Summarise a session FILE: steps, frames, sensors, rates, valid fraction, what is missing."""
+    """Summarise a session FILE (steps, frames, sensors, rates, valid fraction, what is missing) or a
+    look-up table written by `ivc fit` (grid, fit, samples, provenance)."""
+    if _is_table(file):
+        from ivc.cli.fit import render_fit
+
+        table = lut.read(file)
+        report = {"grid": {"origin_m": table.grid.origin.tolist(), "spacing_m": table.grid.spacing,
+                           "shape": list(table.grid.shape)}, "fit": table.fit, "provenance": table.provenance}
+        click.echo(json.dumps(report, indent=2) if as_json else f"{file}: ivc look-up table (format "
+                   f"{lut.table.FORMAT_VERSION}), hemisphere {table.hemisphere}\n" + render_fit(table) +
+                   f"\nmade by ivc {table.provenance.get('ivc_version')} on {table.provenance.get('created_utc')}"
+                   f" from {table.provenance.get('input', 'an unnamed session')}")
+        return
     summary = summarise(session_io.read(file))
     click.echo(json.dumps(summary, indent=2) if as_json else render(file, summary))
+
+
+def _is_table(path: str) -> bool:
+    try:
+        with h5py.File(path, "r") as h5:
+            kind = h5.attrs.get("ivc_format")
+    except OSError:
+        return False
+    return (kind.decode() if isinstance(kind, bytes) else kind) == lut.table.FORMAT_NAME
