@@ -12,7 +12,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.dipole._kernels import _field_entries, _rotation_polar_factor, closed_form_one
+from ivc.dipole._kernels import _rotation_polar_factor, closed_form_one, field_matrix
 from ivc.lut._kernels import grid_point
 
 FIXED_POINT_STEPS = 2
@@ -22,13 +22,7 @@ FIXED_POINT_STEPS = 2
 def _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz):
     """M = f_D(r) + g(r) (3, 3) and ∂M/∂r (3, 3, 3); returns whether r is in the mapped volume."""
     x, y, z = r[0], r[1], r[2]
-    f00, f11, f22, f01, f02, f12 = _field_entries(x, y, z)
-    M[0, 0] = f00
-    M[1, 1] = f11
-    M[2, 2] = f22
-    M[0, 1] = M[1, 0] = f01
-    M[0, 2] = M[2, 0] = f02
-    M[1, 2] = M[2, 1] = f12
+    field_matrix(x, y, z, M)
     rho2 = x * x + y * y + z * z
     inv5 = 1.0 / (rho2 * rho2 * np.sqrt(rho2))
     inv7 = inv5 / rho2

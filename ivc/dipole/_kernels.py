@@ -22,16 +22,22 @@ def _field_entries(x, y, z):
     return (inv5 * x * x - inv3, inv5 * y * y - inv3, inv5 * z * z - inv3, inv5 * x * y, inv5 * x * z, inv5 * y * z)
 
 
+@numba.njit(inline="always")
+def field_matrix(x, y, z, out):
+    """f_D(r) (eq. 72) written into the (3, 3) array out."""
+    f00, f11, f22, f01, f02, f12 = _field_entries(x, y, z)
+    out[0, 0] = f00
+    out[1, 1] = f11
+    out[2, 2] = f22
+    out[0, 1] = out[1, 0] = f01
+    out[0, 2] = out[2, 0] = f02
+    out[1, 2] = out[2, 1] = f12
+
+
 @numba.njit(**_OPTS)
 def field_kernel(r, out):  # pragma: no cover - compiled
     for n in numba.prange(r.shape[0]):
-        f00, f11, f22, f01, f02, f12 = _field_entries(r[n, 0], r[n, 1], r[n, 2])
-        out[n, 0, 0] = f00
-        out[n, 1, 1] = f11
-        out[n, 2, 2] = f22
-        out[n, 0, 1] = out[n, 1, 0] = f01
-        out[n, 0, 2] = out[n, 2, 0] = f02
-        out[n, 1, 2] = out[n, 2, 1] = f12
+        field_matrix(r[n, 0], r[n, 1], r[n, 2], out[n])
 
 
 @numba.njit(**_OPTS)
@@ -186,14 +192,8 @@ def closed_form_one(s, hemisphere, r_out, T_out, work_a, work_b, v, B, F, K):
     r_out[0] = x
     r_out[1] = y
     r_out[2] = z
-    f00, f11, f22, f01, f02, f12 = _field_entries(x, y, z)
     # K = f_D(r) Sᵀ; the rotation maximising tr(Tᵀ K) minimises ‖S − Tᵀ f_D‖
-    F[0, 0] = f00
-    F[1, 1] = f11
-    F[2, 2] = f22
-    F[0, 1] = F[1, 0] = f01
-    F[0, 2] = F[2, 0] = f02
-    F[1, 2] = F[2, 1] = f12
+    field_matrix(x, y, z, F)
     for i in range(3):
         for j in range(3):
             K[i, j] = F[i, 0] * s[j, 0] + F[i, 1] * s[j, 1] + F[i, 2] * s[j, 2]

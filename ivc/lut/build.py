@@ -22,7 +22,7 @@ from ivc.lut.fit_harmonic import PASSES, fit_harmonic
 from ivc.lut.fit_poly import fit_poly
 from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
 from ivc.lut.refine import resolve_sweep
-from ivc.lut.samples import FieldSamples, pose_equivalent_rms
+from ivc.lut.samples import FieldSamples, leverage, pose_equivalent_rms
 from ivc.lut.support import MIN_SUPPORT, node_support
 from ivc.lut.table import LookupTable
 from ivc.session import Session, SessionError
@@ -92,7 +92,7 @@ def _grid_cross_validation(samples: FieldSamples, grid: Grid, fit: Callable, fol
     for f in range(folds):
         held = fold == f
         values = fit(samples.subset(~held))
-        table = GridField(grid, values, np.all(np.isfinite(values.reshape(*grid.shape, 9)), axis=-1))
+        table = GridField(grid, values, np.ones(grid.shape, bool))  # GridField drops the unfitted (NaN) nodes
         g, _, mapped = table.evaluate(samples.positions[held])
         g[~mapped] = np.nan
         predicted[held] = g
@@ -124,12 +124,16 @@ def tabulate(samples: FieldSamples, grid: Grid, options: FitOptions,
     return values, report
 
 
+def _mapped_nodes(values: np.ndarray, support: np.ndarray, min_support: int) -> np.ndarray:
+    """Nodes with enough supporting samples and a fitted (finite) value (nx, ny, nz)."""
+    return (support >= min_support) & np.all(np.isfinite(values.reshape(*support.shape, 9)), axis=-1)
+
+
 def map_change(grid: Grid, before: np.ndarray, after: np.ndarray, valid: np.ndarray) -> float:
     """Pose-equivalent RMS difference of two tables over the valid nodes where both are defined (m)."""
     valid = valid & np.all(np.isfinite(after.reshape(*grid.shape, 9)), axis=-1)
-    nodes = grid.nodes()[valid]
-    leverage = np.linalg.norm(nodes, axis=1) / (3 * np.linalg.norm(dipole.field(nodes), axis=(1, 2)))
-    return float(np.sqrt(np.mean((leverage * np.linalg.norm(after[valid] - before[valid], axis=(1, 2))) ** 2)))
+    change = leverage(grid.nodes()[valid]) * np.linalg.norm(after[valid] - before[valid], axis=(1, 2))
+    return float(np.sqrt(np.mean(change**2)))
 
 
 def file_digest(path: str | Path) -> str:
@@ -179,7 +183,7 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
     outside = int(np.sum(~grid.contains(samples.positions)))
     values, report = tabulate(samples, grid, options, progress(f"fitting ({options.method})", _work(options, samples)))
     support = node_support(grid, samples.positions)
-    valid = (support >= options.min_support) & np.all(np.isfinite(values.reshape(*grid.shape, 9)), axis=-1)
+    valid = _mapped_nodes(values, support, options.min_support)
     history = []
     if options.refine:
         S = sweep.signal_matrices()
@@ -206,7 +210,7 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
             values, position0, rotation0 = new_values, np.where(ok[:, None], r0, position0), np.where(
                 ok[:, None, None], T0, rotation0)
             support = node_support(grid, samples.positions)
-            valid = (support >= options.min_support) & np.all(np.isfinite(values.reshape(*grid.shape, 9)), axis=-1)
+            valid = _mapped_nodes(values, support, options.min_support)
             if change < REFINE_TOLERANCE:
                 break
     fit = {

@@ -21,7 +21,7 @@ import numpy as np
 from ivc import dipole, rotations
 from ivc.fixtures.wand import WandCalibration
 from ivc.lut.grid import GridField
-from ivc.pose import signal_residual
+from ivc.pose import damped_step, signal_residual
 
 CHUNK_FRAMES = 5_000
 
@@ -81,12 +81,7 @@ def solve_rigid(S: np.ndarray, valid: np.ndarray, wand: WandCalibration, cube_fi
         idx = np.flatnonzero(active)
         if len(idx) == 0:
             break
-        Ja, ea = J[idx], e[idx]
-        H = np.einsum("fki,fkj->fij", Ja, Ja)
-        g = np.einsum("fki,fk->fi", Ja, ea)
-        diag = np.einsum("fii->fi", H)
-        A = H + (damping[idx, None] * np.maximum(diag, 1e-30 * diag.max(axis=1, keepdims=True)))[:, :, None] * np.eye(6)
-        step = -np.linalg.solve(A, g[..., None])[..., 0]
+        step = damped_step(J[idx], e[idx], damping[idx])
         trial_r = r[idx] + step[:, :3]
         trial_T = T[idx] @ rotations.to_matrix(rotations.from_rotvec(step[:, 3:]))
         et, Jt = _residuals(S[idx], scale[idx], valid[idx], wand, cube_field, map_field, trial_r, trial_T)

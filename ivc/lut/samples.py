@@ -20,6 +20,11 @@ from ivc import dipole
 ERROR_FLOOR = 1e-4
 
 
+def leverage(positions: np.ndarray) -> np.ndarray:
+    """``λ = |r| / (3 |f_D(r)|_F)`` (N,) at positions (N, 3): metres of position per unit of field error."""
+    return np.linalg.norm(positions, axis=1) / (3 * np.linalg.norm(dipole.field(positions), axis=(1, 2)))
+
+
 @dataclass
 class FieldSamples:
     """``positions`` (N, 3) m; ``fields`` (N, 3, 3); ``error`` (N,) m; ``frame``, ``sensor`` (N,) int."""
@@ -58,8 +63,7 @@ class FieldSamples:
 
     def leverage_of(self, index) -> np.ndarray:
         """:meth:`leverage` of the samples selected by ``index`` (slice, mask or indices)."""
-        p = self.positions[index]
-        return np.linalg.norm(p, axis=1) / (3 * np.linalg.norm(dipole.field(p), axis=(1, 2)))
+        return leverage(self.positions[index])
 
     def weights(self) -> np.ndarray:
         """Fit weights (N,): ``λ² / (ε² + ε_0²)``, scaled so the mean precision factor is 1."""

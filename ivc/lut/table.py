@@ -18,6 +18,7 @@ import numpy as np
 
 from ivc.lut.grid import Grid, GridField
 from ivc.session import SessionError, atomic_path
+from ivc.session.io import open_ivc_file
 
 FORMAT_NAME = "lut"
 FORMAT_VERSION = 1
@@ -90,25 +91,13 @@ def write(table: LookupTable, path: str | os.PathLike, *, overwrite: bool = Fals
 def read(path: str | os.PathLike) -> LookupTable:
     """Read a table written by :func:`write`; errors name the file and what is wrong."""
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such look-up table")
-    try:
-        h5 = h5py.File(path, "r")
-    except OSError as error:
-        raise LutError(f"{path}: not an HDF5 file ({error})") from None
-    with h5:
-        kind = h5.attrs.get("ivc_format")
-        kind = kind.decode() if isinstance(kind, bytes) else kind
-        if kind != FORMAT_NAME:
-            raise LutError(f"{path}: not an ivc look-up table (ivc_format = {kind!r}); make one with `ivc fit`")
-        version = int(h5.attrs.get("ivc_format_version", -1))
-        if version != FORMAT_VERSION:
-            raise LutError(f"{path}: look-up table format version {version}; this ivc reads {FORMAT_VERSION}")
+    with open_ivc_file(path, FORMAT_NAME, FORMAT_VERSION, "look-up table", LutError,
+                       "; make one with `ivc fit`") as (h5, attrs):
         try:
             g = h5["grid"].attrs
             grid = Grid(np.asarray(g["origin"]), float(g["spacing"]), tuple(np.asarray(g["shape"])))
             return LookupTable(grid, h5["values"][()], h5["valid"][()], h5["support"][()],
-                               str(h5.attrs.get("hemisphere", "+x")), json.loads(h5["fit"].attrs["json"]),
+                               str(attrs.get("hemisphere", "+x")), json.loads(h5["fit"].attrs["json"]),
                                json.loads(h5["provenance"].attrs["json"]))
         except KeyError as error:
             raise LutError(f"{path}: missing {error.args[0]}") from None

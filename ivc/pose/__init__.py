@@ -1,5 +1,13 @@
 """Stage 3: sensor pose with a known secondary field (inside the cube, or anywhere a LUT covers)."""
 
-from ivc.pose.solver import METHODS, PoseSolution, dipole_plus, procrustes, signal_residual, solve_pose
+from ivc.pose.solver import (
+    METHODS,
+    PoseSolution,
+    damped_step,
+    dipole_plus,
+    procrustes,
+    signal_residual,
+    solve_pose,
+)
 
-__all__ = ["METHODS", "PoseSolution", "dipole_plus", "procrustes", "signal_residual", "solve_pose"]
+__all__ = ["METHODS", "PoseSolution", "damped_step", "dipole_plus", "procrustes", "signal_residual", "solve_pose"]

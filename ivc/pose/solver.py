@@ -83,6 +83,19 @@ def _residual_two_stage(S, M, dM, T):
     return e.reshape(len(S), 9), J.reshape(len(S), 9, 3)
 
 
+def damped_step(J: np.ndarray, e: np.ndarray, damping: np.ndarray) -> np.ndarray:
+    """Levenberg-Marquardt step of each frame: ``−(JᵀJ + λ diag(JᵀJ))⁻¹ Jᵀe`` for J (F, m, n), e (F, m), λ (F,).
+
+    Marquardt's diagonal scaling makes the damping independent of the unknowns' units.
+    """
+    H = np.einsum("fki,fkj->fij", J, J)
+    g = np.einsum("fki,fk->fi", J, e)
+    diag = np.einsum("fii->fi", H)
+    scale = np.maximum(diag, 1e-30 * diag.max(axis=1, keepdims=True))
+    A = H + (damping[:, None] * scale)[:, :, None] * np.eye(J.shape[-1])
+    return -np.linalg.solve(A, g[..., None])[..., 0]
+
+
 def solve_pose(
     S: np.ndarray,
     model: FieldModel,
@@ -121,13 +134,7 @@ def solve_pose(
         idx = np.flatnonzero(active)
         if len(idx) == 0:
             break
-        Ja, ea = J[idx], e[idx]
-        H = np.einsum("fki,fkj->fij", Ja, Ja)
-        g = np.einsum("fki,fk->fi", Ja, ea)
-        diag = np.einsum("fii->fi", H)
-        scale = np.maximum(diag, 1e-30 * diag.max(axis=1, keepdims=True))  # Marquardt's diagonal scaling
-        A = H + (damping[idx, None] * scale)[:, :, None] * np.eye(unknowns)
-        step = -np.linalg.solve(A, g[..., None])[..., 0]
+        step = damped_step(J[idx], e[idx], damping[idx])
         trial_r = r[idx] + step[:, :3]
         Mt, dMt = model(trial_r)
         if unknowns == 6:

@@ -78,6 +78,35 @@ def _read_dataset(group: h5py.Group, name: str, required: bool = False):
     return item[()]
 
 
+@contextlib.contextmanager
+def open_ivc_file(path: str | os.PathLike, kind: str, version: int, what: str, error: type[SessionError] = SessionError,
+                  hint: str = "") -> Iterator[tuple[h5py.File, dict]]:
+    """Open an ivc HDF5 file for reading: yield the open file and its decoded root attributes.
+
+    Raises FileNotFoundError when ``path`` does not exist, and ``error`` when it is not HDF5,
+    not an ivc file of ``kind`` (``what`` names it, ``hint`` says how to make one), or of
+    another format version than ``version``.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such {what}")
+    try:
+        handle = h5py.File(path, "r")
+    except OSError as problem:
+        raise error(f"{path}: not an HDF5 file ({problem})") from None
+    with handle as h5:
+        attrs = {key: _decode(value) for key, value in h5.attrs.items()}
+        found_kind = attrs.get("ivc_format")
+        if found_kind != kind:
+            found = f"an ivc {found_kind!r} file" if found_kind else "a file without the ivc_format attribute"
+            raise error(f"{path}: not an ivc {what}: / attribute ivc_format: expected {kind!r}, this is {found}{hint}")
+        found_version = int(attrs.get("ivc_format_version", -1))
+        if found_version != version:
+            advice = "upgrade ivc to read it" if found_version > version else "it is not a version ivc ever wrote"
+            raise error(f"{path}: / attribute ivc_format_version = {found_version}: this ivc reads {version}; {advice}")
+        yield h5, attrs
+
+
 def read(path: str | os.PathLike) -> Session:
     """Read and validate a session file.
 
@@ -90,24 +119,7 @@ def read(path: str | os.PathLike) -> Session:
         format; the message names the dataset and the problem.
     """
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such session file")
-    try:
-        handle = h5py.File(path, "r")
-    except OSError as error:
-        raise SessionError(f"{path}: not an HDF5 file ({error})") from None
-    with handle as h5:
-        attrs = {key: _decode(value) for key, value in h5.attrs.items()}
-        kind = attrs.get("ivc_format")
-        if kind != FORMAT_NAME:
-            found = f"an ivc {kind!r} file" if kind else "a file without the ivc_format attribute"
-            raise SessionError(f"{path}: / attribute ivc_format: expected 'session', this is {found}")
-        version = int(attrs.get("ivc_format_version", -1))
-        if version != FORMAT_VERSION:
-            hint = "upgrade ivc to read it" if version > FORMAT_VERSION else "it is not a version ivc ever wrote"
-            raise SessionError(
-                f"{path}: / attribute ivc_format_version = {version}: this ivc reads {FORMAT_VERSION}; {hint}"
-            )
+    with open_ivc_file(path, FORMAT_NAME, FORMAT_VERSION, "session file") as (h5, attrs):
         if attrs.get("length_unit", "m") != "m":
             raise SessionError(
                 f"{path}: / attribute length_unit = {attrs['length_unit']!r}: positions must be in metres ('m')"
