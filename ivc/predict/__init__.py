@@ -1,5 +1,44 @@
-"""Head-motion prediction (issue: prediction filters). So far: the generic discrete KF and EKF."""
+"""Head-motion prediction: hide display lag by predicting orientation a horizon ahead (seeds 000-004).
 
+Every predictor takes an orientation stream (unit quaternions, scalar first) at a known rate
+and predicts it any number of seconds ahead, in batch (:meth:`Predictor.predict`) or live
+(:meth:`Predictor.stream`). :data:`FILTERS` names them for ``ivc predict --filter``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from ivc.predict.base import Predictor, PredictorError, Stream
+from ivc.predict.dq import DQPredictor, dqekf_ca, dqekf_cv, mmdq2, mmdq3
+from ivc.predict.evaluate import NoPrediction
 from ivc.predict.kalman import ExtendedKalmanFilter, KalmanFilter
+from ivc.predict.linear import LinearPredictor, alpha_beta, kinematic, polynomial
+from ivc.predict.mmae import MMAE
+from ivc.predict.qekf import QEKF
 
-__all__ = ["ExtendedKalmanFilter", "KalmanFilter"]
+#: name -> factory(rate_hz) of every orientation predictor
+FILTERS: dict[str, Callable[[float], Predictor]] = {
+    "none": NoPrediction,
+    "dqekf-cv": dqekf_cv,
+    "dqekf-ca": dqekf_ca,
+    "mmdq2": mmdq2,
+    "mmdq3": mmdq3,
+    "q-ekf": lambda rate_hz=120.0: QEKF(rate_hz),
+    "mmae": lambda rate_hz=120.0: MMAE(rate_hz),
+    "poly1": lambda rate_hz=120.0: polynomial(rate_hz, 1),
+    "poly2": lambda rate_hz=120.0: polynomial(rate_hz, 2),
+    "alpha-beta": alpha_beta,
+    "kinematic": kinematic,
+}
+
+
+def make(name: str, rate_hz: float = 120.0) -> Predictor:
+    """The predictor called ``name`` (see :data:`FILTERS`) for a stream at ``rate_hz``."""
+    if name not in FILTERS:
+        raise PredictorError(f"unknown filter {name!r}; choose one of {', '.join(FILTERS)}")
+    return FILTERS[name](rate_hz)
+
+
+__all__ = ["DQPredictor", "ExtendedKalmanFilter", "FILTERS", "KalmanFilter", "LinearPredictor", "MMAE",
+           "NoPrediction", "Predictor", "PredictorError", "QEKF", "Stream", "make"]

@@ -1,0 +1,304 @@
+"""Compiled DQ-EKF / MMDQ step (notes/predictors_dqekf_mmdq.md §5, §6, §8), one sensor at a time.
+
+One kernel serves every DQ filter: a single DQ-EKF (CV or CA) is an IMM with one model, where
+mixing is the identity and the mode probability stays 1. States are embedded in 6-D
+``[ω, α]`` (rad/s, rad/s²); a CV model uses the first 3 and carries α = 0 (the "zero-padding"
+mixing of notes §8.3). The measurement is ``Δq(k) = q(k) ⊗ q(k−1)*`` (scalar part ≥ 0).
+
+Per-sensor state arrays (leading axis = sensor):
+  x (M, 6), P (M, 6, 6), probs (3, M) = [μ(k), μ(k−1), normalised likelihoods L(k)],
+  tpm (2, M, M) = [Π, γ (Dirichlet counts)], q_prev (4,), status (2,) = [initialised, have_prev],
+  est (6,) = the combined [ω̄, ᾱ].
+Configuration: kinds (M,) 0 = CV, 1 = CA; qvar (M, 3) process-noise variances (rad/s²)² for CV
+or (rad/s³)² for CA; R (4,) measurement variances; cfg = [τ, ε_mix, ε_μ, adaptive TPM,
+mode-weight form (0 c̄_j, 1 μ_j(k−1)), H of CA (0 standard [J, 0], 1 thesis [J, τJ], 2 midpoint
+[J, −τJ/2]), P0 of ω, P0 of α]; mu0 (M,), Pi0 (M, M).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from ivc.predict._quat import cholesky, cholesky_solve, delta_q, delta_q_jacobian, qmul_conj, rate_of
+
+LOG_2PI = np.log(2.0 * np.pi)
+TPM_FLOOR = 1e-50  # notes §8.2, eq. 47 [SEED]
+
+CFG_TAU, CFG_EPS_MIX, CFG_EPS_MU, CFG_ADAPTIVE, CFG_WEIGHTS, CFG_H, CFG_P0W, CFG_P0A = range(8)
+
+
+@numba.njit(cache=True)
+def make_work(n_models):
+    """Scratch arrays for one sensor's step (allocated once per sensor in batch runs)."""
+    return (np.empty((n_models, 6)), np.empty((n_models, 6, 6)), np.empty((n_models, n_models)),
+            np.empty(6), np.empty((6, 6)), np.empty((4, 3)), np.empty((4, 6)), np.empty((6, 4)),
+            np.empty((4, 4)), np.empty((4, 4)), np.empty(4), np.empty(4), np.empty(4), np.empty((6, 4)),
+            np.empty((6, 6)), np.empty((6, 6)), np.empty(n_models), np.empty(n_models), np.empty(4))
+
+
+@numba.njit(cache=True)
+def reset(x, P, probs, tpm, q_prev, status, est, mu0, Pi0):
+    """Forget everything (start of a stream or after a restart)."""
+    x[:] = 0.0
+    P[:] = 0.0
+    probs[0, :] = mu0
+    probs[1, :] = mu0
+    probs[2, :] = 1.0
+    tpm[0] = Pi0
+    tpm[1] = Pi0
+    q_prev[:] = 0.0
+    status[:] = 0
+    est[:] = 0.0
+
+
+@numba.njit(cache=True)
+def _ekf(j, kind, qv, z, R, cfg, x0, P0, x, P, work):
+    """One EKF predict+update of model j from the mixed (x0, P0); returns the log-likelihood of z."""
+    (_, _, _, xp, Pp, J, H, PHt, S, L, h, nu, y, K, IKH, T, _, _, _) = work
+    tau = cfg[CFG_TAU]
+    n = 6 if kind == 1 else 3
+    for a in range(n):
+        xp[a] = x0[a]
+        for b in range(n):
+            Pp[a, b] = P0[a, b]
+    if kind == 1:
+        for i in range(3):
+            xp[i] += tau * x0[3 + i]
+        # A P Aᵀ with A = [[I, τI], [0, I]], then + W Q Wᵀ with W = [τ²/2 I; τ I]
+        for a in range(6):
+            for b in range(6):
+                Pp[a, b] = P0[a, b]
+        for a in range(3):
+            for b in range(6):
+                Pp[a, b] += tau * P0[a + 3, b]
+        for a in range(6):
+            for b in range(3):
+                Pp[a, b] += tau * Pp[a, b + 3]
+        for i in range(3):
+            Pp[i, i] += 0.25 * tau**4 * qv[i]
+            Pp[i, i + 3] += 0.5 * tau**3 * qv[i]
+            Pp[i + 3, i] += 0.5 * tau**3 * qv[i]
+            Pp[i + 3, i + 3] += tau * tau * qv[i]
+    else:
+        for i in range(3):
+            Pp[i, i] += tau * tau * qv[i]
+    shift = 0.0
+    if kind == 1 and cfg[CFG_H] == 2.0:
+        shift = -0.5 * tau
+    wx = xp[0] + shift * (xp[3] if kind == 1 else 0.0)
+    wy = xp[1] + shift * (xp[4] if kind == 1 else 0.0)
+    wz = xp[2] + shift * (xp[5] if kind == 1 else 0.0)
+    delta_q(wx, wy, wz, tau, h)
+    delta_q_jacobian(wx, wy, wz, tau, J)
+    alpha_col = 0.0
+    if kind == 1:
+        alpha_col = tau if cfg[CFG_H] == 1.0 else shift
+    for r in range(4):
+        for c in range(3):
+            H[r, c] = J[r, c]
+            if kind == 1:
+                H[r, c + 3] = alpha_col * J[r, c]
+    for a in range(n):
+        for r in range(4):
+            acc = 0.0
+            for b in range(n):
+                acc += Pp[a, b] * H[r, b]
+            PHt[a, r] = acc
+    for r in range(4):
+        for c in range(4):
+            acc = 0.0
+            for a in range(n):
+                acc += H[r, a] * PHt[a, c]
+            S[r, c] = acc
+        S[r, r] += R[r]
+        nu[r] = z[r] - h[r]
+    logdet = cholesky(S, 4, L)
+    if np.isnan(logdet):
+        return -np.inf
+    cholesky_solve(L, 4, nu, y)
+    maha = 0.0
+    for r in range(4):
+        maha += nu[r] * y[r]
+    for a in range(n):
+        acc = 0.0
+        for r in range(4):
+            acc += PHt[a, r] * y[r]
+        x[a] = xp[a] + acc
+    # K = P⁻Hᵀ S⁻¹: solve S Kᵀ = (P⁻Hᵀ)ᵀ row by row
+    for a in range(n):
+        for r in range(4):
+            nu[r] = PHt[a, r]
+        cholesky_solve(L, 4, nu, y)
+        for r in range(4):
+            K[a, r] = y[r]
+    # Joseph form (I − KH) P⁻ (I − KH)ᵀ + K R Kᵀ
+    for a in range(n):
+        for b in range(n):
+            acc = 1.0 if a == b else 0.0
+            for r in range(4):
+                acc -= K[a, r] * H[r, b]
+            IKH[a, b] = acc
+    for a in range(n):
+        for b in range(n):
+            acc = 0.0
+            for c in range(n):
+                acc += IKH[a, c] * Pp[c, b]
+            T[a, b] = acc
+    for a in range(n):
+        for b in range(a + 1):
+            acc = 0.0
+            for c in range(n):
+                acc += T[a, c] * IKH[b, c]
+            for r in range(4):
+                acc += K[a, r] * R[r] * K[b, r]
+            P[a, b] = acc
+            P[b, a] = acc
+    if kind == 0:
+        for a in range(3, 6):
+            x[a] = 0.0
+            for b in range(6):
+                P[a, b] = 0.0
+                P[b, a] = 0.0
+    return -0.5 * maha - 0.5 * (logdet + 4.0 * LOG_2PI)
+
+
+@numba.njit(cache=True)
+def _update_tpm(probs, tpm, M):
+    """Quasi-Bayesian TPM update (Jilkov & Li; notes §8.2 with row i of Π), from the previous frame's L and μ."""
+    Pi, gamma = tpm[0], tpm[1]
+    mu_b, L = probs[1], probs[2]
+    denom = 0.0
+    for i in range(M):
+        for m in range(M):
+            denom += mu_b[i] * Pi[i, m] * L[m]
+    if not denom > 0.0:
+        return
+    for i in range(M):
+        row = 0.0
+        for m in range(M):
+            row += Pi[i, m] * L[m]
+        total = 0.0
+        for j in range(M):
+            total += gamma[i, j] * (1.0 + mu_b[i] * (L[j] - row) / denom)
+        for j in range(M):
+            g = 1.0 + mu_b[i] * (L[j] - row) / denom
+            gamma[i, j] += gamma[i, j] * g / total
+        gsum = 0.0
+        for j in range(M):
+            gsum += gamma[i, j]
+        psum = 0.0
+        for j in range(M):
+            Pi[i, j] = max(TPM_FLOOR, gamma[i, j] / gsum)
+            psum += Pi[i, j]
+        for j in range(M):
+            Pi[i, j] /= psum
+
+
+@numba.njit(cache=True)
+def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work):
+    """Feed one measured orientation q (4,) of one sensor; ok = False skips it (a gap).
+
+    Returns True when the filter has an estimate (est holds ω̄, ᾱ).
+    """
+    M = kinds.shape[0]
+    tau = cfg[CFG_TAU]
+    (x0, P0, mix, _, _, _, _, _, _, _, _, _, _, _, _, _, ell, cbar, z) = work
+    if not ok:
+        status[1] = 0
+        return status[0] == 1
+    if status[1] == 0:
+        for i in range(4):
+            q_prev[i] = q[i]
+        status[1] = 1
+        return status[0] == 1
+    qmul_conj(q, q_prev, z)
+    if z[0] < 0.0:
+        for i in range(4):
+            z[i] = -z[i]
+    for i in range(4):
+        q_prev[i] = q[i]
+    if status[0] == 0:
+        rate_of(z, tau, est)
+        for j in range(M):
+            for a in range(3):
+                x[j, a] = est[a]
+                x[j, a + 3] = 0.0
+                P[j, a, a] = cfg[CFG_P0W]
+                P[j, a + 3, a + 3] = cfg[CFG_P0A] if kinds[j] == 1 else 0.0
+        for a in range(3, 6):
+            est[a] = 0.0
+        status[0] = 1
+        return True
+    mu = probs[0]
+    if cfg[CFG_ADAPTIVE] != 0.0 and M > 1:
+        _update_tpm(probs, tpm, M)
+    Pi = tpm[0]
+    # mixing (notes §8.3 steps 1-3)
+    for j in range(M):
+        c = 0.0
+        for i in range(M):
+            c += Pi[i, j] * mu[i]
+        cbar[j] = c
+        total = 0.0
+        for i in range(M):
+            mix[i, j] = max(Pi[i, j] * mu[i] / c, cfg[CFG_EPS_MIX]) if M > 1 else 1.0
+            total += mix[i, j]
+        for i in range(M):
+            mix[i, j] /= total
+    for j in range(M):
+        for a in range(6):
+            acc = 0.0
+            for i in range(M):
+                acc += mix[i, j] * x[i, a]
+            x0[j, a] = acc
+        for a in range(6):
+            for b in range(6):
+                acc = 0.0
+                for i in range(M):
+                    acc += mix[i, j] * (P[i, a, b] + (x[i, a] - x0[j, a]) * (x[i, b] - x0[j, b]))
+                P0[j, a, b] = acc
+    # filters, log-likelihoods, mode probabilities
+    best = -np.inf
+    for j in range(M):
+        ell[j] = _ekf(j, kinds[j], qvar[j], z, R, cfg, x0[j], P0[j], x[j], P[j], work)
+        best = max(best, ell[j])
+    if best == -np.inf:  # every filter lost positive definiteness: restart from this Δq
+        status[0] = 0
+        return False
+    total = 0.0
+    for j in range(M):
+        prior = cbar[j] if cfg[CFG_WEIGHTS] == 0.0 else mu[j]
+        probs[2, j] = np.exp(ell[j] - best)
+        probs[1, j] = mu[j]
+        ell[j] = prior * probs[2, j]
+        total += ell[j]
+    total2 = 0.0
+    for j in range(M):
+        mu[j] = max(ell[j] / total, cfg[CFG_EPS_MU]) if M > 1 else 1.0
+        total2 += mu[j]
+    for j in range(M):
+        mu[j] /= total2
+    for a in range(6):
+        acc = 0.0
+        for j in range(M):
+            acc += mu[j] * x[j, a]
+        est[a] = acc
+    return True
+
+
+@numba.njit(cache=True, parallel=True)
+def run(qs, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, out_est, out_ok, out_mu):
+    """Filter frames (F, S, 4) for S sensors, parallel over sensors; writes ω̄, ᾱ per frame to out_est (F, S, 6)."""
+    F, S = qs.shape[0], qs.shape[1]
+    M = kinds.shape[0]
+    for s in numba.prange(S):
+        work = make_work(M)
+        for k in range(F):
+            good = step(qs[k, s], ok[k, s], x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s],
+                        kinds, qvar, R, cfg, work)
+            out_ok[k, s] = good and ok[k, s]
+            for a in range(6):
+                out_est[k, s, a] = est[s, a]
+            for j in range(M):
+                out_mu[k, s, j] = probs[s, 0, j]

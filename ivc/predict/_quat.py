@@ -1,0 +1,155 @@
+"""Compiled scalar quaternion helpers shared by the predictor kernels (scalar-first Hamilton, as ivc.rotations).
+
+Δq(ω, t) is the rotation a constant angular velocity ω (rad/s, reference frame) makes in t
+seconds: ``[cos(|ω|t/2), ω/|ω| sin(|ω|t/2)]`` (notes/predictors_dqekf_mmdq.md §2, with the
+OCR's factor 2 removed). Its Jacobian uses the singularity-free form of §2, exact at ω = 0.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+#: below this |ω|t the series forms are used (their error is O((|ω|t)^4), below 1e-16 relative)
+SMALL_ANGLE = 1e-4
+
+
+@numba.njit(inline="always")
+def qmul(p, q, out):
+    """out = p ⊗ q (out may not alias p or q)."""
+    out[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3]
+    out[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2]
+    out[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1]
+    out[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0]
+
+
+@numba.njit(inline="always")
+def qmul_conj(p, q, out):
+    """out = p ⊗ q* (the rotation from q to p for unit quaternions)."""
+    out[0] = p[0] * q[0] + p[1] * q[1] + p[2] * q[2] + p[3] * q[3]
+    out[1] = -p[0] * q[1] + p[1] * q[0] - p[2] * q[3] + p[3] * q[2]
+    out[2] = -p[0] * q[2] + p[1] * q[3] + p[2] * q[0] - p[3] * q[1]
+    out[3] = -p[0] * q[3] - p[1] * q[2] + p[2] * q[1] + p[3] * q[0]
+
+
+@numba.njit(inline="always")
+def normalise(q):
+    n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    for i in range(4):
+        q[i] /= n
+
+
+@numba.njit(inline="always")
+def delta_q(wx, wy, wz, t, out):
+    """out = Δq(ω, t)."""
+    omega = np.sqrt(wx * wx + wy * wy + wz * wz)
+    phi = 0.5 * omega * t
+    if omega * abs(t) < SMALL_ANGLE:
+        sigma = 0.5 * t * (1.0 - phi * phi / 6.0)
+        out[0] = 1.0 - 0.5 * phi * phi
+    else:
+        sigma = np.sin(phi) / omega
+        out[0] = np.cos(phi)
+    out[1] = sigma * wx
+    out[2] = sigma * wy
+    out[3] = sigma * wz
+
+
+@numba.njit(inline="always")
+def delta_q_jacobian(wx, wy, wz, t, J):
+    """J (4, 3) = ∂Δq(ω, t)/∂ω, singularity-free (notes §2)."""
+    w = (wx, wy, wz)
+    omega2 = wx * wx + wy * wy + wz * wz
+    omega = np.sqrt(omega2)
+    phi = 0.5 * omega * t
+    if omega * abs(t) < SMALL_ANGLE:
+        # series to the next order: σ ≈ t/2 (1 − φ²/6), dσ/dΩ ≈ −t³Ω/24
+        for j in range(3):
+            J[0, j] = -0.25 * t * t * w[j]
+            for m in range(3):
+                J[m + 1, j] = -t * t * t / 24.0 * w[m] * w[j]
+            J[j + 1, j] += 0.5 * t * (1.0 - phi * phi / 6.0)
+        return
+    s = np.sin(phi)
+    c = np.cos(phi)
+    sigma = s / omega
+    coupling = (0.5 * t * c - sigma) / omega2
+    for j in range(3):
+        J[0, j] = -0.5 * t * sigma * w[j]
+        for m in range(3):
+            J[m + 1, j] = coupling * w[m] * w[j]
+        J[j + 1, j] += sigma
+
+
+@numba.njit(inline="always")
+def rate_of(dq, t, out):
+    """The constant angular velocity (rad/s) that turns by dq in t seconds: the inverse of Δq(·, t)."""
+    v = np.sqrt(dq[1] * dq[1] + dq[2] * dq[2] + dq[3] * dq[3])
+    if v < 1e-300:
+        out[0] = out[1] = out[2] = 0.0
+        return
+    scale = 2.0 * np.arctan2(v, dq[0]) / (t * v)
+    out[0] = scale * dq[1]
+    out[1] = scale * dq[2]
+    out[2] = scale * dq[3]
+
+
+@numba.njit(inline="always")
+def cholesky(S, n, L):
+    """Lower Cholesky factor of the symmetric n x n matrix S into L; returns log det S (nan if not PD)."""
+    logdet = 0.0
+    for i in range(n):
+        for j in range(i + 1):
+            acc = S[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            if i == j:
+                if acc <= 0.0:
+                    return np.nan
+                L[i, i] = np.sqrt(acc)
+                logdet += 2.0 * np.log(L[i, i])
+            else:
+                L[i, j] = acc / L[j, j]
+    return logdet
+
+
+@numba.njit(inline="always")
+def cholesky_solve(L, n, b, x):
+    """Solve (L Lᵀ) x = b, L from :func:`cholesky`."""
+    for i in range(n):
+        acc = b[i]
+        for k in range(i):
+            acc -= L[i, k] * x[k]
+        x[i] = acc / L[i, i]
+    for i in range(n - 1, -1, -1):
+        acc = x[i]
+        for k in range(i + 1, n):
+            acc -= L[k, i] * x[k]
+        x[i] = acc / L[i, i]
+
+
+@numba.njit(inline="always")
+def predict_orientation(q, wx, wy, wz, ax, ay, az, delta, tau, out, tmp, dq):
+    """out = orientation ``delta`` seconds after q, turning at ω + n τ α over frame n (notes §7.2, corrected).
+
+    Whole frames n = 1..N (N = ⌊δ/τ⌋) use ω + nτα; the remaining ρ = δ − Nτ uses ω + (N+1)τα.
+    With α = 0 it is one rotation Δq(ω, δ) ⊗ q, exact for constant angular velocity.
+    """
+    for i in range(4):
+        out[i] = q[i]
+    if ax == 0.0 and ay == 0.0 and az == 0.0:
+        delta_q(wx, wy, wz, delta, dq)
+        qmul(dq, q, out)
+        normalise(out)
+        return
+    steps = int(np.floor(delta / tau + 1e-9))
+    rest = delta - steps * tau
+    for n in range(1, steps + 2):
+        span = tau if n <= steps else rest
+        if span <= 0.0:
+            break
+        delta_q(wx + n * tau * ax, wy + n * tau * ay, wz + n * tau * az, span, dq)
+        qmul(dq, out, tmp)
+        for i in range(4):
+            out[i] = tmp[i]
+    normalise(out)

@@ -1,0 +1,200 @@
+"""Delta-quaternion predictors of seed 001 (Himberg): DQ-EKF CV and CA, and the multiple-model MMDQ2 / MMDQ3.
+
+Each estimates the angular velocity ω (and for CA models the angular acceleration α) from
+the delta quaternions of the measured stream, then extrapolates the *measured* orientation
+(notes/predictors_dqekf_mmdq.md §5-§8; corrected equations, tuning from Table 10 and eq. 67).
+
+Switches for the thesis's variants the notes flag, with the defaults used here:
+
+* ``h_jacobian``: H of a CA model, ``"standard"`` [J, 0] (the EKF's ∂h/∂x at x⁻),
+  ``"thesis"`` [J, τJ] (eq. 59-60), or ``"midpoint"`` (Δq measures ω − ατ/2).
+* ``mode_weights``: ``"imm"`` (c̄_j L_j, standard IMM) or ``"thesis"`` (μ_j(k−1) L_j, L758).
+* ``adaptive_tpm``: the quasi-Bayesian transition-matrix update (eq. 45-47, row-i form), on by default.
+* ``mmdq3_models`` (MMDQ3 only): ``"cv-ca-ca"`` (Table 10) or ``"cv-cv-ca"`` (the text's other reading).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from ivc.predict import _dq_kernels as K
+from ivc.predict.base import FloatArray, Predictor, PredictorError, Stream, check_horizons, check_rate, check_stream
+from ivc.predict.delta import extrapolate
+
+#: Table 10 process-noise standard deviations: CV in rad/s², CA in rad/s³
+SIGMA_CV1 = (1.48, 0.63, 0.72)
+SIGMA_CV2 = (2.96, 1.26, 1.44)  # notes §8.1: CV at λ = 1.0, 2 x CV1 [DERIVED]
+SIGMA_CA = (176.0, 76.0, 86.0)
+SIGMA_CA1 = (353.0, 152.0, 175.0)
+SIGMA_CA2 = (708.0, 304.0, 350.0)
+#: eq. 67 measurement noise of Δq: standard deviations of its 4 components
+SIGMA_DQ = (2.09e-06, 2.2e-04, 8.22e-05, 7.92e-05)
+#: initial transition matrices (rows = from, columns = to), eq. 66 and 65
+PI_MMDQ2 = ((0.971, 0.029), (0.065, 0.935))
+PI_MMDQ3 = ((0.970, 0.029, 0.001), (0.069, 0.917, 0.014), (0.001, 0.250, 0.749))
+H_JACOBIANS = {"standard": 0.0, "thesis": 1.0, "midpoint": 2.0}
+MODE_WEIGHTS = {"imm": 0.0, "thesis": 1.0}
+#: floors on mixing and mode probabilities (the thesis gives none; a reference prototype used 1e-4)
+EPS = 1e-4
+
+
+@dataclass(frozen=True)
+class Model:
+    """One elemental DQ-EKF: ``kind`` "cv" or "ca" and its process-noise standard deviations per axis."""
+
+    kind: str
+    sigma_w: tuple[float, float, float]
+
+    def __post_init__(self):
+        if self.kind not in ("cv", "ca"):
+            raise PredictorError(f"a DQ model is 'cv' or 'ca', got {self.kind!r}")
+        if len(self.sigma_w) != 3 or not all(np.isfinite(s) and s > 0 for s in self.sigma_w):
+            raise PredictorError(f"sigma_w must be 3 positive numbers, got {self.sigma_w}")
+
+
+def stationary(Pi: ArrayLike) -> FloatArray:
+    """Stationary distribution of a row-stochastic matrix."""
+    Pi = np.asarray(Pi, dtype=float)
+    w, v = np.linalg.eig(Pi.T)
+    p = np.real(v[:, np.argmin(np.abs(w - 1.0))])
+    return p / p.sum()
+
+
+@dataclass
+class DQPredictor(Predictor):
+    """An IMM over DQ-EKF models (one model = a plain DQ-EKF). See the module docstring for the switches."""
+
+    models: Sequence[Model]
+    rate_hz: float = 120.0
+    transition: ArrayLike | None = None
+    sigma_v: Sequence[float] = SIGMA_DQ
+    h_jacobian: str = "standard"
+    mode_weights: str = "imm"
+    adaptive_tpm: bool = True
+    eps_mix: float = EPS
+    eps_mu: float = EPS
+    p0_omega: float = 1.0
+    p0_alpha: float = 100.0
+    name: str = "dq"
+    _config: tuple = field(init=False, repr=False)
+
+    def __post_init__(self):
+        self.rate_hz = check_rate(self.rate_hz)
+        if not self.models:
+            raise PredictorError("a DQ predictor needs at least one model")
+        if self.h_jacobian not in H_JACOBIANS:
+            raise PredictorError(f"h_jacobian is one of {sorted(H_JACOBIANS)}, got {self.h_jacobian!r}")
+        if self.mode_weights not in MODE_WEIGHTS:
+            raise PredictorError(f"mode_weights is one of {sorted(MODE_WEIGHTS)}, got {self.mode_weights!r}")
+        M = len(self.models)
+        Pi = np.eye(1) if M == 1 and self.transition is None else np.asarray(self.transition, dtype=float)
+        if Pi.shape != (M, M) or np.any(Pi < 0) or not np.allclose(Pi.sum(axis=1), 1.0, atol=1e-6):
+            raise PredictorError(f"the transition matrix must be {M}x{M}, non-negative, rows summing to 1")
+        Pi = Pi / Pi.sum(axis=1, keepdims=True)
+        sigma_v = np.asarray(self.sigma_v, dtype=float)
+        if sigma_v.shape != (4,) or np.any(sigma_v <= 0):
+            raise PredictorError(f"sigma_v must be 4 positive standard deviations, got {self.sigma_v}")
+        kinds = np.array([1 if m.kind == "ca" else 0 for m in self.models], dtype=np.int64)
+        qvar = np.array([np.square(m.sigma_w) for m in self.models], dtype=float)
+        cfg = np.array([self.tau, self.eps_mix, self.eps_mu, float(self.adaptive_tpm),
+                        MODE_WEIGHTS[self.mode_weights], H_JACOBIANS[self.h_jacobian], self.p0_omega, self.p0_alpha])
+        self._config = (kinds, qvar, sigma_v**2, cfg, stationary(Pi), Pi)
+
+    def _state(self, n_sensors: int) -> list[np.ndarray]:
+        kinds, _, _, _, mu0, Pi0 = self._config
+        M = len(kinds)
+        state = [np.zeros((n_sensors, M, 6)), np.zeros((n_sensors, M, 6, 6)), np.zeros((n_sensors, 3, M)),
+                 np.zeros((n_sensors, 2, M, M)), np.zeros((n_sensors, 4)), np.zeros((n_sensors, 2), np.int64),
+                 np.zeros((n_sensors, 6))]
+        for s in range(n_sensors):
+            K.reset(*(a[s] for a in state), mu0, Pi0)
+        return state
+
+    def filter(self, q: ArrayLike, valid: ArrayLike | None = None) -> tuple[FloatArray, FloatArray, np.ndarray]:
+        """Run over a stream: (q (F, S, 4) checked, [ω̄, ᾱ] (F, S, 6), usable (F, S), mode probabilities (F, S, M))."""
+        qs, ok, _ = check_stream(q, valid)
+        kinds, qvar, R, cfg, _, _ = self._config
+        F, S = ok.shape
+        est = np.zeros((F, S, 6))
+        usable = np.zeros((F, S), bool)
+        mu = np.zeros((F, S, len(kinds)))
+        K.run(qs, ok, *self._state(S), kinds, qvar, R, cfg, est, usable, mu)
+        return qs, est, usable, mu
+
+    def rates(self, q, valid=None):
+        qs, est, usable, _ = self.filter(q, valid)
+        out = np.where(usable[..., None], est[..., :3], np.nan)
+        return out[:, 0] if np.asarray(q).ndim == 2 else out
+
+    def predict(self, q, horizons, valid=None):
+        h = check_horizons(horizons)
+        qs, est, usable, _ = self.filter(q, valid)
+        has_alpha = bool(np.any(est[..., 3:]))
+        out = np.stack([extrapolate(qs, est[..., :3], est[..., 3:] if has_alpha else None, d, self.tau) for d in h])
+        out[:, ~usable] = np.nan
+        return out[:, :, 0] if np.asarray(q).ndim == 2 else out
+
+    def stream(self, n_sensors: int = 1) -> DQStream:
+        return DQStream(self, n_sensors)
+
+
+class DQStream(Stream):
+    """Streaming DQ predictor: one compiled step per sensor per frame."""
+
+    def __init__(self, predictor: DQPredictor, n_sensors: int):
+        self.predictor, self.n_sensors = predictor, int(n_sensors)
+        self.state = predictor._state(self.n_sensors)
+        self.work = K.make_work(len(predictor.models))
+        self.last = np.full((self.n_sensors, 4), np.nan)
+        self.ready = np.zeros(self.n_sensors, bool)
+
+    def update(self, q, valid=None):
+        qs, ok = self._check_frame(q, valid)
+        kinds, qvar, R, cfg, _, _ = self.predictor._config
+        x, P, probs, tpm, q_prev, status, est = self.state
+        for s in range(self.n_sensors):
+            self.ready[s] = K.step(qs[s], ok[s], x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s],
+                                   kinds, qvar, R, cfg, self.work) and ok[s]
+        self.last = qs
+
+    def predict(self, horizon):
+        d = float(check_horizons(horizon)[0])
+        est = self.state[6]
+        out = extrapolate(self.last, est[:, :3], est[:, 3:], d, self.predictor.tau)
+        out[~self.ready] = np.nan
+        return out
+
+    @property
+    def omega(self) -> FloatArray:
+        """Current angular-velocity estimates (sensors, 3) rad/s."""
+        return self.state[6][:, :3].copy()
+
+
+def dqekf_cv(rate_hz: float = 120.0, **options) -> DQPredictor:
+    """DQ-EKF, constant velocity, 3 states (Table 10, λ = 0.5)."""
+    return DQPredictor([Model("cv", SIGMA_CV1)], rate_hz, name="dqekf-cv", **options)
+
+
+def dqekf_ca(rate_hz: float = 120.0, **options) -> DQPredictor:
+    """DQ-EKF, constant acceleration, 6 states (Table 10)."""
+    return DQPredictor([Model("ca", SIGMA_CA)], rate_hz, name="dqekf-ca", **options)
+
+
+def mmdq2(rate_hz: float = 120.0, **options) -> DQPredictor:
+    """MMDQ2: IMM of CV1 and CA1 (Table 10, eq. 66)."""
+    return DQPredictor([Model("cv", SIGMA_CV1), Model("ca", SIGMA_CA1)], rate_hz, PI_MMDQ2, name="mmdq2", **options)
+
+
+def mmdq3(rate_hz: float = 120.0, mmdq3_models: str = "cv-ca-ca", **options) -> DQPredictor:
+    """MMDQ3: IMM of CV1, CA1, CA2 (Table 10, eq. 65); ``mmdq3_models="cv-cv-ca"`` for CV1, CV2, CA."""
+    if mmdq3_models == "cv-ca-ca":
+        models = [Model("cv", SIGMA_CV1), Model("ca", SIGMA_CA1), Model("ca", SIGMA_CA2)]
+    elif mmdq3_models == "cv-cv-ca":
+        models = [Model("cv", SIGMA_CV1), Model("cv", SIGMA_CV2), Model("ca", SIGMA_CA1)]
+    else:
+        raise PredictorError(f"mmdq3_models is 'cv-ca-ca' or 'cv-cv-ca', got {mmdq3_models!r}")
+    return DQPredictor(models, rate_hz, PI_MMDQ3, name="mmdq3", **options)

@@ -1,0 +1,151 @@
+"""Linear per-axis predictors on orientation streams (seeds 003 and 004): polynomial, α-β, kinematic KF.
+
+A&B95 linearise orientation into three independent small-angle signals. Here each frame's
+rotation ``Δq(k) = q(k) ⊗ q(k−1)*`` is turned into a rotation vector and accumulated into
+θ(k) (rad, reference frame, per axis); a linear predictor with steady-state recursion
+``X(k) = G X(k−1) + K θ(k)`` predicts θ(k + p) = D(p) X(k), and the prediction is applied to
+the measurement: ``q̂(k + p) = exp(D(p) X(k) − θ(k)) ⊗ q(k)``. Because the whole chain is
+linear in θ, its frequency response is exactly :func:`ivc.predict.frequency.response` of
+(G, K, D), which the tests check against the time-domain output.
+
+* ``polynomial``: x + v p (+ ½ a p²) with v, a from backward differences of θ;
+* ``alpha-beta``: A&B's Case 1 (position-only steady-state KF, α = 0.568, β from Kalata's relation);
+* ``kinematic``: NASA's 3-state [θ, ω, α] KF with noise on α only and Φᴺ extrapolation [1, p, p²/2].
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.signal import lfilter, ss2tf
+
+from ivc import rotations
+from ivc.predict.base import FloatArray, Predictor, PredictorError, Stream, check_horizons, check_rate, check_stream
+from ivc.predict.delta import deltas
+from ivc.predict.frequency import kinematic_gain
+
+
+@dataclass
+class LinearPredictor(Predictor):
+    """Per-axis linear predictor: X(k) = G X(k−1) + K θ(k), θ̂(k + p) = D(p) X(k)."""
+
+    G: FloatArray
+    K: FloatArray
+    D: Callable[[float], FloatArray]
+    rate_hz: float = 120.0
+    name: str = "linear"
+    _cache: dict = field(default_factory=dict, init=False, repr=False)
+
+    def __post_init__(self):
+        self.rate_hz = check_rate(self.rate_hz)
+        self.G = np.atleast_2d(np.asarray(self.G, float))
+        self.K = np.asarray(self.K, float).reshape(-1)
+        if self.G.shape != (self.K.size, self.K.size) or np.max(np.abs(np.linalg.eigvals(self.G))) >= 1.0:
+            raise PredictorError("G must be square, match K and be stable (spectral radius < 1)")
+
+    def transfer(self, horizon: float) -> tuple[FloatArray, FloatArray]:
+        """(b, a) of the filter θ → θ̂(k + horizon), for lfilter."""
+        if horizon not in self._cache:
+            D = np.atleast_2d(self.D(horizon))
+            # X(k) = G X(k−1) + K θ(k): state x'(k) = X(k−1), x'(k+1) = G x'(k) + K θ(k), out = D G x' + D K θ
+            b, a = ss2tf(self.G, self.K[:, None], D @ self.G, D @ self.K[:, None])
+            self._cache[horizon] = (np.real(b[0]), np.real(a))
+        return self._cache[horizon]
+
+    @staticmethod
+    def angles(qs: FloatArray, ok: np.ndarray) -> FloatArray:
+        """Accumulated rotation vector θ (F, S, 3) rad, from θ(0) = 0; an invalid frame adds no rotation."""
+        filled = qs.copy()
+        for k in np.nonzero(~np.all(ok, axis=1))[0]:  # rare: carry the last valid orientation forward
+            bad = ~ok[k]
+            filled[k, bad] = filled[k - 1, bad] if k else rotations.IDENTITY
+        steps = rotations.to_rotvec(deltas(filled))
+        return np.concatenate([np.zeros((1,) + steps.shape[1:]), np.cumsum(steps, axis=0)])
+
+    def predict(self, q, horizons, valid=None):
+        h = check_horizons(horizons)
+        qs, ok, single = check_stream(q, valid)
+        theta = self.angles(qs, ok)
+        out = []
+        for d in h:
+            b, a = self.transfer(d)
+            ahead = lfilter(b, a, theta, axis=0) - theta
+            out.append(rotations.multiply(rotations.from_rotvec(ahead), qs))
+        out = np.stack(out)
+        out[:, ~ok] = np.nan
+        return out[:, :, 0] if single else out
+
+    def stream(self, n_sensors: int = 1) -> LinearStream:
+        return LinearStream(self, n_sensors)
+
+
+class LinearStream(Stream):
+    def __init__(self, predictor: LinearPredictor, n_sensors: int):
+        self.predictor, self.n_sensors = predictor, int(n_sensors)
+        self.X = np.zeros((n_sensors, predictor.K.size, 3))
+        self.theta = np.zeros((n_sensors, 3))
+        self.last = np.full((n_sensors, 4), np.nan)
+        self.started = np.zeros(n_sensors, bool)
+        self.ok = np.zeros(n_sensors, bool)
+
+    def update(self, q, valid=None):
+        qs, ok = self._check_frame(q, valid)
+        step = np.zeros((self.n_sensors, 3))
+        moving = ok & self.started
+        if np.any(moving):
+            dq = rotations.multiply(qs[moving], rotations.conjugate(self.last[moving]))
+            step[moving] = rotations.to_rotvec(np.where(dq[:, :1] < 0, -dq, dq))
+        self.theta += step
+        p = self.predictor
+        self.X = np.einsum("ij,sjc->sic", p.G, self.X) + p.K[None, :, None] * self.theta[:, None, :]
+        self.last = np.where(ok[:, None], qs, self.last)
+        self.started |= ok
+        self.ok = ok
+
+    def predict(self, horizon):
+        d = float(check_horizons(horizon)[0])
+        D = np.atleast_2d(self.predictor.D(d))[0]
+        ahead = np.einsum("i,sic->sc", D, self.X) - self.theta
+        out = rotations.multiply(rotations.from_rotvec(ahead), self.last)
+        out[~self.ok] = np.nan
+        return out
+
+
+def polynomial(rate_hz: float = 120.0, order: int = 2) -> LinearPredictor:
+    """x + v p (+ ½ a p²) with backward-difference derivatives (A&B's polynomial predictor, estimated derivatives)."""
+    if order not in (1, 2):
+        raise PredictorError(f"polynomial order is 1 or 2, got {order}")
+    T = 1.0 / rate_hz
+    G = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])  # shift register [θ(k), θ(k−1), θ(k−2)]
+
+    def D(p):
+        first = np.array([1 + p / T, -p / T, 0.0])
+        second = (p * p / (2 * T * T)) * np.array([1.0, -2.0, 1.0])
+        return first + (second if order == 2 else 0.0)
+
+    return LinearPredictor(G, [1.0, 0, 0], D, rate_hz, name=f"poly{order}")
+
+
+def alpha_beta(rate_hz: float = 120.0, alpha: float = 0.568) -> LinearPredictor:
+    """A&B95 Case 1: steady-state α-β filter (β by Kalata's relation for white acceleration), D = [1, p]."""
+    if not 0 < alpha < 1:
+        raise PredictorError(f"alpha must be in (0, 1), got {alpha}")
+    T = 1.0 / rate_hz
+    beta = 2 * (2 - alpha) - 4 * np.sqrt(1 - alpha)
+    K = np.array([alpha, beta / T])
+    A = np.array([[1.0, T], [0, 1]])
+    G = A - np.outer(K, [1.0, 0]) @ A
+    return LinearPredictor(G, K, lambda p: np.array([1.0, p]), rate_hz, name="alpha-beta")
+
+
+def kinematic(rate_hz: float = 120.0, w_a: float = 100.0, v: float = 1e-6) -> LinearPredictor:
+    """NASA's 3-state kinematic KF per axis (noise density w_a on α, measurement variance v) with Φᴺ prediction."""
+    if not (w_a > 0 and v > 0):
+        raise PredictorError("w_a and v must be positive")
+    h = 1.0 / rate_hz
+    A = np.array([[1.0, h, h * h / 2], [0, 1, h], [0, 0, 1]])
+    K = kinematic_gain(h, w_a, v)[:, 0]
+    G = A - np.outer(K, [1.0, 0, 0]) @ A
+    return LinearPredictor(G, K, lambda p: np.array([1.0, p, p * p / 2]), rate_hz, name="kinematic")

@@ -1,0 +1,234 @@
+"""Seed 001's Q-EKF: 7 states [q, ω], the measured quaternion as the measurement (notes/predictors_dqekf_mmdq.md §4).
+
+Process: ω⁻ = ω̂ (constant velocity, angular-acceleration noise w), q⁻ = Δq(ω̂, τ) ⊗ q̂, with
+A = [[L(Δq), R(q̂) J], [0, I]], W = [R(q̂) J τ; τ I] (eq. 18-25); measurement z = q + v, H = [I4 0].
+Deviations from the thesis, flagged in the notes: q̂ is renormalised after each update, and the
+measurement's sign is aligned with q⁻ before the (additive) innovation. The prediction base is
+the state q̂(k|k) by default (``base="state"``, the thesis's Q framework) or the measurement.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+
+from ivc.predict._quat import cholesky, cholesky_solve, delta_q, delta_q_jacobian, normalise, qmul, qmul_conj, rate_of
+from ivc.predict.base import Predictor, PredictorError, Stream, check_horizons, check_rate, check_stream
+from ivc.predict.delta import extrapolate
+from ivc.predict.dq import SIGMA_CV1
+
+#: Table 3, Q column: measurement variances of the 4 quaternion components
+R_QUATERNION = (2.55e-07, 4.67e-07, 4.10e-07, 3.28e-07)
+
+
+@numba.njit(cache=True)
+def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
+    """One Q-EKF cycle for one sensor; x = [q(4), ω(3)], status = [initialised, have_prev]."""
+    z, dq, J, RJ, A, W, T, Pp, S, L, nu, y, K, IKH = work
+    if not ok:
+        status[1] = 0
+        return status[0] == 1
+    for i in range(4):
+        z[i] = z_in[i]
+    if status[1] == 0 or status[0] == 0:
+        if status[1] == 1:  # second frame: ω from the first Δq
+            qmul_conj(z, x, dq)
+            if dq[0] < 0.0:
+                for i in range(4):
+                    dq[i] = -dq[i]
+            rate_of(dq, tau, nu)
+            for i in range(3):
+                x[4 + i] = nu[i]
+            status[0] = 1
+        P[:, :] = 0.0
+        for i in range(4):
+            P[i, i] = R[i]
+        for i in range(4, 7):
+            P[i, i] = p0w
+        if np.dot(z, x[:4]) < 0.0:
+            for i in range(4):
+                z[i] = -z[i]
+        for i in range(4):
+            x[i] = z[i]
+        status[1] = 1
+        return status[0] == 1
+    wx, wy, wz = x[4], x[5], x[6]
+    delta_q(wx, wy, wz, tau, dq)
+    delta_q_jacobian(wx, wy, wz, tau, J)
+    q = x[:4]
+    Rq = np.empty((4, 4))
+    Rq[0, 0], Rq[0, 1], Rq[0, 2], Rq[0, 3] = q[0], -q[1], -q[2], -q[3]
+    Rq[1, 0], Rq[1, 1], Rq[1, 2], Rq[1, 3] = q[1], q[0], q[3], -q[2]
+    Rq[2, 0], Rq[2, 1], Rq[2, 2], Rq[2, 3] = q[2], -q[3], q[0], q[1]
+    Rq[3, 0], Rq[3, 1], Rq[3, 2], Rq[3, 3] = q[3], q[2], -q[1], q[0]
+    for r in range(4):
+        for c in range(3):
+            acc = 0.0
+            for m in range(4):
+                acc += Rq[r, m] * J[m, c]
+            RJ[r, c] = acc
+    A[:, :] = 0.0
+    p = dq
+    A[0, 0], A[0, 1], A[0, 2], A[0, 3] = p[0], -p[1], -p[2], -p[3]
+    A[1, 0], A[1, 1], A[1, 2], A[1, 3] = p[1], p[0], -p[3], p[2]
+    A[2, 0], A[2, 1], A[2, 2], A[2, 3] = p[2], p[3], p[0], -p[1]
+    A[3, 0], A[3, 1], A[3, 2], A[3, 3] = p[3], -p[2], p[1], p[0]
+    for r in range(4):
+        for c in range(3):
+            A[r, 4 + c] = RJ[r, c]
+            W[r, c] = RJ[r, c] * tau
+    for i in range(3):
+        A[4 + i, 4 + i] = 1.0
+        for c in range(3):
+            W[4 + i, c] = tau if i == c else 0.0
+    for a in range(7):
+        for b in range(7):
+            acc = 0.0
+            for c in range(7):
+                acc += A[a, c] * P[c, b]
+            T[a, b] = acc
+    for a in range(7):
+        for b in range(a + 1):
+            acc = 0.0
+            for c in range(7):
+                acc += T[a, c] * A[b, c]
+            for c in range(3):
+                acc += W[a, c] * qvar[c] * W[b, c]
+            Pp[a, b] = acc
+            Pp[b, a] = acc
+    xq = np.empty(4)
+    qmul(dq, q, xq)
+    if np.dot(z, xq) < 0.0:
+        for i in range(4):
+            z[i] = -z[i]
+    for r in range(4):
+        for c in range(4):
+            S[r, c] = Pp[r, c]
+        S[r, r] += R[r]
+        nu[r] = z[r] - xq[r]
+    if np.isnan(cholesky(S, 4, L)):
+        status[0] = 0
+        status[1] = 0
+        return False
+    for a in range(7):
+        for r in range(4):
+            y[r] = Pp[a, r]
+        cholesky_solve(L, 4, y, K[a])
+    for a in range(4):
+        x[a] = xq[a]
+    for a in range(7):
+        acc = 0.0
+        for r in range(4):
+            acc += K[a, r] * nu[r]
+        x[a] += acc
+    normalise(x[:4])
+    for a in range(7):
+        for b in range(7):
+            IKH[a, b] = (1.0 if a == b else 0.0) - (K[a, b] if b < 4 else 0.0)
+    for a in range(7):
+        for b in range(7):
+            acc = 0.0
+            for c in range(7):
+                acc += IKH[a, c] * Pp[c, b]
+            T[a, b] = acc
+    for a in range(7):
+        for b in range(a + 1):
+            acc = 0.0
+            for c in range(7):
+                acc += T[a, c] * IKH[b, c]
+            for r in range(4):
+                acc += K[a, r] * R[r] * K[b, r]
+            P[a, b] = acc
+            P[b, a] = acc
+    return True
+
+
+@numba.njit(cache=True)
+def _work():
+    return (np.empty(4), np.empty(4), np.empty((4, 3)), np.empty((4, 3)), np.empty((7, 7)), np.empty((7, 3)),
+            np.empty((7, 7)), np.empty((7, 7)), np.empty((4, 4)), np.empty((4, 4)), np.empty(4), np.empty(4),
+            np.empty((7, 4)), np.empty((7, 7)))
+
+
+@numba.njit(cache=True, parallel=True)
+def _run(qs, ok, x, P, status, qvar, R, tau, p0w, out_x, out_ok):
+    for s in numba.prange(qs.shape[1]):
+        work = _work()
+        for k in range(qs.shape[0]):
+            good = _step(qs[k, s], ok[k, s], x[s], P[s], status[s], qvar, R, tau, p0w, work)
+            out_ok[k, s] = good and ok[k, s]
+            out_x[k, s] = x[s]
+
+
+@dataclass
+class QEKF(Predictor):
+    """7-state quaternion EKF (seed 001 Ch. 2 "Q"); ``base`` = "state" (default) or "measurement"."""
+
+    rate_hz: float = 120.0
+    sigma_w: tuple[float, float, float] = SIGMA_CV1
+    sigma_v: tuple[float, float, float, float] = tuple(np.sqrt(R_QUATERNION))
+    base: str = "state"
+    p0_omega: float = 1.0
+    name: str = "q-ekf"
+    _config: tuple = field(init=False, repr=False)
+
+    def __post_init__(self):
+        self.rate_hz = check_rate(self.rate_hz)
+        if self.base not in ("state", "measurement"):
+            raise PredictorError(f"base is 'state' or 'measurement', got {self.base!r}")
+        qvar, R = np.square(np.asarray(self.sigma_w, float)), np.square(np.asarray(self.sigma_v, float))
+        if qvar.shape != (3,) or R.shape != (4,) or np.any(qvar <= 0) or np.any(R <= 0):
+            raise PredictorError("sigma_w needs 3 and sigma_v 4 positive standard deviations")
+        self._config = (qvar, R)
+
+    def filter(self, q, valid=None):
+        """(checked q (F, S, 4), states [q̂, ω̂] (F, S, 7), usable (F, S))."""
+        qs, ok, _ = check_stream(q, valid)
+        F, S = ok.shape
+        out_x, out_ok = np.zeros((F, S, 7)), np.zeros((F, S), bool)
+        _run(qs, ok, np.zeros((S, 7)), np.zeros((S, 7, 7)), np.zeros((S, 2), np.int64), *self._config, self.tau,
+             self.p0_omega, out_x, out_ok)
+        return qs, out_x, out_ok
+
+    def rates(self, q, valid=None):
+        _, x, usable = self.filter(q, valid)
+        out = np.where(usable[..., None], x[..., 4:], np.nan)
+        return out[:, 0] if np.asarray(q).ndim == 2 else out
+
+    def predict(self, q, horizons, valid=None):
+        h = check_horizons(horizons)
+        qs, x, usable = self.filter(q, valid)
+        base = x[..., :4] if self.base == "state" else qs
+        out = np.stack([extrapolate(base, x[..., 4:], None, d, self.tau) for d in h])
+        out[:, ~usable] = np.nan
+        return out[:, :, 0] if np.asarray(q).ndim == 2 else out
+
+    def stream(self, n_sensors: int = 1) -> QStream:
+        return QStream(self, n_sensors)
+
+
+class QStream(Stream):
+    def __init__(self, predictor: QEKF, n_sensors: int):
+        self.predictor, self.n_sensors = predictor, int(n_sensors)
+        self.x, self.P = np.zeros((n_sensors, 7)), np.zeros((n_sensors, 7, 7))
+        self.status = np.zeros((n_sensors, 2), np.int64)
+        self.work = _work()
+        self.last = np.full((n_sensors, 4), np.nan)
+        self.ready = np.zeros(n_sensors, bool)
+
+    def update(self, q, valid=None):
+        qs, ok = self._check_frame(q, valid)
+        qvar, R = self.predictor._config
+        for s in range(self.n_sensors):
+            self.ready[s] = _step(qs[s], ok[s], self.x[s], self.P[s], self.status[s], qvar, R, self.predictor.tau,
+                                  self.predictor.p0_omega, self.work) and ok[s]
+        self.last = qs
+
+    def predict(self, horizon):
+        d = float(check_horizons(horizon)[0])
+        base = self.x[:, :4] if self.predictor.base == "state" else self.last
+        out = extrapolate(base, self.x[:, 4:], None, d, self.predictor.tau)
+        out[~self.ready] = np.nan
+        return out
