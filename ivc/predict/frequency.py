@@ -1,4 +1,6 @@
-"""Frequency-domain analysis of linear predictors (seed 004, Azuma & Bishop 1995; notes/predictors_polynomial_frequency_nasa.md).
+"""Frequency-domain analysis of linear predictors (seed 004, Azuma & Bishop 1995).
+
+Notes: notes/predictors_polynomial_frequency_nasa.md.
 
 A linear predictor with steady-state recursion ``X(k) = G X(k−1) + K Y(k)`` and output
 ``D(p) X(k)`` has the transfer function ``O(z) = D (zI − G)⁻¹ z K M(ω)`` at z = e^{jωT}, where

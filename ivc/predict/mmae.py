@@ -1,4 +1,6 @@
-"""Seed 000 (Kyger): multiple-model adaptive estimation over Gauss-Markov look-vector filters (notes/predictors_mmae.md).
+"""Seed 000 (Kyger): multiple-model adaptive estimation over Gauss-Markov look-vector filters.
+
+Notes: notes/predictors_mmae.md.
 
 Elemental filters share the per-axis state [position, velocity, acceleration] of a unit look
 vector, measured with ``H = [1 0 0]`` per axis and ``R = r I3``:
