@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter1d
 
 from ivc import rotations
-from ivc.predict.base import Predictor
+from ivc.predict.base import Predictor, check_horizons, check_stream
 
 FloatArray = NDArray[np.float64]
 
@@ -100,8 +100,10 @@ class NoPrediction(Predictor):
         self.rate_hz = rate_hz
 
     def predict(self, q, horizons, valid=None):
-        q = np.asarray(q, dtype=float)
-        return np.broadcast_to(q, (len(np.atleast_1d(horizons)),) + q.shape).copy()
+        h = check_horizons(horizons)
+        qs, _, single = check_stream(q, valid)  # invalid samples are NaN
+        out = np.broadcast_to(qs, (len(h),) + qs.shape).copy()
+        return out[:, :, 0] if single else out
 
     def stream(self, n_sensors=1):
         from ivc.predict.base import Stream
