@@ -6,8 +6,17 @@ from scipy.integrate import quad
 
 from ivc import rotations
 from ivc.predict.delta import delta_q
-from ivc.predict.frequency import (AB_CASES, AB_PERIOD, crossovers, kinematic_gain, polynomial_magnitude,
-                                   polynomial_phase, polynomial_response, response, rms_error)
+from ivc.predict.frequency import (
+    AB_CASES,
+    AB_PERIOD,
+    crossovers,
+    kinematic_gain,
+    polynomial_magnitude,
+    polynomial_phase,
+    polynomial_response,
+    response,
+    rms_error,
+)
 from ivc.predict.linear import alpha_beta, kinematic, polynomial
 from ivc.predict.mmae import Elemental, frame_from_axes
 
@@ -34,7 +43,10 @@ def test_polynomial_phase_is_atan2_and_error_asymptotes():
     for f, p in ((1.0, 0.05), (7.0, 0.1)):
         H, w = polynomial_response(f, p), 2 * np.pi * f
         P = 1 / f
-        integral = quad(lambda t: (abs(H) * np.sin(w * t + np.angle(H) - w * p) - np.sin(w * t)) ** 2, 0, P)[0]
+        def squared_error(t, H=H, w=w, p=p):
+            return (abs(H) * np.sin(w * t + np.angle(H) - w * p) - np.sin(w * t)) ** 2
+
+        integral = quad(squared_error, 0, P)[0]
         assert np.sqrt(integral / P) == pytest.approx(rms_error(H, f, p), abs=1e-6)
     u = 0.01
     assert rms_error(polynomial_response(u / (2 * np.pi), 1.0), u / (2 * np.pi), 1.0) == pytest.approx(

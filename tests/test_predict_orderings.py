@@ -41,7 +41,10 @@ def test_dq_beats_q_on_aggressive_and_full_range(results):
 
 
 def test_cv_is_worst_on_aggressive_and_mmdq2_cuts_its_peaks(results):
-    """The thesis also finds MMDQ2's peak the lowest of all; here DQ-EKF CA's is as low or lower (reported, not asserted)."""
+    """The thesis also finds MMDQ2's peak the lowest of all; here DQ-EKF CA's is as low or lower.
+
+    That is reported by the benchmark, not asserted.
+    """
     errors = {n: mean50(results, "aggressive", n) for n in NAMES[1:5]}
     assert max(errors, key=errors.get) == "dqekf-cv"
     peaks = {n: results["aggressive", n].at(50.0)["max"] for n in NAMES[1:5]}
