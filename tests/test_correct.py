@@ -131,3 +131,16 @@ def test_cli_fit_correct_evaluate(small_session, tmp_path):
     assert lines[0].endswith("valid,flags,residual") and len(lines) == 301
     x_csv = np.array([float(line.split(",")[2]) for line in lines[1:]])
     np.testing.assert_allclose(x_csv, corrected.steps["check"].position[:, 0, 0], atol=1e-12)
+
+    # correction chained with prediction: horizon 0 leaves the trusted orientations as corrected
+    same, ahead = tmp_path / "p0.h5", tmp_path / "p50.h5"
+    for path, horizon in ((same, "0ms"), (ahead, "50ms")):
+        result = runner.invoke(cli, ["correct", str(table_file), str(session_file), "-o", str(path), "--step", "check",
+                                     "--predict", "mmdq2", "--horizon", horizon])
+        assert result.exit_code == 0, result.output
+    q0 = session_io.read(same).steps["check"].quaternion
+    q50 = session_io.read(ahead).steps["check"].quaternion
+    q_corr = corrected.steps["check"].quaternion
+    assert np.allclose(np.abs(np.sum(q0[ok] * q_corr[ok], axis=-1)), 1.0, atol=1e-12)
+    assert not np.allclose(q50[ok], q_corr[ok])
+    assert session_io.read(ahead).steps["check"].attrs["predicted_with"] == "mmdq2"

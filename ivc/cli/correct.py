@@ -10,11 +10,13 @@ import numpy as np
 
 from ivc import lut
 from ivc import session as session_io
+from ivc.cli.predict import parse_horizon, predicted_quaternions
 from ivc.collect.replay import read_csv, write_csv
 from ivc.correct import Corrector, describe
 from ivc.correct.solver import MAX_RESIDUAL, Correction
 from ivc.lut.build import file_digest
 from ivc.lut.grid import INTERPOLATIONS
+from ivc.predict import FILTERS
 from ivc.session import Session, Step
 
 #: free-space steps: nothing to correct there
@@ -26,6 +28,14 @@ def corrected_step(step: Step, out: Correction, lut_file: str) -> Step:
     attrs = dict(step.attrs, corrected_with=str(lut_file))
     return Step(step.time, step.signal, out.position, out.quaternion, step.valid_mask, step.sample_rate_hz,
                 step.sensor_ids, f"{step.description} (corrected by ivc)".strip(), attrs)
+
+
+def _predicted(step: Step, out: Correction, name: str, horizon: float) -> Step:
+    """Corrected orientations predicted ``horizon`` s ahead from the trusted (unflagged) samples."""
+    quaternion = predicted_quaternions(step, name, horizon, out.ok)
+    attrs = dict(step.attrs, predicted_with=name, prediction_horizon_s=horizon)
+    return Step(step.time, step.signal, step.position, quaternion, step.valid_mask, step.sample_rate_hz,
+                step.sensor_ids, step.description, attrs)
 
 
 def _summary(name: str, out: Correction) -> str:
@@ -47,13 +57,17 @@ def _summary(name: str, out: Correction) -> str:
               help="Flag corrections whose rms(M − T S)/rms(S) exceeds this.")
 @click.option("--hemisphere", help="Hemisphere of a CSV input (default: the table's).")
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists (never the input).")
-def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, force):
+@click.option("--predict", "predictor", type=click.Choice(list(FILTERS)),
+              help="Then predict each sensor's corrected orientation ahead with this filter (see `ivc predict`).")
+@click.option("--horizon", default="50ms", show_default=True, help="Prediction horizon with --predict.")
+def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, force, predictor, horizon):
     """Correct the poses in INPUT_FILE (session .h5 or recording .csv) with LUT_FILE.
 
     Every output sample carries flags: 0 = trusted; 1 outside the mapped volume, 2 not
     converged, 4 residual too high, 8 invalid input (bits combine). Signals are used when
     the input has them; otherwise the reported poses are turned back into signals through
-    the dipole model (MATH.md §9).
+    the dipole model (MATH.md §9). With --predict, the corrected orientations of trusted
+    samples are then predicted --horizon ahead per sensor (positions stay corrected, unpredicted).
     """
     input_path, output_path = Path(input_file), Path(output)
     if not input_path.exists():
@@ -62,6 +76,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         raise click.UsageError("OUTPUT must not be the input: raw recordings are never overwritten")
     if output_path.exists() and not force:
         raise FileExistsError(f"{output_path} exists; pass --force to replace it")
+    delta = parse_horizon(horizon) if predictor else None
     table = lut.read(lut_file)
     if input_path.suffix.lower() == ".csv":
         if output_path.suffix.lower() != ".csv":
@@ -71,6 +86,8 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         out = corrector.batch(step.signal_matrices(), step.valid_mask)
         fixed = corrected_step(step, out, lut_file)
         fixed.signal = None
+        if predictor:
+            fixed = _predicted(fixed, out, predictor, delta)
         write_csv(fixed, output_path, {"flags": out.flags, "residual": out.residual})
         click.echo(_summary(input_path.name, out))
         click.echo(f"wrote {output_path}")
@@ -86,7 +103,10 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         step = data.steps[name]
         results[name] = corrector.batch(step.signal_matrices(), step.valid_mask)
         click.echo(_summary(name, results[name]))
-    corrected = Session(data.hemisphere, {n: corrected_step(data.steps[n], results[n], lut_file) for n in names},
+    fixed = {n: corrected_step(data.steps[n], results[n], lut_file) for n in names}
+    if predictor:
+        fixed = {n: _predicted(fixed[n], results[n], predictor, delta) for n in names}
+    corrected = Session(data.hemisphere, fixed,
                         {n: data.truth[n] for n in names if n in data.truth},
                         dict(data.attrs, corrected_with=str(lut_file), lut_sha256=file_digest(lut_file)))
     with session_io.atomic_path(output_path) as tmp:

@@ -27,16 +27,17 @@ def cli() -> None:
     built-in simulator or a real tracker's recording); `ivc info` says what a session
     holds and what it still lacks; `ivc fixtures` reports the fixture calibration;
     `ivc fit` builds the secondary-field look-up table; `ivc correct` applies it;
-    `ivc evaluate` compares corrected with true poses. `ivc demo` runs it all on a
+    `ivc evaluate` compares corrected with true poses; `ivc predict` predicts
+    orientations ahead to hide display lag. `ivc demo` runs it all on a
     simulated room.
     """
 
 
 def _register() -> None:
-    from ivc.cli import collect, correct, demo, evaluate, fit, fixtures, info
+    from ivc.cli import collect, correct, demo, evaluate, fit, fixtures, info, predict
 
     for command in (collect.collect, correct.correct, demo.demo, evaluate.evaluate, fit.fit, fixtures.fixtures,
-                    info.info):
+                    info.info, predict.predict):
         cli.add_command(command)
 
 

@@ -3,7 +3,8 @@
 Motion is a sequence of minimum-jerk rotations about random axes with holds between them,
 composed in the reference frame. Axis weights are 1 : 0.6 : 0.3 on the x, y, z components
 (the order of Table 10's σ_w, the thesis's azimuth, elevation, roll). Moves that would take
-the head more than ``reach`` rad from its rest orientation turn back towards it. Categories
+the head more than ``reach`` rad (69°) from its rest orientation are redrawn or turned back
+(the thesis's subjects looked around a cockpit; it also keeps Euler angles far from gimbal lock). Categories
 (mean speed A/T in rad/s, move time T and hold in s) are calibrated to the thesis's Table 7:
 
 * ``benign``: slow drifts with velocity jitter and rare small twitches;
@@ -51,7 +52,7 @@ class Category:
 CATEGORIES = {
     "benign": Category((0.01, 0.03), (1.0, 2.0), (6.0, 12.0), jitter=2.5e-4, twitch_rate=0.05),
     "moderate": Category((0.25, 0.40), (0.8, 2.6), (0.0, 0.3)),
-    "aggressive": Category((0.7, 1.5), (0.45, 1.4), (0.0, 0.15)),
+    "aggressive": Category((0.8, 1.6), (0.45, 1.2), (0.0, 0.15)),
 }
 #: short violent moves of the full-range mix: amplitude (rad) and duration (s)
 BURST_AMPLITUDE, BURST_DURATION = (0.04, 0.10), (0.2, 0.4)
@@ -83,12 +84,23 @@ def _integrate(omega, tau, q0, out):
         normalise(out[k + 1])
 
 
-def _axis(rng: np.random.Generator, position: FloatArray, reach: float) -> FloatArray:
-    a = rng.standard_normal(3) * AXIS_WEIGHTS
-    a /= np.linalg.norm(a)
-    if np.dot(a, position) > 0 and rng.random() < np.linalg.norm(position) / reach:
-        a = -a
-    return a
+def _axis(rng: np.random.Generator, current: FloatArray, amplitude: float,
+          reach: float) -> tuple[FloatArray, float]:
+    """A random move axis (weighted 1 : 0.6 : 0.3) and amplitude that keep the head within ``reach`` rad of rest.
+
+    ``current`` is the head's orientation (quaternion) before the move.
+    """
+    amplitude = min(amplitude, reach)
+    for _ in range(10):
+        a = rng.standard_normal(3) * AXIS_WEIGHTS
+        a /= np.linalg.norm(a)
+        for candidate in (a, -a):
+            after = rotations.multiply(rotations.from_rotvec(amplitude * candidate), current)
+            if rotations.angle(after) <= reach:
+                return candidate, amplitude
+    home = -rotations.to_rotvec(current)  # nothing fits: turn back towards rest
+    size = np.linalg.norm(home)
+    return home / size, min(amplitude, size)
 
 
 def _minimum_jerk(n: int) -> FloatArray:
@@ -96,10 +108,10 @@ def _minimum_jerk(n: int) -> FloatArray:
     return 10 * s**3 - 15 * s**4 + 6 * s**5
 
 
-def _moves(rng, category: Category, n_frames: int, tau: float, reach: float, start: FloatArray) -> FloatArray:
-    """Per-frame angular velocity (n_frames, 3) of one category's move/hold sequence."""
+def _moves(rng, category: Category, n_frames: int, tau: float, reach: float,
+           current: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Per-frame angular velocity (n_frames, 3) of one category's move/hold sequence, and the final orientation."""
     omega = np.zeros((n_frames, 3))
-    position = start.copy()  # approximate rotation vector from rest, to keep the head in range
     k = int(rng.uniform(*category.hold) / tau * rng.random())
     while k < n_frames:
         twitch = category.twitch_rate > 0 and rng.random() < category.twitch_rate * 8.0
@@ -108,11 +120,11 @@ def _moves(rng, category: Category, n_frames: int, tau: float, reach: float, sta
         n = max(2, int(round(duration / tau)))
         if k + n > n_frames:  # only whole moves: a cut move would be a velocity step
             break
-        axis = _axis(rng, position, reach)
+        axis, amplitude = _axis(rng, current, amplitude, reach)
         omega[k:k + n] += (amplitude * np.diff(_minimum_jerk(n)) / tau)[:, None] * axis
-        position += amplitude * axis
+        current = rotations.multiply(rotations.from_rotvec(amplitude * axis), current)
         k += n + int(round(rng.uniform(*category.hold) / tau))
-    return omega
+    return omega, current
 
 
 def _jitter(rng, n_frames: int, sigma: float) -> FloatArray:
@@ -124,33 +136,35 @@ def _jitter(rng, n_frames: int, sigma: float) -> FloatArray:
 def _full(rng, n_frames: int, tau: float, reach: float) -> FloatArray:
     omega = np.zeros((n_frames, 3))
     k = 0
+    current = rotations.IDENTITY
     names, weights = ("benign", "moderate", "aggressive"), (0.35, 0.50, 0.15)
     while k < n_frames:
         name = names[rng.choice(3, p=weights)]
         n = min(int(rng.uniform(2.0, 8.0) / tau), n_frames - k)
-        omega[k:k + n] = _category_omega(rng, name, n, tau, reach)
+        omega[k:k + n], current = _category_omega(rng, name, n, tau, reach, current)
         k += n
     bursts = rng.poisson(n_frames * tau / 6.0)
     for start in rng.integers(0, n_frames, bursts):
         n = max(2, int(rng.uniform(*BURST_DURATION) / tau))
         if start + n <= n_frames:
-            axis = _axis(rng, np.zeros(3), reach)
-            profile = rng.uniform(*BURST_AMPLITUDE) * np.diff(_minimum_jerk(n)) / tau
+            axis, amplitude = _axis(rng, rotations.IDENTITY, rng.uniform(*BURST_AMPLITUDE), reach)
+            profile = amplitude * np.diff(_minimum_jerk(n)) / tau
             omega[start:start + n] += profile[:, None] * axis
     return omega
 
 
-def _category_omega(rng, name: str, n_frames: int, tau: float, reach: float) -> FloatArray:
+def _category_omega(rng, name: str, n_frames: int, tau: float, reach: float,
+                    current: FloatArray) -> tuple[FloatArray, FloatArray]:
     category = CATEGORIES[name]
-    omega = _moves(rng, category, n_frames, tau, reach, np.zeros(3))
+    omega, current = _moves(rng, category, n_frames, tau, reach, current)
     if category.jitter:
         omega += _jitter(rng, n_frames, category.jitter)
-    return omega
+    return omega, current
 
 
 def head_motion(motion: str = "moderate", n_frames: int = 12_000, rate_hz: float = 120.0, seed: int = 0,
                 noise_rad: tuple[float, float, float] | None = NOISE_RAD, dynamic_error: float = DYNAMIC_ERROR,
-                reach: float = 1.0) -> HeadMotion:
+                reach: float = 1.2) -> HeadMotion:
     """A synthetic head-orientation recording of ``motion`` (one of :data:`MOTIONS`) at ``rate_hz``.
 
     ``noise_rad=None`` and ``dynamic_error=0`` give a noiseless recording (measured = truth).
@@ -161,8 +175,10 @@ def head_motion(motion: str = "moderate", n_frames: int = 12_000, rate_hz: float
         raise ValueError(f"need n_frames >= 2 and rate_hz > 0, got {n_frames}, {rate_hz}")
     rng = np.random.default_rng(seed)
     tau = 1.0 / rate_hz
-    omega = _full(rng, n_frames, tau, reach) if motion == "full" else _category_omega(rng, motion, n_frames, tau,
-                                                                                         reach)
+    if motion == "full":
+        omega = _full(rng, n_frames, tau, reach)
+    else:
+        omega, _ = _category_omega(rng, motion, n_frames, tau, reach, rotations.IDENTITY)
     truth = np.empty((n_frames, 4))
     _integrate(omega, tau, rotations.IDENTITY, truth)
     measured = truth

@@ -1,0 +1,165 @@
+"""``ivc predict``: predict orientation streams a horizon ahead, or benchmark the predictors on synthetic motion."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import click
+import numpy as np
+
+from ivc import session as session_io
+from ivc.collect.replay import read_csv, write_csv
+from ivc.predict import FILTERS, make
+from ivc.predict.base import MAX_HORIZON
+from ivc.predict.evaluate import (
+    error_table,
+    evaluate,
+    horizon_table,
+    overshoot_table,
+    plot_error_vs_horizon,
+    velocity_table,
+)
+from ivc.predict.motion import MOTIONS, head_motion
+from ivc.session import Session, Step
+
+#: the benchmark's default filters: the thesis's, Kyger's and the linear ones
+BENCHMARK_FILTERS = ("none", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", "mmae", "alpha-beta", "kinematic",
+                     "poly1")
+
+
+def parse_horizon(text: str) -> float:
+    """'50ms', '0.05s' or '50' (ms) -> seconds."""
+    match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(ms|s)?\s*", str(text))
+    if not match:
+        raise click.BadParameter(f"{text!r}: give a horizon like 50ms or 0.05s")
+    value = float(match.group(1)) * (1.0 if match.group(2) == "s" else 1e-3)
+    if not 0 <= value <= MAX_HORIZON:
+        raise click.BadParameter(f"{text!r}: the horizon must be between 0 and {MAX_HORIZON * 1e3:g} ms")
+    return value
+
+
+def predicted_quaternions(step: Step, name: str, horizon: float, valid: np.ndarray | None = None) -> np.ndarray:
+    """The step's orientations predicted ``horizon`` s ahead; samples without a prediction (the filter's first
+    frames, invalid samples) keep the measured orientation."""
+    if step.quaternion is None:
+        raise click.UsageError("this input has no orientations (signals only): run `ivc correct` first")
+    if not step.sample_rate_hz:
+        raise click.UsageError("the input does not give its sample rate; pass --rate HZ")
+    ok = step.valid_mask if valid is None else valid & step.valid_mask
+    predicted = make(name, step.sample_rate_hz).predict(step.quaternion, horizon, ok)[0]
+    return np.where(np.all(np.isfinite(predicted), axis=-1, keepdims=True), predicted, step.quaternion)
+
+
+def predicted_step(step: Step, name: str, horizon: float) -> Step:
+    attrs = dict(step.attrs, predicted_with=name, prediction_horizon_s=horizon)
+    return Step(step.time, None, step.position, predicted_quaternions(step, name, horizon), step.valid_mask,
+                step.sample_rate_hz, step.sensor_ids, f"{step.description} (orientation predicted by ivc)".strip(),
+                attrs)
+
+
+def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json):
+    from tqdm import tqdm
+
+    results, runs = [], [(m, f) for m in motions for f in filters]
+    recordings = {}
+    for motion, name in tqdm(runs, desc="benchmark", unit="run", leave=False):
+        if motion not in recordings:
+            recordings[motion] = head_motion(motion, frames, rate, seed=seed)
+        h = recordings[motion]
+        truth = h.truth if reference == "truth" else None
+        results.append(evaluate(make(name, rate), h.measured, rate, motion, truth=truth, omega_true=h.omega))
+    if as_json:
+        click.echo(json.dumps([{"filter": r.name, "motion": r.motion, "horizons_ms": r.horizons_ms.tolist(),
+                                "rows": r.rows, "velocity": r.velocity} for r in results], indent=1))
+    else:
+        click.echo(f"synthetic head motion, {frames} frames at {rate:g} Hz, seed {seed}; errors against the "
+                   f"{'noiseless truth' if reference == 'truth' else 'time-shifted measurements'}\n")
+        click.echo(overshoot_table(results) + "\n")
+        click.echo(error_table(results) + "\n")
+        for m in motions:
+            click.echo(horizon_table(results, m) + "\n")
+        click.echo(velocity_table(results))
+    if plot:
+        plot_error_vs_horizon(results, plot)
+        click.echo(f"wrote {plot}")
+
+
+@click.command()
+@click.argument("input_file", required=False, type=click.Path(dir_okay=False))
+@click.option("--filter", "filters", multiple=True, type=click.Choice(list(FILTERS)),
+              help="Predictor (default mmdq2). With --benchmark: repeat to choose several (default: all but poly2).")
+@click.option("--horizon", default="50ms", show_default=True, help="How far ahead: 50ms, 0.05s, or ms.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False), help="Output: session .h5 or .csv, as the input.")
+@click.option("--step", "steps", multiple=True, help="Session input: step(s) to predict (default: all).")
+@click.option("--rate", type=float, help="Sample rate (Hz) of a CSV without a usable time column.")
+@click.option("--force", is_flag=True, help="Replace OUTPUT if it exists (never the input).")
+@click.option("--benchmark", is_flag=True, help="Evaluate predictors on synthetic head motion and print the "
+              "thesis's tables (horizons 0-117 ms).")
+@click.option("--motion", "motions", multiple=True, type=click.Choice(MOTIONS), help="Benchmark motion(s).")
+@click.option("--frames", type=int, default=12_000, show_default=True, help="Benchmark frames per motion.")
+@click.option("--bench-rate", type=click.Choice(["120", "240"]), default="120", show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--reference", type=click.Choice(["measured", "truth"]), default="measured", show_default=True,
+              help="Benchmark reference: time-shifted measurements (the thesis) or the noiseless truth.")
+@click.option("--plot", type=click.Path(dir_okay=False), help="Benchmark: write the error-vs-horizon PNG here.")
+@click.option("--json", "as_json", is_flag=True, help="Benchmark: print the figures as JSON.")
+def predict(input_file, filters, horizon, output, steps, rate, force, benchmark, motions, frames, bench_rate, seed,
+            reference, plot, as_json):
+    """Predict the orientations in INPUT_FILE (session .h5 or recording .csv) a horizon ahead.
+
+    The output holds, at each frame's time stamp, the orientation predicted for time +
+    horizon from that frame and the ones before it; positions are copied unchanged. Samples
+    the filter cannot predict yet (its first frames) or that are invalid keep their measured
+    orientation. `ivc predict --benchmark` instead evaluates the predictors on synthetic head
+    motion and prints the thesis's tables (Tables 5-6, 11, 12-15 layouts).
+    """
+    if benchmark:
+        if frames < 1000:
+            raise click.BadParameter("use at least 1000 frames", param_hint="--frames")
+        run_benchmark(list(motions) or list(MOTIONS), list(filters) or list(BENCHMARK_FILTERS), frames,
+                      float(bench_rate), seed, reference, plot, as_json)
+        return
+    if input_file is None or output is None:
+        raise click.UsageError("give INPUT_FILE and -o OUTPUT (or --benchmark)")
+    if len(filters) > 1:
+        raise click.UsageError("predict a stream with one --filter")
+    name = filters[0] if filters else "mmdq2"
+    delta = parse_horizon(horizon)
+    input_path, output_path = Path(input_file), Path(output)
+    if not input_path.exists():
+        raise FileNotFoundError(f"{input_path}: no such file")
+    if output_path.resolve() == input_path.resolve():
+        raise click.UsageError("OUTPUT must not be the input: raw recordings are never overwritten")
+    if output_path.exists() and not force:
+        raise FileExistsError(f"{output_path} exists; pass --force to replace it")
+    if input_path.suffix.lower() == ".csv":
+        if output_path.suffix.lower() != ".csv":
+            raise click.UsageError("a CSV input is predicted into a CSV output (-o FILE.csv)")
+        step = read_csv(input_path, rate)
+        out = predicted_step(step, name, delta)
+        tmp = output_path.with_name(output_path.name + ".tmp")
+        write_csv(out, tmp)
+        tmp.replace(output_path)
+        click.echo(f"{input_path.name}: {step.n_frames} frames x {step.n_sensors} sensors predicted "
+                   f"{delta * 1e3:g} ms ahead with {name}")
+        click.echo(f"wrote {output_path}")
+        return
+    data = session_io.read(input_path)
+    names = list(steps) or list(data.steps)
+    unknown = [n for n in names if n not in data.steps]
+    if unknown:
+        raise click.UsageError(f"{input_path} has no step {', '.join(unknown)} (it has {', '.join(data.steps)})")
+    out_steps = {}
+    for n in names:
+        step = data.steps[n]
+        if rate and not step.sample_rate_hz:
+            step.sample_rate_hz = rate
+        out_steps[n] = predicted_step(step, name, delta)
+        click.echo(f"{n}: {step.n_frames} frames x {step.n_sensors} sensors predicted {delta * 1e3:g} ms ahead")
+    predicted = Session(data.hemisphere, out_steps, {n: data.truth[n] for n in names if n in data.truth},
+                        dict(data.attrs, predicted_with=name, prediction_horizon_s=delta))
+    with session_io.atomic_path(output_path) as tmp:
+        session_io.write(predicted, tmp, overwrite=True)
+    click.echo(f"wrote {output_path}")

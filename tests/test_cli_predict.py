@@ -1,0 +1,63 @@
+"""`ivc predict` on recordings and `ivc predict --benchmark`."""
+
+import json
+
+import numpy as np
+from click.testing import CliRunner
+
+from ivc import session as session_io
+from ivc.cli import cli
+from ivc.collect.replay import read_csv, write_csv
+from ivc.predict import make
+from ivc.predict.motion import head_motion
+from ivc.session import Session, Step
+
+
+def motion_step(frames=800, sensors=2):
+    q = np.stack([head_motion("moderate", frames, seed=s).measured for s in range(sensors)], axis=1)
+    rate = 120.0
+    return Step(np.arange(frames) / rate, None, np.zeros((frames, sensors, 3)), q, np.ones((frames, sensors), bool),
+                rate, None, "synthetic head motion", {})
+
+
+def test_predict_csv_and_session_match_the_library(tmp_path):
+    step = motion_step()
+    csv_in, csv_out = tmp_path / "head.csv", tmp_path / "ahead.csv"
+    write_csv(step, csv_in)
+    runner = CliRunner()
+    result = runner.invoke(cli, ["predict", str(csv_in), "--filter", "dqekf-cv", "--horizon", "50ms",
+                                 "-o", str(csv_out)])
+    assert result.exit_code == 0, result.output
+    got = read_csv(csv_out).quaternion
+    expected = make("dqekf-cv", 120.0).predict(step.quaternion, 0.05)[0]
+    assert np.allclose(got[5:], expected[5:], atol=1e-12)
+    assert np.allclose(got[0], step.quaternion[0])  # no prediction yet: the measurement is kept
+
+    session_file, out_file = tmp_path / "s.h5", tmp_path / "p.h5"
+    session_io.write(Session("+x", {"check": step}), session_file)
+    result = runner.invoke(cli, ["predict", str(session_file), "--filter", "mmdq2", "--horizon", "0.075s",
+                                 "-o", str(out_file)])
+    assert result.exit_code == 0, result.output
+    out = session_io.read(out_file)
+    assert np.allclose(out.steps["check"].quaternion[5:], make("mmdq2").predict(step.quaternion, 0.075)[0][5:])
+    assert out.steps["check"].attrs["prediction_horizon_s"] == 0.075
+
+    refused = runner.invoke(cli, ["predict", str(csv_in), "-o", str(csv_in), "--force"])
+    assert refused.exit_code != 0 and "never overwritten" in refused.output
+    again = runner.invoke(cli, ["predict", str(csv_in), "-o", str(csv_out)])
+    assert again.exit_code != 0 and "exists" in again.output
+    bad = runner.invoke(cli, ["predict", str(csv_in), "-o", str(tmp_path / "x.csv"), "--horizon", "fast"])
+    assert bad.exit_code != 0 and "50ms" in bad.output
+
+
+def test_predict_benchmark_prints_the_tables(tmp_path):
+    plot = tmp_path / "h.png"
+    args = ["predict", "--benchmark", "--frames", "1500", "--motion", "moderate", "--filter", "none",
+            "--filter", "dqekf-cv", "--plot", str(plot)]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    assert "% overshoot" in result.output and "50 med" in result.output and "angular-velocity" in result.output
+    assert plot.stat().st_size > 5000
+    data = json.loads(CliRunner().invoke(cli, args[:-2] + ["--json"]).stdout)
+    rows = {d["filter"]: d["rows"] for d in data}
+    assert rows["dqekf-cv"][6]["mean"] < rows["none"][6]["mean"]
