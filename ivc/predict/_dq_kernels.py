@@ -52,7 +52,7 @@ def reset(x, P, probs, tpm, q_prev, status, est, mu0, Pi0):
     est[:] = 0.0
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _ekf(j, kind, qv, z, R, cfg, x0, P0, x, P, work):
     """One EKF predict+update of model j from the mixed (x0, P0); returns the log-likelihood of z."""
     (_, _, _, xp, Pp, J, H, PHt, S, L, h, nu, y, K, IKH, T, _, _, _) = work
@@ -163,7 +163,7 @@ def _ekf(j, kind, qv, z, R, cfg, x0, P0, x, P, work):
     return -0.5 * maha - 0.5 * (logdet + 4.0 * LOG_2PI)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _update_tpm(probs, tpm, M):
     """Quasi-Bayesian TPM update (Jilkov & Li; notes §8.2 with row i of Π), from the previous frame's L and μ."""
     Pi, gamma = tpm[0], tpm[1]
@@ -195,7 +195,7 @@ def _update_tpm(probs, tpm, M):
             Pi[i, j] /= psum
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work):
     """Feed one measured orientation q (4,) of one sensor; ok = False skips it (a gap).
 
