@@ -20,7 +20,15 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.predict._quat import cholesky, cholesky_solve, delta_q, delta_q_jacobian, qmul_conj, rate_of
+from ivc.predict._quat import (
+    cholesky,
+    cholesky_solve,
+    delta_q,
+    delta_q_jacobian,
+    predict_orientation,
+    qmul_conj,
+    rate_of,
+)
 
 LOG_2PI = np.log(2.0 * np.pi)
 TPM_FLOOR = 1e-50  # notes §8.2, eq. 47 [SEED]
@@ -289,16 +297,63 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
 
 @numba.njit(cache=True, parallel=True)
 def run(qs, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, out_est, out_ok, out_mu):
-    """Filter frames (F, S, 4) for S sensors, parallel over sensors; writes ω̄, ᾱ per frame to out_est (F, S, 6)."""
+    """Filter frames (F, S, 4) for S sensors, parallel over sensors; writes ω̄, ᾱ per frame to out_est (F, S, 6).
+
+    Each sensor's state and the configuration are copied to thread-local arrays first: views
+    of shared arrays inside the frame loop would contend on their reference counts.
+    """
     F, S = qs.shape[0], qs.shape[1]
     M = kinds.shape[0]
     for s in numba.prange(S):
         work = make_work(M)
+        xs, Ps, pr, tp, qp, st, es = (x[s].copy(), P[s].copy(), probs[s].copy(), tpm[s].copy(), q_prev[s].copy(),
+                                      status[s].copy(), est[s].copy())
+        kd, qv, Rs, cf = kinds.copy(), qvar.copy(), R.copy(), cfg.copy()
+        q = np.empty(4)
         for k in range(F):
-            good = step(qs[k, s], ok[k, s], x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s],
-                        kinds, qvar, R, cfg, work)
+            for i in range(4):
+                q[i] = qs[k, s, i]
+            good = step(q, ok[k, s], xs, Ps, pr, tp, qp, st, es, kd, qv, Rs, cf, work)
             out_ok[k, s] = good and ok[k, s]
             for a in range(6):
-                out_est[k, s, a] = est[s, a]
+                out_est[k, s, a] = es[a]
             for j in range(M):
-                out_mu[k, s, j] = probs[s, 0, j]
+                out_mu[k, s, j] = pr[0, j]
+        x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s] = xs, Ps, pr, tp, qp, st, es
+
+
+@numba.njit(cache=True)
+def update_frame(qs, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, ready):
+    """One live frame for every sensor (qs (S, 4), ok (S,)); ready[s] says whether sensor s has an estimate.
+
+    The scratch arrays are made here: cheaper than passing a tuple of them in from Python.
+    Returns −1, or the first sensor whose valid sample is not a unit quaternion (then nothing is updated).
+    NaN samples are skipped; the others are normalised in place.
+    """
+    for s in range(qs.shape[0]):
+        n2 = qs[s, 0] ** 2 + qs[s, 1] ** 2 + qs[s, 2] ** 2 + qs[s, 3] ** 2
+        if ok[s] and abs(np.sqrt(n2) - 1.0) > 1e-3:
+            return s
+    work = make_work(kinds.shape[0])
+    for s in range(qs.shape[0]):
+        good = ok[s] and np.isfinite(qs[s, 0] + qs[s, 1] + qs[s, 2] + qs[s, 3])
+        if good:
+            n = np.sqrt(qs[s, 0] ** 2 + qs[s, 1] ** 2 + qs[s, 2] ** 2 + qs[s, 3] ** 2)
+            for i in range(4):
+                qs[s, i] /= n
+        ready[s] = step(qs[s], good, x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s], kinds, qvar, R,
+                        cfg, work) and good
+    return -1
+
+
+@numba.njit(cache=True)
+def predict_frame(last, est, ready, delta, tau, out):
+    """Orientations (S, 4) ``delta`` s after the last frame, NaN where a sensor has no estimate."""
+    tmp = np.empty(4)
+    dq = np.empty(4)
+    for s in range(last.shape[0]):
+        if not ready[s]:
+            out[s, :] = np.nan
+            continue
+        predict_orientation(last[s], est[s, 0], est[s, 1], est[s, 2], est[s, 3], est[s, 4], est[s, 5], delta, tau,
+                            out[s], tmp, dq)

@@ -22,7 +22,16 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ivc.predict import _dq_kernels as K
-from ivc.predict.base import FloatArray, Predictor, PredictorError, Stream, check_horizons, check_rate, check_stream
+from ivc.predict.base import (
+    MAX_HORIZON,
+    FloatArray,
+    Predictor,
+    PredictorError,
+    Stream,
+    check_horizons,
+    check_rate,
+    check_stream,
+)
 from ivc.predict.delta import extrapolate
 
 #: Table 10 process-noise standard deviations: CV in rad/s², CA in rad/s³
@@ -148,24 +157,28 @@ class DQStream(Stream):
     def __init__(self, predictor: DQPredictor, n_sensors: int):
         self.predictor, self.n_sensors = predictor, int(n_sensors)
         self.state = predictor._state(self.n_sensors)
-        self.work = K.make_work(len(predictor.models))
         self.last = np.full((self.n_sensors, 4), np.nan)
         self.ready = np.zeros(self.n_sensors, bool)
+        self._all = np.ones(self.n_sensors, bool)
 
     def update(self, q, valid=None):
-        qs, ok = self._check_frame(q, valid)
+        q = np.array(q, dtype=float, order="C")  # a copy: normalised in place by the kernel
+        if q.shape != (self.n_sensors, 4):
+            raise PredictorError(f"a frame has shape ({self.n_sensors}, 4), got {q.shape}")
+        ok = self._all if valid is None else np.asarray(valid, dtype=bool).reshape(self.n_sensors)
         kinds, qvar, R, cfg, _, _ = self.predictor._config
-        x, P, probs, tpm, q_prev, status, est = self.state
-        for s in range(self.n_sensors):
-            self.ready[s] = K.step(qs[s], ok[s], x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s],
-                                   kinds, qvar, R, cfg, self.work) and ok[s]
-        self.last = qs
+        bad = K.update_frame(q, ok, *self.state, kinds, qvar, R, cfg, self.ready)
+        if bad >= 0:
+            raise PredictorError(f"sensor {bad}: not a unit quaternion (norm {np.linalg.norm(q[bad]):.6g}); "
+                                 "pass unit quaternions [w, x, y, z]")
+        self.last = q
 
     def predict(self, horizon):
-        d = float(check_horizons(horizon)[0])
-        est = self.state[6]
-        out = extrapolate(self.last, est[:, :3], est[:, 3:], d, self.predictor.tau)
-        out[~self.ready] = np.nan
+        d = float(horizon)
+        if not 0.0 <= d <= MAX_HORIZON:
+            check_horizons(horizon)
+        out = np.empty((self.n_sensors, 4))
+        K.predict_frame(self.last, self.state[6], self.ready, d, self.predictor.tau, out)
         return out
 
     @property
