@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 import h5py
 import numpy as np
 
 from ivc import lut
 from ivc import session as session_io
+from ivc.cli.paths import input_and_output
 from ivc.cli.predict import parse_horizon, predicted_quaternions
 from ivc.collect.replay import read_csv, write_csv
 from ivc.correct import Corrector, describe
@@ -69,13 +68,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     the dipole model (MATH.md §9). With --predict, the corrected orientations of trusted
     samples are then predicted --horizon ahead per sensor (positions stay corrected, unpredicted).
     """
-    input_path, output_path = Path(input_file), Path(output)
-    if not input_path.exists():
-        raise FileNotFoundError(f"{input_path}: no such file")
-    if output_path.resolve() == input_path.resolve():
-        raise click.UsageError("OUTPUT must not be the input: raw recordings are never overwritten")
-    if output_path.exists() and not force:
-        raise FileExistsError(f"{output_path} exists; pass --force to replace it")
+    input_path, output_path = input_and_output(input_file, output, force)
     delta = parse_horizon(horizon) if predictor else None
     table = lut.read(lut_file)
     if input_path.suffix.lower() == ".csv":
@@ -88,7 +81,8 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         fixed.signal = None
         if predictor:
             fixed = _predicted(fixed, out, predictor, delta)
-        write_csv(fixed, output_path, {"flags": out.flags, "residual": out.residual})
+        with session_io.atomic_path(output_path) as tmp:
+            write_csv(fixed, tmp, {"flags": out.flags, "residual": out.residual})
         click.echo(_summary(input_path.name, out))
         click.echo(f"wrote {output_path}")
         return

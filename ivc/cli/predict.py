@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import json
 import re
-from pathlib import Path
 
 import click
 import numpy as np
 
 from ivc import session as session_io
+from ivc.cli.paths import input_and_output
 from ivc.collect.replay import read_csv, write_csv
 from ivc.predict import FILTERS, make
 from ivc.predict.base import MAX_HORIZON
@@ -127,21 +127,14 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
         raise click.UsageError("predict a stream with one --filter")
     name = filters[0] if filters else "mmdq2"
     delta = parse_horizon(horizon)
-    input_path, output_path = Path(input_file), Path(output)
-    if not input_path.exists():
-        raise FileNotFoundError(f"{input_path}: no such file")
-    if output_path.resolve() == input_path.resolve():
-        raise click.UsageError("OUTPUT must not be the input: raw recordings are never overwritten")
-    if output_path.exists() and not force:
-        raise FileExistsError(f"{output_path} exists; pass --force to replace it")
+    input_path, output_path = input_and_output(input_file, output, force)
     if input_path.suffix.lower() == ".csv":
         if output_path.suffix.lower() != ".csv":
             raise click.UsageError("a CSV input is predicted into a CSV output (-o FILE.csv)")
         step = read_csv(input_path, rate)
         out = predicted_step(step, name, delta)
-        tmp = output_path.with_name(output_path.name + ".tmp")
-        write_csv(out, tmp)
-        tmp.replace(output_path)
+        with session_io.atomic_path(output_path) as tmp:
+            write_csv(out, tmp)
         click.echo(f"{input_path.name}: {step.n_frames} frames x {step.n_sensors} sensors predicted "
                    f"{delta * 1e3:g} ms ahead with {name}")
         click.echo(f"wrote {output_path}")

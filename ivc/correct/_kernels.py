@@ -12,6 +12,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ivc._linalg import cholesky, cholesky_solve
 from ivc.dipole._kernels import _rotation_polar_factor, closed_form_one, field_matrix
 from ivc.lut._kernels import grid_point
 
@@ -85,29 +86,9 @@ def _cost(e):
 @numba.njit(inline="always")
 def _solve6(A, b, x):
     """x = A⁻¹ b for a symmetric positive definite 6x6 A (Cholesky, in place on A). False if not PD."""
-    n = 6
-    for j in range(n):
-        s = A[j, j]
-        for k in range(j):
-            s -= A[j, k] * A[j, k]
-        if not s > 0.0:
-            return False
-        A[j, j] = np.sqrt(s)
-        for i in range(j + 1, n):
-            s = A[i, j]
-            for k in range(j):
-                s -= A[i, k] * A[j, k]
-            A[i, j] = s / A[j, j]
-    for i in range(n):
-        s = b[i]
-        for k in range(i):
-            s -= A[i, k] * x[k]
-        x[i] = s / A[i, i]
-    for i in range(n - 1, -1, -1):
-        s = x[i]
-        for k in range(i + 1, n):
-            s -= A[k, i] * x[k]
-        x[i] = s / A[i, i]
+    if not cholesky(A, 6, A):
+        return False
+    cholesky_solve(A, 6, b, x)
     return True
 
 

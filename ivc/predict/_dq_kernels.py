@@ -20,15 +20,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.predict._quat import (
-    cholesky,
-    cholesky_solve,
-    delta_q,
-    delta_q_jacobian,
-    predict_orientation,
-    qmul_conj,
-    rate_of,
-)
+from ivc._linalg import cholesky, cholesky_logdet, cholesky_solve, joseph
+from ivc.predict._quat import delta_q, delta_q_jacobian, predict_orientation, qmul_conj, rate_of
 
 LOG_2PI = np.log(2.0 * np.pi)
 TPM_FLOOR = 1e-50  # notes §8.2, eq. 47 [SEED]
@@ -121,9 +114,9 @@ def _ekf(j, kind, qv, z, R, cfg, x0, P0, x, P, work):
             S[r, c] = acc
         S[r, r] += R[r]
         nu[r] = z[r] - h[r]
-    logdet = cholesky(S, 4, L)
-    if np.isnan(logdet):
+    if not cholesky(S, 4, L):
         return -np.inf
+    logdet = cholesky_logdet(L, 4)
     cholesky_solve(L, 4, nu, y)
     maha = 0.0
     for r in range(4):
@@ -147,21 +140,7 @@ def _ekf(j, kind, qv, z, R, cfg, x0, P0, x, P, work):
             for r in range(4):
                 acc -= K[a, r] * H[r, b]
             IKH[a, b] = acc
-    for a in range(n):
-        for b in range(n):
-            acc = 0.0
-            for c in range(n):
-                acc += IKH[a, c] * Pp[c, b]
-            T[a, b] = acc
-    for a in range(n):
-        for b in range(a + 1):
-            acc = 0.0
-            for c in range(n):
-                acc += T[a, c] * IKH[b, c]
-            for r in range(4):
-                acc += K[a, r] * R[r] * K[b, r]
-            P[a, b] = acc
-            P[b, a] = acc
+    joseph(IKH, Pp, K, R, n, 4, T, P)
     if kind == 0:
         for a in range(3, 6):
             x[a] = 0.0

@@ -95,40 +95,6 @@ def rate_of(dq, t, out):
 
 
 @numba.njit(inline="always")
-def cholesky(S, n, L):
-    """Lower Cholesky factor of the symmetric n x n matrix S into L; returns log det S (nan if not PD)."""
-    logdet = 0.0
-    for i in range(n):
-        for j in range(i + 1):
-            acc = S[i, j]
-            for k in range(j):
-                acc -= L[i, k] * L[j, k]
-            if i == j:
-                if acc <= 0.0:
-                    return np.nan
-                L[i, i] = np.sqrt(acc)
-                logdet += 2.0 * np.log(L[i, i])
-            else:
-                L[i, j] = acc / L[j, j]
-    return logdet
-
-
-@numba.njit(inline="always")
-def cholesky_solve(L, n, b, x):
-    """Solve (L Lᵀ) x = b, L from :func:`cholesky`."""
-    for i in range(n):
-        acc = b[i]
-        for k in range(i):
-            acc -= L[i, k] * x[k]
-        x[i] = acc / L[i, i]
-    for i in range(n - 1, -1, -1):
-        acc = x[i]
-        for k in range(i + 1, n):
-            acc -= L[k, i] * x[k]
-        x[i] = acc / L[i, i]
-
-
-@numba.njit(inline="always")
 def predict_orientation(q, wx, wy, wz, ax, ay, az, delta, tau, out, tmp, dq):
     """out = orientation ``delta`` seconds after q, turning at ω + n τ α over frame n (notes §7.2, corrected).
 

@@ -123,7 +123,8 @@ class DQPredictor(Predictor):
             K.reset(*(a[s] for a in state), mu0, Pi0)
         return state
 
-    def filter(self, q: ArrayLike, valid: ArrayLike | None = None) -> tuple[FloatArray, FloatArray, np.ndarray]:
+    def filter(self, q: ArrayLike,
+               valid: ArrayLike | None = None) -> tuple[FloatArray, FloatArray, np.ndarray, FloatArray]:
         """Run over a stream: (q (F, S, 4) checked, [ω̄, ᾱ] (F, S, 6), usable (F, S), mode probabilities (F, S, M))."""
         qs, ok, _ = check_stream(q, valid)
         kinds, qvar, R, cfg, _, _ = self._config

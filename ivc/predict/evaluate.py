@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter1d
 
 from ivc import rotations
-from ivc.predict.base import Predictor, check_horizons, check_stream
+from ivc.predict.base import Predictor, Stream, check_horizons, check_stream
 
 FloatArray = NDArray[np.float64]
 
@@ -91,6 +91,20 @@ class Evaluation:
         return self.rows[int(np.argmin(np.abs(self.horizons_ms - horizon_ms)))]
 
 
+class LastSample(Stream):
+    """The live baseline: the latest valid measurement of each sensor, NaN where the last one was invalid."""
+
+    def __init__(self, n_sensors: int):
+        self.n_sensors, self.last = int(n_sensors), np.full((n_sensors, 4), np.nan)
+
+    def update(self, q, valid=None):
+        qs, ok = self._check_frame(q, valid)
+        self.last = np.where(ok[:, None], qs, np.nan)
+
+    def predict(self, horizon):
+        return self.last.copy()
+
+
 class NoPrediction(Predictor):
     """The baseline: show the latest measurement (the display lags by the horizon)."""
 
@@ -106,20 +120,7 @@ class NoPrediction(Predictor):
         return out[:, :, 0] if single else out
 
     def stream(self, n_sensors=1):
-        from ivc.predict.base import Stream
-
-        class _Last(Stream):
-            def __init__(self):
-                self.n_sensors, self.last = n_sensors, np.full((n_sensors, 4), np.nan)
-
-            def update(self, q, valid=None):
-                qs, ok = self._check_frame(q, valid)
-                self.last = np.where(ok[:, None], qs, np.nan)
-
-            def predict(self, horizon):
-                return self.last.copy()
-
-        return _Last()
+        return LastSample(n_sensors)
 
 
 def evaluate(predictor: Predictor, measured: FloatArray, rate_hz: float, motion: str = "",
@@ -142,8 +143,8 @@ def evaluate(predictor: Predictor, measured: FloatArray, rate_hz: float, motion:
         row["snr_db"] = snr_db(predictions[h, start:end], rate_hz)
         rows.append(row)
     velocity = None
-    rates = predictor.rates(measured)
-    if rates is not None and omega_true is not None:
+    rates = predictor.rates(measured) if omega_true is not None else None  # a second filter pass: only if wanted
+    if rates is not None:
         # the DQ state is the mean rate over the frame that just ended: compare with ω over (k−1, k)
         err = 1e3 * np.linalg.norm(rates[start:] - omega_true[start - 1:-1], axis=1)
         err = err[np.isfinite(err)]

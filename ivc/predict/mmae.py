@@ -273,6 +273,7 @@ class MMAEStream(Stream):
         self.last = np.full((self.n_sensors, 4), np.nan)
         self.ok = np.zeros(self.n_sensors, bool)
         self._rows: dict[float, FloatArray] = {}
+        self._now = predictor.position_rows(np.zeros(1))  # the kernel's own (unused) output horizon
 
     def update(self, q, valid=None):
         qs, ok = self._check_frame(q, valid)
@@ -280,8 +281,8 @@ class MMAEStream(Stream):
         vectors = np.ascontiguousarray(np.stack([T[:, :, 0], T[:, :, 2]], axis=1))[None]
         Phi, Qd, _, thr = self.predictor._config
         out = np.zeros((1, self.n_sensors, 1, 2, 3))
-        rows = self.predictor.position_rows(np.zeros(1))
-        _run(vectors, ok[None], *self.state, Phi, Qd, self.predictor.r, thr, np.log(self.predictor.p_min), rows, out)
+        _run(vectors, ok[None], *self.state, Phi, Qd, self.predictor.r, thr, np.log(self.predictor.p_min),
+             self._now, out)
         self.ok = ok
 
     def predict(self, horizon):

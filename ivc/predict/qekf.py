@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from ivc.predict._quat import cholesky, cholesky_solve, delta_q, delta_q_jacobian, normalise, qmul, qmul_conj, rate_of
+from ivc._linalg import cholesky, cholesky_solve, congruence, joseph
+from ivc.predict._quat import delta_q, delta_q_jacobian, normalise, qmul, qmul_conj, rate_of
 from ivc.predict.base import Predictor, PredictorError, Stream, check_horizons, check_rate, check_stream
 from ivc.predict.delta import extrapolate
 from ivc.predict.dq import SIGMA_CV1
@@ -83,17 +84,10 @@ def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
         A[4 + i, 4 + i] = 1.0
         for c in range(3):
             W[4 + i, c] = tau if i == c else 0.0
-    for a in range(7):
-        for b in range(7):
-            acc = 0.0
-            for c in range(7):
-                acc += A[a, c] * P[c, b]
-            T[a, b] = acc
+    congruence(A, P, 7, T, Pp)
     for a in range(7):
         for b in range(a + 1):
-            acc = 0.0
-            for c in range(7):
-                acc += T[a, c] * A[b, c]
+            acc = Pp[a, b]
             for c in range(3):
                 acc += W[a, c] * qvar[c] * W[b, c]
             Pp[a, b] = acc
@@ -108,7 +102,7 @@ def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
             S[r, c] = Pp[r, c]
         S[r, r] += R[r]
         nu[r] = z[r] - xq[r]
-    if np.isnan(cholesky(S, 4, L)):
+    if not cholesky(S, 4, L):
         status[0] = 0
         status[1] = 0
         return False
@@ -127,21 +121,7 @@ def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
     for a in range(7):
         for b in range(7):
             IKH[a, b] = (1.0 if a == b else 0.0) - (K[a, b] if b < 4 else 0.0)
-    for a in range(7):
-        for b in range(7):
-            acc = 0.0
-            for c in range(7):
-                acc += IKH[a, c] * Pp[c, b]
-            T[a, b] = acc
-    for a in range(7):
-        for b in range(a + 1):
-            acc = 0.0
-            for c in range(7):
-                acc += T[a, c] * IKH[b, c]
-            for r in range(4):
-                acc += K[a, r] * R[r] * K[b, r]
-            P[a, b] = acc
-            P[b, a] = acc
+    joseph(IKH, Pp, K, R, 7, 4, T, P)
     return True
 
 

@@ -1,0 +1,85 @@
+"""Compiled small dense linear algebra shared by the numba kernels (correction, prediction filters).
+
+Matrices are at most a few rows; ``n`` (and ``m``) give the size used, so callers can pass
+larger scratch arrays. Every function is inlined into its caller.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+@numba.njit(inline="always")
+def cholesky(S, n, L):
+    """Lower Cholesky factor of the symmetric n x n matrix S into L (L may be S: in place).
+
+    Returns False when S is not positive definite (or holds NaN).
+    """
+    for i in range(n):
+        for j in range(i + 1):
+            acc = S[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            if i == j:
+                if not acc > 0.0:
+                    return False
+                L[i, i] = np.sqrt(acc)
+            else:
+                L[i, j] = acc / L[j, j]
+    return True
+
+
+@numba.njit(inline="always")
+def cholesky_logdet(L, n):
+    """log det S from its Cholesky factor L."""
+    logdet = 0.0
+    for i in range(n):
+        logdet += 2.0 * np.log(L[i, i])
+    return logdet
+
+
+@numba.njit(inline="always")
+def cholesky_solve(L, n, b, x):
+    """Solve (L Lᵀ) x = b, L from :func:`cholesky`."""
+    for i in range(n):
+        acc = b[i]
+        for k in range(i):
+            acc -= L[i, k] * x[k]
+        x[i] = acc / L[i, i]
+    for i in range(n - 1, -1, -1):
+        acc = x[i]
+        for k in range(i + 1, n):
+            acc -= L[k, i] * x[k]
+        x[i] = acc / L[i, i]
+
+
+@numba.njit(inline="always")
+def congruence(A, P, n, T, out):
+    """out = A P Aᵀ (n x n, symmetric by construction); T is n x n scratch."""
+    for a in range(n):
+        for b in range(n):
+            acc = 0.0
+            for c in range(n):
+                acc += A[a, c] * P[c, b]
+            T[a, b] = acc
+    for a in range(n):
+        for b in range(a + 1):
+            acc = 0.0
+            for c in range(n):
+                acc += T[a, c] * A[b, c]
+            out[a, b] = acc
+            out[b, a] = acc
+
+
+@numba.njit(inline="always")
+def joseph(IKH, Pp, K, R, n, m, T, P):
+    """Joseph-form covariance update P = (I − KH) P⁻ (I − KH)ᵀ + K diag(R) Kᵀ; IKH = I − KH (n x n), K n x m."""
+    congruence(IKH, Pp, n, T, P)
+    for a in range(n):
+        for b in range(a + 1):
+            acc = P[a, b]
+            for r in range(m):
+                acc += K[a, r] * R[r] * K[b, r]
+            P[a, b] = acc
+            P[b, a] = acc
