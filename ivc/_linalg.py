@@ -33,10 +33,10 @@ def cholesky(S, n, L):
 @numba.njit(inline="always")
 def cholesky_logdet(L, n):
     """log det S from its Cholesky factor L."""
-    logdet = 0.0
+    det = 1.0
     for i in range(n):
-        logdet += 2.0 * np.log(L[i, i])
-    return logdet
+        det *= L[i, i]
+    return 2.0 * np.log(det)  # one log: det L stays far inside the float range for these small matrices
 
 
 @numba.njit(inline="always")
@@ -52,6 +52,29 @@ def cholesky_solve(L, n, b, x):
         for k in range(i + 1, n):
             acc -= L[k, i] * x[k]
         x[i] = acc / L[i, i]
+
+
+@numba.njit(inline="always")
+def cholesky_inverse(L, n, out):
+    """out = S⁻¹ (n x n, symmetric) from the Cholesky factor L of S: one reciprocal per row, no solves."""
+    # out's lower triangle first holds M = L⁻¹ (forward substitution on the columns of I)
+    for j in range(n):
+        out[j, j] = 1.0 / L[j, j]
+        for i in range(j + 1, n):
+            acc = 0.0
+            for k in range(j, i):
+                acc -= L[i, k] * out[k, j]
+            out[i, j] = acc / L[i, i]
+    # S⁻¹ = Mᵀ M, built from the top row down so each M entry is read before it is overwritten
+    for i in range(n):
+        for j in range(i, n):
+            acc = 0.0
+            for k in range(j, n):
+                acc += out[k, i] * out[k, j]
+            out[i, j] = acc
+    for i in range(n):
+        for j in range(i):
+            out[i, j] = out[j, i]
 
 
 @numba.njit(inline="always")

@@ -39,7 +39,9 @@ def test_delta_q_jacobian_matches_finite_differences(rng, scale):
         w = rng.normal(0, 1, 3) * scale
         J = delta_q_jacobian(w, TAU)
         Jk = np.empty((4, 3))
-        Q.delta_q_jacobian(w[0], w[1], w[2], TAU, Jk)
+        value = np.empty(4)
+        Q.delta_q_jacobian(w[0], w[1], w[2], TAU, Jk, value)
+        assert np.allclose(value, delta_q(w, TAU), atol=1e-16)
         h = 1e-6
         fd = np.stack([(delta_q(w + h * e, TAU) - delta_q(w - h * e, TAU)) / (2 * h) for e in np.eye(3)], axis=1)
         assert np.allclose(J, fd, atol=1e-10, rtol=1e-7)

@@ -20,8 +20,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc._linalg import cholesky, cholesky_logdet, cholesky_solve, joseph
-from ivc.predict._quat import delta_q, delta_q_jacobian, predict_orientation, qmul_conj, rate_of
+from ivc._linalg import cholesky, cholesky_inverse, cholesky_logdet, joseph
+from ivc.predict._quat import delta_q_jacobian, predict_orientation, qmul_conj, rate_of
 
 LOG_2PI = np.log(2.0 * np.pi)
 TPM_FLOOR = 1e-50  # notes §8.2, eq. 47 [SEED]
@@ -90,8 +90,7 @@ def _ekf(j, kind, qv, z, R, cfg, x0, P0, x, P, work):
     wx = xp[0] + shift * (xp[3] if kind == 1 else 0.0)
     wy = xp[1] + shift * (xp[4] if kind == 1 else 0.0)
     wz = xp[2] + shift * (xp[5] if kind == 1 else 0.0)
-    delta_q(wx, wy, wz, tau, h)
-    delta_q_jacobian(wx, wy, wz, tau, J)
+    delta_q_jacobian(wx, wy, wz, tau, J, h)
     alpha_col = 0.0
     if kind == 1:
         alpha_col = tau if cfg[CFG_H] == 1.0 else shift
@@ -117,22 +116,24 @@ def _ekf(j, kind, qv, z, R, cfg, x0, P0, x, P, work):
     if not cholesky(S, 4, L):
         return -np.inf
     logdet = cholesky_logdet(L, 4)
-    cholesky_solve(L, 4, nu, y)
+    cholesky_inverse(L, 4, S)
     maha = 0.0
     for r in range(4):
-        maha += nu[r] * y[r]
+        acc = 0.0
+        for c in range(4):
+            acc += S[r, c] * nu[c]
+        y[r] = acc
+        maha += nu[r] * acc
+    # K = P⁻Hᵀ S⁻¹
     for a in range(n):
         acc = 0.0
         for r in range(4):
-            acc += PHt[a, r] * y[r]
+            k = 0.0
+            for c in range(4):
+                k += PHt[a, c] * S[c, r]
+            K[a, r] = k
+            acc += k * nu[r]
         x[a] = xp[a] + acc
-    # K = P⁻Hᵀ S⁻¹: solve S Kᵀ = (P⁻Hᵀ)ᵀ row by row
-    for a in range(n):
-        for r in range(4):
-            nu[r] = PHt[a, r]
-        cholesky_solve(L, 4, nu, y)
-        for r in range(4):
-            K[a, r] = y[r]
     # Joseph form (I − KH) P⁻ (I − KH)ᵀ + K R Kᵀ
     for a in range(n):
         for b in range(n):
@@ -221,6 +222,11 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
     if cfg[CFG_ADAPTIVE] != 0.0 and M > 1:
         _update_tpm(probs, tpm, M)
     Pi = tpm[0]
+    if M == 1:  # a single filter: no mixing, the mode probability stays 1
+        _ekf(0, kinds[0], qvar[0], z, R, cfg, x[0], P[0], x[0], P[0], work)
+        for a in range(6):
+            est[a] = x[0, a]
+        return True
     # mixing (notes §8.3 steps 1-3)
     for j in range(M):
         c = 0.0
@@ -274,30 +280,39 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
     return True
 
 
+@numba.njit(cache=True, _nrt=False)
+def filter_sensor(s, qs, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work, q, out_est, out_ok,
+                  out_mu):
+    """Every frame of sensor s (see :func:`run`), with thread-local state and scratch.
+
+    Compiled without reference counting (nothing here allocates or keeps an array): the
+    counting of the views taken in each step otherwise costs more than the filter's arithmetic.
+    """
+    M = kinds.shape[0]
+    for k in range(qs.shape[0]):
+        for i in range(4):
+            q[i] = qs[k, s, i]
+        good = step(q, ok[k, s], x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work)
+        out_ok[s, k] = good and ok[k, s]
+        for a in range(6):
+            out_est[s, k, a] = est[a]
+        for j in range(M):
+            out_mu[s, k, j] = probs[0, j]
+
+
 @numba.njit(cache=True, parallel=True)
 def run(qs, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, out_est, out_ok, out_mu):
-    """Filter frames (F, S, 4) for S sensors, parallel over sensors; writes ω̄, ᾱ per frame to out_est (F, S, 6).
+    """Filter frames (F, S, 4) for S sensors, parallel over sensors; writes ω̄, ᾱ per frame to out_est (S, F, 6).
 
-    Each sensor's state and the configuration are copied to thread-local arrays first: views
-    of shared arrays inside the frame loop would contend on their reference counts.
+    The outputs are sensor-major (out_ok (S, F), out_mu (S, F, M)) so that threads never write
+    to the same cache line. Each sensor's state and the configuration are copied to
+    thread-local arrays first.
     """
-    F, S = qs.shape[0], qs.shape[1]
-    M = kinds.shape[0]
-    for s in numba.prange(S):
-        work = make_work(M)
+    for s in numba.prange(qs.shape[1]):
         xs, Ps, pr, tp, qp, st, es = (x[s].copy(), P[s].copy(), probs[s].copy(), tpm[s].copy(), q_prev[s].copy(),
                                       status[s].copy(), est[s].copy())
-        kd, qv, Rs, cf = kinds.copy(), qvar.copy(), R.copy(), cfg.copy()
-        q = np.empty(4)
-        for k in range(F):
-            for i in range(4):
-                q[i] = qs[k, s, i]
-            good = step(q, ok[k, s], xs, Ps, pr, tp, qp, st, es, kd, qv, Rs, cf, work)
-            out_ok[k, s] = good and ok[k, s]
-            for a in range(6):
-                out_est[k, s, a] = es[a]
-            for j in range(M):
-                out_mu[k, s, j] = pr[0, j]
+        filter_sensor(s, qs, ok, xs, Ps, pr, tp, qp, st, es, kinds.copy(), qvar.copy(), R.copy(), cfg.copy(),
+                      make_work(kinds.shape[0]), np.empty(4), out_est, out_ok, out_mu)
         x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s] = xs, Ps, pr, tp, qp, st, es
 
 

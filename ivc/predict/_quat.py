@@ -56,13 +56,14 @@ def delta_q(wx, wy, wz, t, out):
 
 
 @numba.njit(inline="always")
-def delta_q_jacobian(wx, wy, wz, t, J):
-    """J (4, 3) = ∂Δq(ω, t)/∂ω, singularity-free (notes §2)."""
+def delta_q_jacobian(wx, wy, wz, t, J, value):
+    """J (4, 3) = ∂Δq(ω, t)/∂ω, singularity-free (notes §2), and value = Δq(ω, t) (one sin and cos for both)."""
     w = (wx, wy, wz)
     omega2 = wx * wx + wy * wy + wz * wz
     omega = np.sqrt(omega2)
     phi = 0.5 * omega * t
     if omega * abs(t) < SMALL_ANGLE:
+        delta_q(wx, wy, wz, t, value)
         # series to the next order: σ ≈ t/2 (1 − φ²/6), dσ/dΩ ≈ −t³Ω/24
         for j in range(3):
             J[0, j] = -0.25 * t * t * w[j]
@@ -73,6 +74,10 @@ def delta_q_jacobian(wx, wy, wz, t, J):
     s = np.sin(phi)
     c = np.cos(phi)
     sigma = s / omega
+    value[0] = c
+    value[1] = sigma * wx
+    value[2] = sigma * wy
+    value[3] = sigma * wz
     coupling = (0.5 * t * c - sigma) / omega2
     for j in range(3):
         J[0, j] = -0.5 * t * sigma * w[j]

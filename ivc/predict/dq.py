@@ -129,11 +129,11 @@ class DQPredictor(Predictor):
         qs, ok, _ = check_stream(q, valid)
         kinds, qvar, R, cfg, _, _ = self._config
         F, S = ok.shape
-        est = np.zeros((F, S, 6))
-        usable = np.zeros((F, S), bool)
-        mu = np.zeros((F, S, len(kinds)))
+        est = np.empty((S, F, 6))
+        usable = np.empty((S, F), bool)
+        mu = np.empty((S, F, len(kinds)))
         K.run(qs, ok, *self._state(S), kinds, qvar, R, cfg, est, usable, mu)
-        return qs, est, usable, mu
+        return qs, est.transpose(1, 0, 2), usable.T, mu.transpose(1, 0, 2)
 
     def rates(self, q, valid=None):
         qs, est, usable, _ = self.filter(q, valid)

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from ivc._linalg import cholesky, cholesky_solve, congruence, joseph
-from ivc.predict._quat import delta_q, delta_q_jacobian, normalise, qmul, qmul_conj, rate_of
+from ivc._linalg import cholesky, cholesky_inverse, congruence, joseph
+from ivc.predict._quat import delta_q_jacobian, normalise, qmul, qmul_conj, rate_of
 from ivc.predict.base import Predictor, PredictorError, Stream, check_horizons, check_rate, check_stream
 from ivc.predict.delta import extrapolate
 from ivc.predict.dq import SIGMA_CV1
@@ -56,8 +56,7 @@ def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
         status[1] = 1
         return status[0] == 1
     wx, wy, wz = x[4], x[5], x[6]
-    delta_q(wx, wy, wz, tau, dq)
-    delta_q_jacobian(wx, wy, wz, tau, J)
+    delta_q_jacobian(wx, wy, wz, tau, J, dq)
     q = x[:4]
     Rq = np.empty((4, 4))
     Rq[0, 0], Rq[0, 1], Rq[0, 2], Rq[0, 3] = q[0], -q[1], -q[2], -q[3]
@@ -106,10 +105,13 @@ def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
         status[0] = 0
         status[1] = 0
         return False
-    for a in range(7):
+    cholesky_inverse(L, 4, S)
+    for a in range(7):  # K = P⁻Hᵀ S⁻¹ with H = [I 0]
         for r in range(4):
-            y[r] = Pp[a, r]
-        cholesky_solve(L, 4, y, K[a])
+            acc = 0.0
+            for c in range(4):
+                acc += Pp[a, c] * S[c, r]
+            K[a, r] = acc
     for a in range(4):
         x[a] = xq[a]
     for a in range(7):
