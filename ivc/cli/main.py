@@ -27,17 +27,18 @@ def cli() -> None:
     built-in simulator or a real tracker's recording); `ivc info` says what a session
     holds and what it still lacks; `ivc fixtures` reports the fixture calibration;
     `ivc fit` builds the secondary-field look-up table; `ivc correct` applies it;
-    `ivc evaluate` compares corrected with true poses; `ivc predict` predicts
+    `ivc evaluate` compares corrected with true poses; `ivc export` writes the
+    table for firmware, 3D Slicer, ParaView and Vrui; `ivc predict` predicts
     orientations ahead to hide display lag. `ivc demo` runs it all on a
     simulated room.
     """
 
 
 def _register() -> None:
-    from ivc.cli import collect, correct, demo, evaluate, fit, fixtures, info, predict
+    from ivc.cli import collect, correct, demo, evaluate, export, fit, fixtures, info, predict
 
-    for command in (collect.collect, correct.correct, demo.demo, evaluate.evaluate, fit.fit, fixtures.fixtures,
-                    info.info, predict.predict):
+    for command in (collect.collect, correct.correct, demo.demo, evaluate.evaluate, export.export, fit.fit,
+                    fixtures.fixtures, info.info, predict.predict):
         cli.add_command(command)
 
 

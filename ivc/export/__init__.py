@@ -1,0 +1,8 @@
+"""Stage 6b: the look-up table in the formats trackers, 3D Slicer, ParaView and Vrui read (docs/export.md).
+
+``export(table, fmt, path)`` writes one format atomically; :data:`FORMATS` names them all.
+"""
+
+from ivc.export.formats import FORMATS, ExportError, export
+
+__all__ = ["FORMATS", "ExportError", "export"]
