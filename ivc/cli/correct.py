@@ -46,8 +46,8 @@ def _summary(name: str, out: Correction) -> str:
 
 @click.command()
 @click.argument("lut_file", type=click.Path(dir_okay=False))
-@click.argument("input_file", type=click.Path(dir_okay=False))
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+@click.argument("input_file", type=click.Path(dir_okay=False), required=False)
+@click.option("-o", "--output", type=click.Path(dir_okay=False),
               help="Corrected output: a session .h5 or a .csv, as the input.")
 @click.option("--step", "steps", multiple=True, help="Session input: step(s) to correct (default: every step "
               "recorded in the distorted volume).")
@@ -59,7 +59,19 @@ def _summary(name: str, out: Correction) -> str:
 @click.option("--predict", "predictor", type=click.Choice(list(FILTERS)),
               help="Then predict each sensor's corrected orientation ahead with this filter (see `ivc predict`).")
 @click.option("--horizon", default="50ms", show_default=True, help="Prediction horizon with --predict.")
-def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, force, predictor, horizon):
+@click.option("--live", "live_url", metavar="igtl://HOST:PORT",
+              help="Correct a live OpenIGTLink stream from this tracking server instead of INPUT_FILE.")
+@click.option("--publish", default="127.0.0.1:18945", show_default=True, metavar="HOST:PORT",
+              help="With --live: serve the corrected poses here (port 0: any free port).")
+@click.option("--unit", "length_unit", type=click.Choice(["mm", "m", "cm", "in"]), default="mm", show_default=True,
+              help="With --live: length unit of the stream's translations (PLUS and Slicer use mm).")
+@click.option("--sensor", "sensors", multiple=True, help="With --live: correct only these device names "
+              "(default: every device that sends TRANSFORM or NDARRAY messages).")
+@click.option("--rate-hz", type=float, default=240.0, show_default=True,
+              help="With --live --predict: the stream's sample rate.")
+@click.option("--duration", type=float, help="With --live: stop after this many seconds (default: until Ctrl-C).")
+def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, force, predictor, horizon,
+            live_url, publish, length_unit, sensors, rate_hz, duration):
     """Correct the poses in INPUT_FILE (session .h5 or recording .csv) with LUT_FILE.
 
     Every output sample carries flags: 0 = trusted; 1 outside the mapped volume, 2 not
@@ -67,7 +79,18 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     the input has them; otherwise the reported poses are turned back into signals through
     the dipole model (MATH.md §9). With --predict, the corrected orientations of trusted
     samples are then predicted --horizon ahead per sensor (positions stay corrected, unpredicted).
+
+    With --live igtl://HOST:PORT, poses (TRANSFORM) or signal matrices (NDARRAY 3x3) streamed
+    by a tracking server are corrected as they arrive and served on --publish (docs/live.md).
     """
+    if live_url:
+        if input_file or output:
+            raise click.UsageError("--live reads from the network: give no INPUT_FILE or --output")
+        _live(lut_file, live_url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor,
+              horizon, rate_hz, duration)
+        return
+    if not input_file or not output:
+        raise click.UsageError("give INPUT_FILE and -o OUTPUT (or --live igtl://HOST:PORT)")
     input_path, output_path = input_and_output(input_file, output, force)
     delta = parse_horizon(horizon) if predictor else None
     table = lut.read(lut_file)
@@ -112,3 +135,34 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
                                                               "2 not converged, 4 residual too high, 8 invalid input")
                 h5[f"steps/{name}/residual"] = out.residual
     click.echo(f"wrote {output_path}")
+
+
+_UNITS = {"mm": 1e-3, "m": 1.0, "cm": 1e-2, "in": 0.0254}
+
+
+def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor, horizon,
+          rate_hz, duration) -> None:
+    import logging
+
+    from ivc.live import LiveCorrector, parse_url
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    table = lut.read(lut_file)
+    corrector = Corrector(table, hemisphere or table.hemisphere, interpolation, max_residual)
+    source = parse_url(url)
+    host, _, port = publish.rpartition(":")
+    if not host or not port.isdigit():
+        raise click.UsageError(f"--publish wants HOST:PORT, got {publish!r}")
+    live = LiveCorrector(corrector, source, (host, int(port)), length_unit=_UNITS[length_unit], predictor=predictor,
+                         horizon=parse_horizon(horizon) if predictor else 0.0, rate_hz=rate_hz,
+                         sensors=list(sensors) or None)
+    click.echo(f"correcting {url} -> serving on {live.publish_address[0]}:{live.publish_address[1]}", err=True)
+    try:
+        stats = live.run(duration)
+    except KeyboardInterrupt:
+        stats = live.stats
+    latency = np.median(stats.latency_s) * 1e3 if stats.latency_s else float("nan")
+    click.echo(f"received {stats.received}, corrected {stats.corrected}, flagged {stats.flagged}, out of order "
+               f"{stats.out_of_order}, unknown {stats.unknown}, malformed bytes {stats.garbage_bytes}, dropped for "
+               f"slow clients {stats.dropped_for_slow_clients}, connections {stats.connections}; median processing "
+               f"{latency:.3f} ms per batch", err=True)

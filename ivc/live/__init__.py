@@ -1,0 +1,11 @@
+"""Stage 5b: live correction over OpenIGTLink (docs/live.md).
+
+``LiveCorrector`` connects to a tracking server (PLUS, a tracker daemon, anything that streams
+OpenIGTLink TRANSFORM or NDARRAY messages), corrects (and optionally predicts) each sensor,
+and serves the result to any number of OpenIGTLink clients (3D Slicer, PLUS, your own).
+"""
+
+from ivc.live.igtl import NDArrayMessage, TrackingDataMessage, parse_url
+from ivc.live.loop import LiveCorrector, LiveStats
+
+__all__ = ["LiveCorrector", "LiveStats", "NDArrayMessage", "TrackingDataMessage", "parse_url"]

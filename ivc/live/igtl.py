@@ -1,0 +1,161 @@
+"""OpenIGTLink framing on a byte stream, and the two message types pyigtl lacks (TDATA, NDARRAY).
+
+pyigtl packs and unpacks the messages; its client and server threads are not used: they poll
+with 10 ms socket timeouts and keep only the newest message per device, which would add
+latency and drop frames at 240 Hz. :class:`Framer` splits a stream into whole messages,
+checks each body's CRC-64, and resynchronises after garbage.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from urllib.parse import urlparse
+
+import numpy as np
+from pyigtl.messages import CRC64, MessageBase, message_type_to_class_constructor
+
+HEADER = struct.Struct("> H 12s 20s II Q Q")
+HEADER_SIZE = HEADER.size  # 58
+#: larger bodies are taken as garbage: a tracking message is a few hundred bytes
+MAX_BODY = 1 << 20
+DEFAULT_PORT = 18944
+
+
+def parse_url(url: str) -> tuple[str, int]:
+    """``igtl://HOST:PORT`` (or ``HOST:PORT``) → (host, port)."""
+    parsed = urlparse(url if "://" in url else f"igtl://{url}")
+    if parsed.scheme != "igtl" or not parsed.hostname:
+        raise ValueError(f"expected igtl://HOST:PORT, got {url!r}")
+    return parsed.hostname, parsed.port or DEFAULT_PORT
+
+
+@dataclass
+class Frame:
+    """One whole message from the stream: its header fields and the unpacked pyigtl message (None when
+    its type is not one pyigtl or ivc knows)."""
+
+    message_type: str
+    device_name: str
+    timestamp: float
+    message: MessageBase | None
+
+
+class Framer:
+    """Feed bytes with :meth:`feed`; take whole, CRC-checked messages from :meth:`messages`.
+
+    ``garbage`` counts the bytes skipped to find the next valid header; ``bad`` the messages
+    whose body could not be unpacked.
+    """
+
+    def __init__(self):
+        self.buffer = bytearray()
+        self.garbage = 0
+        self.bad = 0
+
+    def feed(self, data: bytes) -> None:
+        self.buffer += data
+
+    def _header_at(self, at: int):
+        version, kind, device, seconds, fraction, size, crc = HEADER.unpack_from(self.buffer, at)
+        if version not in (1, 2, 3) or size > MAX_BODY:
+            return None
+        kind = kind.rstrip(b"\0")
+        if not kind or not all(48 <= c < 91 or c == 95 for c in kind):  # 0-9, :;<=>?@, A-Z, _
+            return None
+        return version, kind.decode(), device, seconds, fraction, size, crc
+
+    def messages(self) -> list[Frame]:
+        out = []
+        at = 0
+        buf = self.buffer
+        while len(buf) - at >= HEADER_SIZE:
+            header = self._header_at(at)
+            if header is None:
+                at += 1
+                self.garbage += 1
+                continue
+            version, kind, _, _, _, size, crc = header
+            end = at + HEADER_SIZE + size
+            if len(buf) < end:
+                break  # wait for the rest of the body
+            body = bytes(buf[at + HEADER_SIZE:end])
+            if CRC64(body) != crc:
+                at += 1
+                self.garbage += 1
+                continue
+            fields = MessageBase.parse_header(bytes(buf[at:at + HEADER_SIZE]))
+            message = MessageBase.create_message(kind)
+            if message is not None:
+                try:
+                    message.unpack(fields, body)
+                except (struct.error, ValueError, IndexError, UnicodeDecodeError):
+                    self.bad += 1
+                    message = None
+            out.append(Frame(kind, fields["device_name"], fields["timestamp"], message))
+            at = end
+        del buf[:at]
+        return out
+
+
+class TrackingDataMessage(MessageBase):
+    """TDATA: several named tool transforms in one message (OpenIGTLink v2; PLUS and Slicer read it).
+
+    ``tools``: {name: 4x4 matrix}, translations in mm.
+    """
+
+    ELEMENT = struct.Struct("> 20s B B 12f")
+
+    def __init__(self, tools: dict | None = None, timestamp=None, device_name=None):
+        MessageBase.__init__(self, timestamp=timestamp, device_name=device_name)
+        self._message_type = "TDATA"
+        self.tools = dict(tools or {})
+        self._valid_message = True
+
+    def _pack_content(self):
+        out = b""
+        for name, m in self.tools.items():
+            m = np.asarray(m, float)
+            out += self.ELEMENT.pack(name.encode()[:20], 1, 0, *m[:3, :3].T.ravel(), *m[:3, 3])
+        return out
+
+    def _unpack_content(self, content):
+        self.tools = {}
+        for offset in range(0, len(content) - self.ELEMENT.size + 1, self.ELEMENT.size):
+            name, _, _, *v = self.ELEMENT.unpack_from(content, offset)
+            m = np.eye(4)
+            m[:3, :3] = np.reshape(v[:9], (3, 3)).T
+            m[:3, 3] = v[9:]
+            self.tools[name.rstrip(b"\0").decode()] = m
+
+
+class NDArrayMessage(MessageBase):
+    """NDARRAY: an n-dimensional array (OpenIGTLink v2). ivc takes a (3, 3) array as a sensor's signal
+    matrix (row = sensor coil, column = source coil)."""
+
+    TYPES = {2: ">i1", 3: ">u1", 4: ">i2", 5: ">u2", 6: ">i4", 7: ">u4", 10: ">f4", 11: ">f8"}
+
+    def __init__(self, array=None, timestamp=None, device_name=None):
+        MessageBase.__init__(self, timestamp=timestamp, device_name=device_name)
+        self._message_type = "NDARRAY"
+        self.array = None if array is None else np.asarray(array, float)
+        self._valid_message = True
+
+    def _pack_content(self):
+        a = np.asarray(self.array, ">f8")
+        return struct.pack(f"> B B {a.ndim}H", 11, a.ndim, *a.shape) + a.tobytes()
+
+    def _unpack_content(self, content):
+        scalar, ndim = struct.unpack_from("> B B", content)
+        if scalar not in self.TYPES:
+            raise ValueError(f"NDARRAY scalar type {scalar} is not supported")
+        shape = struct.unpack_from(f"> {ndim}H", content, 2)
+        dtype = np.dtype(self.TYPES[scalar])
+        data = content[2 + 2 * ndim:]
+        if len(data) != dtype.itemsize * int(np.prod(shape)):
+            raise ValueError("NDARRAY size does not match its shape")
+        self.array = np.frombuffer(data, dtype).reshape(shape).astype(float)
+
+
+message_type_to_class_constructor.setdefault("TDATA", TrackingDataMessage)
+message_type_to_class_constructor.setdefault("NDARRAY", NDArrayMessage)

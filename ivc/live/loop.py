@@ -1,0 +1,358 @@
+"""The live loop: one upstream tracking connection in, corrected poses out to every connected client.
+
+Single-threaded around a selector, so nothing waits on anything it does not have to:
+
+* upstream (a client of the tracking server): TRANSFORM messages (sensor pose; translation in
+  ``length_unit`` metres per unit, mm by default as PLUS sends) or NDARRAY (3, 3) messages
+  (signal matrices), one device name per sensor. Lost connections are retried every
+  ``retry_s``; each sensor's warm start and predictor restart after a reconnect.
+* downstream (a server on ``publish``): per corrected sample a TRANSFORM named
+  ``<device><suffix>`` with the input's timestamp and, in its v2 metadata, ``ivc_flags`` (0 =
+  trusted) and ``ivc_predicted``; per batch a TDATA ``ivc`` with every trusted sensor.
+  A client that reads too slowly loses its oldest queued messages, never anyone else's time.
+
+Malformed bytes are skipped up to the next header whose body passes its CRC-64; messages of
+other types, unknown sensors (when ``sensors`` is given), out-of-order and repeated
+timestamps are dropped. Each kind of problem is logged once (per sensor or client).
+"""
+
+from __future__ import annotations
+
+import logging
+import selectors
+import socket
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from pyigtl import TransformMessage
+
+from ivc import dipole, rotations
+from ivc.correct import Corrector
+from ivc.live.igtl import Framer, TrackingDataMessage
+from ivc.predict import make as make_predictor
+
+log = logging.getLogger("ivc.live")
+#: a client whose queue grows beyond this many bytes loses its oldest messages
+MAX_QUEUE_BYTES = 1 << 20
+DEVICE_NAME_BYTES = 20
+
+
+@dataclass
+class LiveStats:
+    """Counters of a run; ``latency_s``: per batch, seconds from its bytes arriving to its results being sent."""
+
+    received: int = 0
+    corrected: int = 0
+    flagged: int = 0
+    published_batches: int = 0
+    out_of_order: int = 0
+    unknown: int = 0
+    garbage_bytes: int = 0
+    bad_messages: int = 0
+    dropped_for_slow_clients: int = 0
+    connections: int = 0
+    latency_s: list = field(default_factory=list)
+
+
+class _Client:
+    """A downstream connection with its queue of whole messages."""
+
+    def __init__(self, sock: socket.socket, address):
+        self.sock, self.address = sock, address
+        self.queue: deque[bytes] = deque()
+        self.queued_bytes = 0
+        self.pending = memoryview(b"")
+        self.warned = False
+
+
+class LiveCorrector:
+    """Correct (and predict) tracking data streamed over OpenIGTLink; see the module docstring.
+
+    ``source``: (host, port) of the tracking server. ``publish``: (host, port) to serve results
+    on (port 0 picks a free one; :attr:`publish_address` tells which). ``predictor``: a filter
+    name of ``ivc predict`` with ``horizon`` s and the stream's ``rate_hz``.
+    """
+
+    def __init__(self, corrector: Corrector, source: tuple[str, int], publish: tuple[str, int] = ("127.0.0.1", 18945),
+                 *, length_unit: float = 1e-3, predictor: str | None = None, horizon: float = 0.0,
+                 rate_hz: float = 240.0, suffix: str = "_ivc", sensors: list[str] | None = None,
+                 retry_s: float = 0.5):
+        self.corrector, self.source = corrector, source
+        self.length_unit, self.suffix = float(length_unit), suffix
+        self.predictor, self.horizon, self.rate_hz = predictor, float(horizon), float(rate_hz)
+        self.sensors = set(sensors) if sensors else None
+        self.retry_s = retry_s
+        self.stats = LiveStats()
+        self._selector = selectors.DefaultSelector()
+        self._listener = socket.create_server(publish, reuse_port=False)
+        self._listener.setblocking(False)
+        self._selector.register(self._listener, selectors.EVENT_READ, "listen")
+        self.publish_address = self._listener.getsockname()[:2]
+        self._upstream: socket.socket | None = None
+        self._framer = Framer()
+        self._next_connect = 0.0
+        self._clients: dict[int, _Client] = {}
+        self._last_time: dict[str, float] = {}
+        self._streams: dict = {}
+        self._logged: set = set()
+
+    # ---- logging once -------------------------------------------------------------------------
+    def _once(self, key, message: str, level: int = logging.WARNING) -> None:
+        if key not in self._logged:
+            self._logged.add(key)
+            log.log(level, message)
+
+    # ---- upstream -----------------------------------------------------------------------------
+    def _connect(self) -> None:
+        try:
+            sock = socket.create_connection(self.source, timeout=0.2)
+        except OSError as error:
+            self._once(("down", self.stats.connections), f"tracking server {self.source[0]}:{self.source[1]} "
+                       f"unreachable ({error.strerror or error}); retrying every {self.retry_s} s")
+            self._next_connect = time.monotonic() + self.retry_s
+            return
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._upstream = sock
+        self._framer = Framer()
+        self._selector.register(sock, selectors.EVENT_READ, "upstream")
+        self.stats.connections += 1
+        self.corrector.reset()
+        self._streams.clear()
+        self._last_time.clear()
+        log.info("connected to tracking server %s:%d", *self.source)
+
+    def _disconnect(self, reason: str) -> None:
+        if self._upstream is not None:
+            self._selector.unregister(self._upstream)
+            self._upstream.close()
+            self._upstream = None
+            log.warning("tracking server %s:%d: %s; reconnecting", self.source[0], self.source[1], reason)
+        self._next_connect = time.monotonic() + self.retry_s
+
+    def _read_upstream(self) -> None:
+        try:
+            data = self._upstream.recv(1 << 16)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as error:
+            self._disconnect(f"connection lost ({error.strerror or error})")
+            return
+        if not data:
+            self._disconnect("connection closed")
+            return
+        arrived = time.perf_counter()
+        self._framer.feed(data)
+        frames = self._framer.messages()
+        if self._framer.garbage > self.stats.garbage_bytes:
+            self._once(("garbage", self.stats.connections), "skipped malformed bytes from the tracking server "
+                       "(no valid OpenIGTLink header or CRC); resynchronised on the next valid message")
+            self.stats.garbage_bytes = self._framer.garbage
+        if self._framer.bad > self.stats.bad_messages:
+            self._once("bad", "dropped a message whose body could not be unpacked")
+            self.stats.bad_messages = self._framer.bad
+        if frames:
+            self._process(frames, arrived)
+
+    # ---- correction ---------------------------------------------------------------------------
+    def _samples(self, frames) -> list[tuple[str, float, np.ndarray]]:
+        """(device, timestamp, signal matrix (3, 3)) of the usable tracking messages, in arrival order."""
+        names, times, positions, rotations_, signals = [], [], [], [], []
+        for f in frames:
+            if f.message is None or f.message_type not in ("TRANSFORM", "NDARRAY"):
+                self._once(("type", f.message_type), f"ignoring {f.message_type} messages (expected TRANSFORM poses "
+                           "or NDARRAY 3x3 signal matrices)", logging.INFO)
+                continue
+            name = f.device_name
+            if self.sensors is not None and name not in self.sensors:
+                self.stats.unknown += 1
+                self._once(("unknown", name), f"ignoring unknown sensor {name!r} (not in --sensor)")
+                continue
+            last = self._last_time.get(name)
+            if last is not None and f.timestamp != 0.0 and f.timestamp <= last:
+                self.stats.out_of_order += 1
+                self._once(("order", name), f"sensor {name!r}: dropped a message older than (or as old as) the last "
+                           "one; this and later ones are counted, not logged")
+                continue
+            self._last_time[name] = f.timestamp
+            if f.message_type == "TRANSFORM":
+                m = np.asarray(f.message.matrix, float)
+                positions.append(m[:3, 3] * self.length_unit)
+                rotations_.append(m[:3, :3])
+                signals.append(None)
+            else:
+                a = f.message.array
+                if a is None or a.shape != (3, 3):
+                    self._once(("shape", name), f"sensor {name!r}: NDARRAY of shape {None if a is None else a.shape}"
+                               " is not a 3x3 signal matrix; dropped")
+                    continue
+                positions.append(np.full(3, np.nan))
+                rotations_.append(np.full((3, 3), np.nan))
+                signals.append(a)
+            names.append(name)
+            times.append(f.timestamp)
+        if not names:
+            return []
+        # float32 matrices are not quite orthonormal: take the nearest rotation (NaN rows stay NaN)
+        T = rotations.to_matrix(rotations.from_matrix(np.array(rotations_)))
+        from_pose = dipole.signal(np.array(positions), T)
+        S = [from_pose[n] if s is None else s for n, s in enumerate(signals)]
+        return list(zip(names, times, S, strict=True))
+
+    def _process(self, frames, arrived: float) -> None:
+        samples = self._samples(frames)
+        self.stats.received += len(samples)
+        while samples:  # rounds in which each sensor appears once, in arrival order
+            seen, now, later = set(), [], []
+            for s in samples:
+                (later if s[0] in seen else now).append(s)
+                seen.add(s[0])
+            self._correct_round(now)
+            samples = later
+        self.stats.latency_s.append(time.perf_counter() - arrived)
+
+    def _predicted(self, name: str, quaternion: np.ndarray, ok: bool) -> np.ndarray | None:
+        stream = self._streams.get(name)
+        if stream is None:
+            stream = self._streams[name] = make_predictor(self.predictor, self.rate_hz).stream(1)
+        stream.update(np.where(ok, quaternion, np.nan)[None], np.array([ok]))
+        q = stream.predict(self.horizon)[0]
+        return q if np.all(np.isfinite(q)) else None
+
+    def _correct_round(self, samples) -> None:
+        names = [s[0] for s in samples]
+        out = self.corrector.update(np.array([s[2] for s in samples]), sensors=names)
+        tools, messages = {}, []
+        for n, (name, stamp, _) in enumerate(samples):
+            flags = int(out.flags[n])
+            ok = flags == 0
+            self.stats.corrected += ok
+            self.stats.flagged += not ok
+            q = out.quaternion[n]
+            predicted = None
+            if self.predictor and np.all(np.isfinite(q)):
+                predicted = self._predicted(name, q, ok)
+            if not np.all(np.isfinite(out.position[n])):
+                continue  # invalid input: nothing to send
+            m = np.eye(4)
+            m[:3, :3] = rotations.to_matrix(predicted if predicted is not None else q)
+            m[:3, 3] = out.position[n] / self.length_unit
+            message = TransformMessage(m, timestamp=stamp, device_name=_device(name + self.suffix))
+            message.header_version = 2
+            message.metadata = {"ivc_flags": str(flags), "ivc_predicted": "1" if predicted is not None else "0"}
+            messages.append(message.pack())
+            if ok:
+                tools[name] = m
+        if tools:
+            messages.append(TrackingDataMessage(tools, timestamp=samples[-1][1], device_name="ivc").pack())
+        self._send_all(messages)
+        self.stats.published_batches += 1
+
+    # ---- downstream ---------------------------------------------------------------------------
+    def _accept(self) -> None:
+        try:
+            sock, address = self._listener.accept()
+        except (BlockingIOError, InterruptedError):
+            return
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        client = _Client(sock, address)
+        self._clients[sock.fileno()] = client
+        self._selector.register(sock, selectors.EVENT_READ, client)
+        log.info("client %s:%d connected", *address[:2])
+
+    def _drop_client(self, client: _Client, reason: str) -> None:
+        self._clients.pop(client.sock.fileno(), None)
+        try:
+            self._selector.unregister(client.sock)
+        except (KeyError, ValueError):
+            pass
+        client.sock.close()
+        log.info("client %s:%d %s", client.address[0], client.address[1], reason)
+
+    def _send_all(self, messages: list[bytes]) -> None:
+        for client in list(self._clients.values()):
+            for m in messages:
+                client.queue.append(m)
+                client.queued_bytes += len(m)
+            while client.queued_bytes > MAX_QUEUE_BYTES:
+                client.queued_bytes -= len(client.queue.popleft())
+                self.stats.dropped_for_slow_clients += 1
+                if not client.warned:
+                    client.warned = True
+                    log.warning("client %s:%d reads too slowly: dropping its oldest messages", *client.address[:2])
+            self._flush(client)
+
+    def _flush(self, client: _Client) -> None:
+        try:
+            while True:
+                if not client.pending:
+                    if not client.queue:
+                        break
+                    data = client.queue.popleft()
+                    client.queued_bytes -= len(data)
+                    client.pending = memoryview(data)
+                sent = client.sock.send(client.pending)
+                client.pending = client.pending[sent:]
+        except (BlockingIOError, InterruptedError):
+            pass
+        except OSError:
+            self._drop_client(client, "disconnected")
+            return
+        events = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.pending or client.queue else 0)
+        self._selector.modify(client.sock, events, client)
+
+    def _client_event(self, client: _Client, mask: int) -> None:
+        if mask & selectors.EVENT_READ:
+            try:
+                data = client.sock.recv(1 << 16)  # clients may send commands; ivc answers none of them
+            except (BlockingIOError, InterruptedError):
+                data = b"-"
+            except OSError:
+                data = b""
+            if not data:
+                self._drop_client(client, "disconnected")
+                return
+        if mask & selectors.EVENT_WRITE:
+            self._flush(client)
+
+    # ---- the loop -----------------------------------------------------------------------------
+    def run(self, duration: float | None = None, stop=None) -> LiveStats:
+        """Serve until ``duration`` s have passed or ``stop`` (a threading.Event) is set; returns the stats."""
+        end = None if duration is None else time.monotonic() + duration
+        try:
+            while not (stop is not None and stop.is_set()) and (end is None or time.monotonic() < end):
+                if self._upstream is None and time.monotonic() >= self._next_connect:
+                    self._connect()
+                for key, mask in self._selector.select(timeout=0.05):
+                    if key.data == "listen":
+                        self._accept()
+                    elif key.data == "upstream":
+                        if self._upstream is not None:
+                            self._read_upstream()
+                    else:
+                        self._client_event(key.data, mask)
+        finally:
+            self.close()
+        return self.stats
+
+    def close(self) -> None:
+        for client in list(self._clients.values()):
+            self._drop_client(client, "closed")
+        if self._upstream is not None:
+            self._selector.unregister(self._upstream)
+            self._upstream.close()
+            self._upstream = None
+        try:
+            self._selector.unregister(self._listener)
+        except (KeyError, ValueError):
+            pass
+        self._listener.close()
+        self._selector.close()
+
+
+def _device(name: str) -> str:
+    """OpenIGTLink device names hold 20 bytes."""
+    return name.encode()[:DEVICE_NAME_BYTES].decode(errors="ignore")

@@ -1,0 +1,190 @@
+"""Live correction over OpenIGTLink on loopback: pyigtl peers on both sides, against offline correction."""
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+from pyigtl import OpenIGTLinkClient, OpenIGTLinkServer, StringMessage, TransformMessage
+
+from ivc import dipole, rotations
+from ivc.correct import Corrector
+from ivc.live import LiveCorrector, NDArrayMessage, TrackingDataMessage
+from ivc.live.igtl import Framer
+from ivc.lut import write as write_lut
+from tests.test_correct import distorted, exact_table  # noqa: F401  (fixture)
+
+SENSORS = ("S0", "S1", "S2", "S3")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def reported_poses(rng, frames):
+    """What a tracker reports (dipole solution of the distorted signal) for len(SENSORS) sensors: matrices (F, N, 4, 4)
+    with translations in mm, in float32 as OpenIGTLink carries them."""
+    r, T, S = distorted(rng, frames * len(SENSORS))
+    position, rotation = dipole.closed_form_pose(S)
+    m = np.zeros((len(S), 4, 4))
+    m[:, :3, :3], m[:, :3, 3], m[:, 3, 3] = rotation, position * 1000.0, 1.0
+    return m.astype(np.float32).reshape(frames, len(SENSORS), 4, 4)
+
+
+def offline(table, matrices):
+    """``ivc correct`` on the same (float32) poses: batch, each sample on its own."""
+    m = matrices.astype(float)
+    q = rotations.from_matrix(m[..., :3, :3])
+    return Corrector(table).batch_poses(m[..., :3, 3] / 1000.0, q)
+
+
+def test_framer_resynchronises_after_garbage_and_checks_the_crc():
+    good = TransformMessage(np.eye(4), device_name="S0").pack()
+    corrupt = bytearray(good)
+    corrupt[-1] ^= 0xFF  # body no longer matches its CRC
+    framer = Framer()
+    framer.feed(b"\x00\x02garbage that looks a little like a header" + bytes(corrupt) + good[:30])
+    assert framer.messages() == []
+    framer.feed(good[30:] + NDArrayMessage(np.arange(9.0).reshape(3, 3), device_name="S1").pack())
+    frames = framer.messages()
+    assert [(f.message_type, f.device_name) for f in frames] == [("TRANSFORM", "S0"), ("NDARRAY", "S1")]
+    assert np.array_equal(frames[1].message.array, np.arange(9.0).reshape(3, 3))
+    assert framer.garbage > 0 and not framer.buffer
+
+
+def test_tdata_round_trip():
+    tools = {"S0": np.diag([1.0, -1.0, -1.0, 1.0]), "S1": np.eye(4)}
+    tools["S1"][:3, 3] = [10.0, -20.0, 30.5]
+    framer = Framer()
+    framer.feed(TrackingDataMessage(tools, device_name="ivc").pack())
+    (frame,) = framer.messages()
+    assert frame.message_type == "TDATA"
+    assert all(np.allclose(frame.message.tools[k], tools[k]) for k in tools)
+
+
+def _collect(client, frames_expected, timeout=10.0):
+    """Corrected matrices received by a pyigtl client, sensor by sensor."""
+    out = []
+    for name in SENSORS:
+        message = client.wait_for_message(name + "_ivc", timeout=timeout)
+        assert message is not None, f"no corrected pose for {name}"
+        out.append((message.matrix, message.metadata, message.timestamp))
+    return out
+
+
+def test_ivc_correct_live_matches_offline_and_survives_a_server_restart(exact_table, rng, tmp_path):  # noqa: F811
+    lut_path = tmp_path / "map.h5"
+    write_lut(exact_table, lut_path)
+    matrices = reported_poses(rng, 24)
+    expected = offline(exact_table, matrices)
+    source_port, publish_port = free_port(), free_port()
+    server = OpenIGTLinkServer(port=source_port, local_server=True)
+    process = subprocess.Popen([sys.executable, "-m", "ivc.cli", "correct", str(lut_path), "--live",
+                                f"igtl://127.0.0.1:{source_port}", "--publish", f"127.0.0.1:{publish_port}"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    client = None
+    try:
+        deadline = time.monotonic() + 60
+        while not server.is_connected():
+            assert process.poll() is None, process.communicate()
+            assert time.monotonic() < deadline, "ivc never connected"
+            time.sleep(0.05)
+        client = OpenIGTLinkClient(host="127.0.0.1", port=publish_port)
+        while not client.is_connected():
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        time.sleep(0.2)
+
+        def stream(server, frames):
+            got = []
+            for k in frames:
+                for n, name in enumerate(SENSORS):
+                    server.send_message(TransformMessage(matrices[k, n], timestamp=1000.0 + k / 240,
+                                                         device_name=name), wait=False)
+                got.append(_collect(client, 1))
+            return got
+
+        first = stream(server, range(12))
+        server.stop()  # the tracking server goes away ...
+        time.sleep(1.0)
+        server = OpenIGTLinkServer(port=source_port, local_server=True)  # ... and comes back
+        deadline = time.monotonic() + 20
+        while not server.is_connected():
+            assert process.poll() is None, process.communicate()
+            assert time.monotonic() < deadline, "ivc did not reconnect"
+            time.sleep(0.05)
+        second = stream(server, range(12, 24))
+        received = first + second
+        for k, frame in enumerate(received):
+            for n, (matrix, metadata, stamp) in enumerate(frame):
+                assert stamp == pytest.approx(1000.0 + k / 240, abs=1e-6)
+                assert int(metadata["ivc_flags"]) == expected.flags[k, n]
+                assert np.allclose(matrix[:3, 3] / 1000.0, expected.position[k, n], atol=2e-6)
+                q = rotations.from_matrix(np.asarray(matrix[:3, :3], float))
+                assert rotations.angle_between(q, expected.quaternion[k, n]) < 2e-5
+    finally:
+        process.send_signal(signal.SIGINT)
+        _, err = process.communicate(timeout=30)
+        if client is not None:
+            client.stop()
+        server.stop()
+    assert "connections 2" in err, err
+    assert "Traceback" not in err, err
+
+
+def test_bad_input_is_dropped_and_logged_once_and_slow_clients_do_not_block(exact_table, rng, caplog):  # noqa: F811
+    """Garbage bytes, other message types, unknown sensors, out-of-order stamps and NaN poses on a raw socket."""
+    matrices = reported_poses(rng, 6)
+    listener = socket.create_server(("127.0.0.1", 0))
+    live = LiveCorrector(Corrector(exact_table), listener.getsockname(), ("127.0.0.1", 0), sensors=list(SENSORS))
+    stop = threading.Event()
+    runner = threading.Thread(target=live.run, kwargs={"stop": stop})
+    runner.start()
+    upstream, _ = listener.accept()
+    consumer = socket.create_connection(live.publish_address)
+    idle = socket.create_connection(live.publish_address)  # connects and never reads
+    try:
+        def send(k, name, m, stamp=None):
+            upstream.sendall(TransformMessage(m, timestamp=1000.0 + k / 240 if stamp is None else stamp,
+                                              device_name=name).pack())
+
+        upstream.sendall(os.urandom(3000))
+        upstream.sendall(StringMessage("hello", device_name="S0").pack())
+        for k in range(6):
+            for n, name in enumerate(SENSORS):
+                send(k, name, matrices[k, n])
+            send(k, "Needle", matrices[k, 0])  # not in --sensor
+        send(2, "S0", matrices[2, 0])  # repeated (out of order) timestamp
+        nan = matrices[0, 0].copy()
+        nan[0, 3] = np.nan
+        send(10, "S1", nan)
+        upstream.sendall(os.urandom(500))
+        send(11, "S2", matrices[5, 2])
+        framer = Framer()
+        consumer.settimeout(5.0)
+        names = []
+        deadline = time.monotonic() + 20
+        while names.count("S2_ivc") < 7 and time.monotonic() < deadline:
+            framer.feed(consumer.recv(1 << 16))
+            names += [f.device_name for f in framer.messages() if f.message_type == "TRANSFORM"]
+    finally:
+        stop.set()
+        runner.join(10)
+        for s in (upstream, consumer, idle, listener):
+            s.close()
+    stats = live.stats
+    assert names.count("S0_ivc") == 6 and names.count("S2_ivc") == 7 and "Needle_ivc" not in names
+    assert stats.unknown == 6 and stats.out_of_order == 1 and stats.garbage_bytes >= 3000
+    assert stats.received == 6 * 4 + 2  # the NaN pose is received, flagged, and not published
+    assert stats.flagged >= 1
+    warnings = [r.getMessage() for r in caplog.records]
+    assert sum("unknown sensor 'Needle'" in w for w in warnings) == 1
+    assert sum("malformed bytes" in w for w in warnings) == 1
