@@ -1,13 +1,16 @@
 """OpenIGTLink framing on a byte stream, and the two message types pyigtl lacks (TDATA, NDARRAY).
 
-pyigtl packs and unpacks the messages; its client and server threads are not used: they poll
-with 10 ms socket timeouts and keep only the newest message per device, which would add
-latency and drop frames at 240 Hz. :class:`Framer` splits a stream into whole messages,
-checks each body's CRC-64, and resynchronises after garbage.
+pyigtl supplies the message classes and the CRC-64; its client and server threads are not used:
+they poll with 10 ms socket timeouts and keep only the newest message per device, which would
+add latency and drop frames at 240 Hz. :class:`Framer` splits a stream into whole messages,
+checks each body's CRC-64, and resynchronises after garbage. The tracking messages of the hot
+path (TRANSFORM, NDARRAY in; TRANSFORM out) are decoded and encoded here with NumPy: through
+pyigtl's generic objects they cost more than the correction itself (benchmarks/bench_live.py).
 """
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass
 from urllib.parse import urlparse
@@ -32,20 +35,56 @@ def parse_url(url: str) -> tuple[str, int]:
 
 @dataclass
 class Frame:
-    """One whole message from the stream: its header fields and the unpacked pyigtl message (None when
-    its type is not one pyigtl or ivc knows)."""
+    """One whole message from the stream. ``payload``: the 4x4 matrix of a TRANSFORM (translation in the
+    stream's unit), the array of an NDARRAY, else None."""
 
     message_type: str
     device_name: str
     timestamp: float
-    message: MessageBase | None
+    payload: np.ndarray | None
+
+
+_EXTENDED = struct.Struct("> H H I I")
+_TRANSFORM = np.dtype(">f4")
+
+
+def _content(version: int, body: bytes) -> bytes:
+    """The message content of a body: without the v2 extended header and metadata."""
+    if version < 2:
+        return body
+    extended, meta_header, meta_body, _ = _EXTENDED.unpack_from(body)
+    return body[extended:len(body) - meta_header - meta_body]
+
+
+def decode_transform(content: bytes) -> np.ndarray:
+    v = np.frombuffer(content, _TRANSFORM, 12).astype(float)
+    m = np.eye(4)
+    m[:3, :3] = v[:9].reshape(3, 3).T  # column-major rotation
+    m[:3, 3] = v[9:]
+    return m
+
+
+def decode_ndarray(content: bytes) -> np.ndarray:
+    scalar, ndim = struct.unpack_from("> B B", content)
+    if scalar not in NDArrayMessage.TYPES:
+        raise ValueError(f"NDARRAY scalar type {scalar} is not supported")
+    shape = struct.unpack_from(f"> {ndim}H", content, 2)
+    dtype = np.dtype(NDArrayMessage.TYPES[scalar])
+    data = content[2 + 2 * ndim:]
+    if len(data) != dtype.itemsize * math.prod(shape):
+        raise ValueError("NDARRAY size does not match its shape")
+    return np.frombuffer(data, dtype).reshape(shape).astype(float)
+
+
+_DECODERS = {"TRANSFORM": decode_transform, "NDARRAY": decode_ndarray}
 
 
 class Framer:
     """Feed bytes with :meth:`feed`; take whole, CRC-checked messages from :meth:`messages`.
 
-    ``garbage`` counts the bytes skipped to find the next valid header; ``bad`` the messages
-    whose body could not be unpacked.
+    TRANSFORM and NDARRAY contents are decoded here (the hot path; other types are passed on
+    undecoded). ``garbage`` counts the bytes skipped to find the next valid header; ``bad`` the
+    messages whose content could not be decoded.
     """
 
     def __init__(self):
@@ -75,7 +114,7 @@ class Framer:
                 at += 1
                 self.garbage += 1
                 continue
-            version, kind, _, _, _, size, crc = header
+            version, kind, device, seconds, fraction, size, crc = header
             end = at + HEADER_SIZE + size
             if len(buf) < end:
                 break  # wait for the rest of the body
@@ -84,18 +123,45 @@ class Framer:
                 at += 1
                 self.garbage += 1
                 continue
-            fields = MessageBase.parse_header(bytes(buf[at:at + HEADER_SIZE]))
-            message = MessageBase.create_message(kind)
-            if message is not None:
+            payload = None
+            decoder = _DECODERS.get(kind)
+            if decoder is not None:
                 try:
-                    message.unpack(fields, body)
-                except (struct.error, ValueError, IndexError, UnicodeDecodeError):
+                    payload = decoder(_content(version, body))
+                except (struct.error, ValueError):
                     self.bad += 1
-                    message = None
-            out.append(Frame(kind, fields["device_name"], fields["timestamp"], message))
+            name = device.rstrip(b"\0").decode(errors="replace")
+            out.append(Frame(kind, name, seconds + fraction / 2.0**32, payload))
             at = end
         del buf[:at]
         return out
+
+
+def _stamp(timestamp: float) -> tuple[int, int]:
+    seconds = int(timestamp)
+    return seconds, min(int((timestamp - seconds) * 2.0**32), 0xFFFFFFFF)
+
+
+def encode_transforms(names: list[str], stamps: list[float], matrices: np.ndarray,
+                      metadata: list[dict[str, str]] | None = None) -> list[bytes]:
+    """TRANSFORM messages (header v2 with ``metadata`` when given, else v1), one per row of matrices (N, 4, 4)."""
+    m = np.asarray(matrices, float)
+    contents = np.concatenate([np.swapaxes(m[:, :3, :3], 1, 2).reshape(-1, 9), m[:, :3, 3]], axis=1).astype(">f4")
+    out = []
+    for n, name in enumerate(names):
+        body = contents[n].tobytes()
+        version = 1
+        if metadata is not None:
+            version = 2
+            keys = [(k.encode(), v.encode()) for k, v in metadata[n].items()]
+            meta_header = struct.pack("> H", len(keys)) + b"".join(struct.pack("> H H I", len(k), 3, len(v))
+                                                                   for k, v in keys)
+            meta_body = b"".join(k + v for k, v in keys)
+            body = _EXTENDED.pack(12, len(meta_header), len(meta_body), 0) + body + meta_header + meta_body
+        seconds, fraction = _stamp(stamps[n])
+        out.append(HEADER.pack(version, b"TRANSFORM", name.encode()[:20], seconds, fraction, len(body), CRC64(body))
+                   + body)
+    return out
 
 
 class TrackingDataMessage(MessageBase):
@@ -146,15 +212,7 @@ class NDArrayMessage(MessageBase):
         return struct.pack(f"> B B {a.ndim}H", 11, a.ndim, *a.shape) + a.tobytes()
 
     def _unpack_content(self, content):
-        scalar, ndim = struct.unpack_from("> B B", content)
-        if scalar not in self.TYPES:
-            raise ValueError(f"NDARRAY scalar type {scalar} is not supported")
-        shape = struct.unpack_from(f"> {ndim}H", content, 2)
-        dtype = np.dtype(self.TYPES[scalar])
-        data = content[2 + 2 * ndim:]
-        if len(data) != dtype.itemsize * int(np.prod(shape)):
-            raise ValueError("NDARRAY size does not match its shape")
-        self.array = np.frombuffer(data, dtype).reshape(shape).astype(float)
+        self.array = decode_ndarray(content)
 
 
 message_type_to_class_constructor.setdefault("TDATA", TrackingDataMessage)

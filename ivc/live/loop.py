@@ -26,11 +26,10 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from pyigtl import TransformMessage
 
 from ivc import dipole, rotations
 from ivc.correct import Corrector
-from ivc.live.igtl import Framer, TrackingDataMessage
+from ivc.live.igtl import Framer, TrackingDataMessage, encode_transforms
 from ivc.predict import make as make_predictor
 
 log = logging.getLogger("ivc.live")
@@ -97,6 +96,17 @@ class LiveCorrector:
         self._last_time: dict[str, float] = {}
         self._streams: dict = {}
         self._logged: set = set()
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Run every compiled step once, so the first frames do not wait for it."""
+        centre = self.corrector.field.grid.origin + 0.5 * self.corrector.field.grid.spacing * (
+            np.array(self.corrector.field.grid.shape) - 1)
+        self.corrector.update(dipole.signal(centre[None], np.eye(3)[None]), sensors=["warm-up"])
+        self.corrector.reset()
+        if self.predictor:
+            self._predicted("warm-up", np.array([1.0, 0.0, 0.0, 0.0]), True)
+            self._streams.clear()
 
     # ---- logging once -------------------------------------------------------------------------
     def _once(self, key, message: str, level: int = logging.WARNING) -> None:
@@ -161,7 +171,7 @@ class LiveCorrector:
         """(device, timestamp, signal matrix (3, 3)) of the usable tracking messages, in arrival order."""
         names, times, positions, rotations_, signals = [], [], [], [], []
         for f in frames:
-            if f.message is None or f.message_type not in ("TRANSFORM", "NDARRAY"):
+            if f.message_type not in ("TRANSFORM", "NDARRAY"):
                 self._once(("type", f.message_type), f"ignoring {f.message_type} messages (expected TRANSFORM poses "
                            "or NDARRAY 3x3 signal matrices)", logging.INFO)
                 continue
@@ -170,6 +180,8 @@ class LiveCorrector:
                 self.stats.unknown += 1
                 self._once(("unknown", name), f"ignoring unknown sensor {name!r} (not in --sensor)")
                 continue
+            if f.payload is None:
+                continue  # undecodable: counted by the framer
             last = self._last_time.get(name)
             if last is not None and f.timestamp != 0.0 and f.timestamp <= last:
                 self.stats.out_of_order += 1
@@ -178,15 +190,14 @@ class LiveCorrector:
                 continue
             self._last_time[name] = f.timestamp
             if f.message_type == "TRANSFORM":
-                m = np.asarray(f.message.matrix, float)
-                positions.append(m[:3, 3] * self.length_unit)
-                rotations_.append(m[:3, :3])
+                positions.append(f.payload[:3, 3] * self.length_unit)
+                rotations_.append(f.payload[:3, :3])
                 signals.append(None)
             else:
-                a = f.message.array
-                if a is None or a.shape != (3, 3):
-                    self._once(("shape", name), f"sensor {name!r}: NDARRAY of shape {None if a is None else a.shape}"
-                               " is not a 3x3 signal matrix; dropped")
+                a = f.payload
+                if a.shape != (3, 3):
+                    self._once(("shape", name), f"sensor {name!r}: NDARRAY of shape {a.shape} is not a 3x3 signal "
+                               "matrix; dropped")
                     continue
                 positions.append(np.full(3, np.nan))
                 rotations_.append(np.full((3, 3), np.nan))
@@ -195,10 +206,13 @@ class LiveCorrector:
             times.append(f.timestamp)
         if not names:
             return []
-        # float32 matrices are not quite orthonormal: take the nearest rotation (NaN rows stay NaN)
-        T = rotations.to_matrix(rotations.from_matrix(np.array(rotations_)))
-        from_pose = dipole.signal(np.array(positions), T)
-        S = [from_pose[n] if s is None else s for n, s in enumerate(signals)]
+        poses = [n for n, s in enumerate(signals) if s is None]
+        if poses:
+            # float32 matrices are not quite orthonormal: take the nearest rotation
+            T = rotations.to_matrix(rotations.from_matrix(np.array([rotations_[n] for n in poses])))
+            for n, S in zip(poses, dipole.signal(np.array([positions[n] for n in poses]), T), strict=True):
+                signals[n] = S
+        S = signals
         return list(zip(names, times, S, strict=True))
 
     def _process(self, frames, arrived: float) -> None:
@@ -223,30 +237,32 @@ class LiveCorrector:
 
     def _correct_round(self, samples) -> None:
         names = [s[0] for s in samples]
+        stamps = [s[1] for s in samples]
         out = self.corrector.update(np.array([s[2] for s in samples]), sensors=names)
-        tools, messages = {}, []
-        for n, (name, stamp, _) in enumerate(samples):
-            flags = int(out.flags[n])
-            ok = flags == 0
-            self.stats.corrected += ok
-            self.stats.flagged += not ok
-            q = out.quaternion[n]
-            predicted = None
-            if self.predictor and np.all(np.isfinite(q)):
-                predicted = self._predicted(name, q, ok)
-            if not np.all(np.isfinite(out.position[n])):
-                continue  # invalid input: nothing to send
-            m = np.eye(4)
-            m[:3, :3] = rotations.to_matrix(predicted if predicted is not None else q)
-            m[:3, 3] = out.position[n] / self.length_unit
-            message = TransformMessage(m, timestamp=stamp, device_name=_device(name + self.suffix))
-            message.header_version = 2
-            message.metadata = {"ivc_flags": str(flags), "ivc_predicted": "1" if predicted is not None else "0"}
-            messages.append(message.pack())
-            if ok:
-                tools[name] = m
+        ok = out.flags == 0
+        self.stats.corrected += int(ok.sum())
+        self.stats.flagged += int((~ok).sum())
+        sent = np.all(np.isfinite(out.position), axis=1)  # invalid input: nothing to send
+        quaternion = out.quaternion.copy()
+        predicted = np.zeros(len(samples), bool)
+        if self.predictor:
+            for n, name in enumerate(names):
+                if sent[n]:
+                    q = self._predicted(name, quaternion[n], bool(ok[n]))
+                    if q is not None:
+                        quaternion[n], predicted[n] = q, True
+        m = np.zeros((len(samples), 4, 4))
+        m[:, :3, :3] = rotations.to_matrix(np.where(sent[:, None], quaternion, [1.0, 0.0, 0.0, 0.0]))
+        m[:, :3, 3] = out.position / self.length_unit
+        m[:, 3, 3] = 1.0
+        index = np.flatnonzero(sent)
+        metadata = [{"ivc_flags": str(int(out.flags[n])), "ivc_predicted": "1" if predicted[n] else "0"}
+                    for n in index]
+        messages = encode_transforms([_device(names[n] + self.suffix) for n in index], [stamps[n] for n in index],
+                                     m[index], metadata)
+        tools = {names[n]: m[n] for n in np.flatnonzero(ok & sent)}
         if tools:
-            messages.append(TrackingDataMessage(tools, timestamp=samples[-1][1], device_name="ivc").pack())
+            messages.append(TrackingDataMessage(tools, timestamp=stamps[-1], device_name="ivc").pack())
         self._send_all(messages)
         self.stats.published_batches += 1
 
