@@ -55,11 +55,11 @@ def _signals(table: LookupTable, frames: int, rng) -> np.ndarray:
     return dipole.signal(r, T, table.field()(r))
 
 
-def _source(sock: socket.socket, poses: np.ndarray, sent: np.ndarray) -> None:
+def _source(sock: socket.socket, signals: np.ndarray, sent: np.ndarray) -> None:
     """Send frame k at k / RATE_HZ after the start; sent[k] = perf_counter at its send."""
     start = time.perf_counter() + 0.2
-    for k in range(len(poses)):
-        frame = b"".join(NDArrayMessage(poses[k, n], timestamp=BASE + k / RATE_HZ, device_name=f"S{n}").pack()
+    for k in range(len(signals)):
+        frame = b"".join(NDArrayMessage(signals[k, n], timestamp=BASE + k / RATE_HZ, device_name=f"S{n}").pack()
                          for n in range(SENSORS))
         while (wait := start + k / RATE_HZ - time.perf_counter()) > 0:
             time.sleep(min(wait, 0.001) if wait > 0.0015 else 0)
@@ -89,21 +89,19 @@ def _consumer(sock: socket.socket, arrived: np.ndarray, suffix: str, stop: threa
                     arrived[k, n] = now
 
 
-def _stream(poses, connect_consumer, suffix) -> tuple[np.ndarray, np.ndarray]:
+def _stream(signals, connect_consumer, suffix) -> tuple[np.ndarray, np.ndarray]:
     """Run source and consumer; (latency (frames, SENSORS) s, NaN where never arrived)."""
     listener = socket.create_server(("127.0.0.1", 0))
     port = listener.getsockname()[1]
-    upstream_holder = {}
     consumer = connect_consumer(port)
     upstream, _ = listener.accept()
     upstream.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-    upstream_holder["s"] = upstream
-    sent = np.full(len(poses), np.nan)
-    arrived = np.full((len(poses), SENSORS), np.nan)
+    sent = np.full(len(signals), np.nan)
+    arrived = np.full((len(signals), SENSORS), np.nan)
     stop = threading.Event()
     reader = threading.Thread(target=_consumer, args=(consumer, arrived, suffix, stop))
     reader.start()
-    _source(upstream, poses, sent)
+    _source(upstream, signals, sent)
     time.sleep(0.5)
     stop.set()
     reader.join()
@@ -116,14 +114,14 @@ def run() -> list[Figure]:
     seconds = float(os.environ.get("IVC_LIVE_SECONDS", 60))
     frames = int(seconds * RATE_HZ)
     table = _table()
-    poses = _signals(table, frames, np.random.default_rng(7))
+    signals = _signals(table, frames, np.random.default_rng(7))
 
     def direct(port):
         s = socket.create_connection(("127.0.0.1", port))
         s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         return s
 
-    baseline, _ = _stream(poses[: int(5 * RATE_HZ)], direct, "")
+    baseline, _ = _stream(signals[: int(5 * RATE_HZ)], direct, "")
 
     with tempfile.TemporaryDirectory() as tmp:
         lut_path = Path(tmp) / "map.h5"
@@ -149,7 +147,7 @@ def run() -> list[Figure]:
                         raise RuntimeError("ivc correct --live did not start") from None
                     time.sleep(0.05)
 
-        latency, _ = _stream(poses, through_ivc, "_ivc")
+        latency, _ = _stream(signals, through_ivc, "_ivc")
         procs["ivc"].send_signal(signal.SIGINT)
         try:
             _, err = procs["ivc"].communicate(timeout=30)

@@ -17,6 +17,7 @@ from ivc.lut.build import file_digest
 from ivc.lut.grid import INTERPOLATIONS
 from ivc.predict import FILTERS
 from ivc.session import Session, Step
+from ivc.units import LENGTH_UNITS
 
 #: free-space steps: nothing to correct there
 _FREE_SPACE = ("cube_calibration", "wand_calibration")
@@ -63,7 +64,7 @@ def _summary(name: str, out: Correction) -> str:
               help="Correct a live OpenIGTLink stream from this tracking server instead of INPUT_FILE.")
 @click.option("--publish", default="127.0.0.1:18945", show_default=True, metavar="HOST:PORT",
               help="With --live: serve the corrected poses here (port 0: any free port).")
-@click.option("--unit", "length_unit", type=click.Choice(["mm", "m", "cm", "in"]), default="mm", show_default=True,
+@click.option("--unit", "length_unit", type=click.Choice(list(LENGTH_UNITS)), default="mm", show_default=True,
               help="With --live: length unit of the stream's translations (PLUS and Slicer use mm).")
 @click.option("--sensor", "sensors", multiple=True, help="With --live: correct only these device names "
               "(default: every device that sends TRANSFORM or NDARRAY messages).")
@@ -137,9 +138,6 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     click.echo(f"wrote {output_path}")
 
 
-_UNITS = {"mm": 1e-3, "m": 1.0, "cm": 1e-2, "in": 0.0254}
-
-
 def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor, horizon,
           rate_hz, duration) -> None:
     import logging
@@ -153,8 +151,8 @@ def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_resid
     host, _, port = publish.rpartition(":")
     if not host or not port.isdigit():
         raise click.UsageError(f"--publish wants HOST:PORT, got {publish!r}")
-    live = LiveCorrector(corrector, source, (host, int(port)), length_unit=_UNITS[length_unit], predictor=predictor,
-                         horizon=parse_horizon(horizon) if predictor else 0.0, rate_hz=rate_hz,
+    live = LiveCorrector(corrector, source, (host, int(port)), length_unit=LENGTH_UNITS[length_unit],
+                         predictor=predictor, horizon=parse_horizon(horizon) if predictor else 0.0, rate_hz=rate_hz,
                          sensors=list(sensors) or None)
     click.echo(f"correcting {url} -> serving on {live.publish_address[0]}:{live.publish_address[1]}", err=True)
     try:

@@ -9,7 +9,7 @@ import click
 from ivc import lut
 from ivc.export import FORMATS
 from ivc.export import export as export_table
-from ivc.export.formats import LENGTH_UNITS
+from ivc.units import LENGTH_UNITS
 
 _HELP = "; ".join(f"{name}: {text}" for name, (_, _, text) in FORMATS.items())
 

@@ -28,9 +28,8 @@ from ivc.export import distortion
 from ivc.lut.table import COMPONENTS, LookupTable, LutError
 from ivc.lut.table import write as write_hdf5
 from ivc.session import atomic_path
+from ivc.units import LENGTH_UNITS
 
-#: metres per unit, for the formats whose length unit is a choice
-LENGTH_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
 FIELD_UNIT = "normalised dipole units (f_D of MATH.md §2)"
 
 

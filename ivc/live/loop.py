@@ -36,11 +36,14 @@ log = logging.getLogger("ivc.live")
 #: a client whose queue grows beyond this many bytes loses its oldest messages
 MAX_QUEUE_BYTES = 1 << 20
 DEVICE_NAME_BYTES = 20
+#: batches whose latency is kept (a live run may last for days)
+LATENCY_HISTORY = 1 << 16
 
 
 @dataclass
 class LiveStats:
-    """Counters of a run; ``latency_s``: per batch, seconds from its bytes arriving to its results being sent."""
+    """Counters of a run; ``latency_s``: per batch (the latest LATENCY_HISTORY), seconds from its bytes arriving to
+    its results being sent."""
 
     received: int = 0
     corrected: int = 0
@@ -52,7 +55,7 @@ class LiveStats:
     bad_messages: int = 0
     dropped_for_slow_clients: int = 0
     connections: int = 0
-    latency_s: list = field(default_factory=list)
+    latency_s: deque = field(default_factory=lambda: deque(maxlen=LATENCY_HISTORY))
 
 
 class _Client:
@@ -126,7 +129,7 @@ class LiveCorrector:
         sock.setblocking(False)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._upstream = sock
-        self._framer = Framer()
+        self._framer.buffer.clear()  # a partial message from the last connection is not continued by this one
         self._selector.register(sock, selectors.EVENT_READ, "upstream")
         self.stats.connections += 1
         self.corrector.reset()
@@ -156,7 +159,7 @@ class LiveCorrector:
         arrived = time.perf_counter()
         self._framer.feed(data)
         frames = self._framer.messages()
-        if self._framer.garbage > self.stats.garbage_bytes:
+        if self._framer.garbage > self.stats.garbage_bytes:  # the framer counts over the whole run
             self._once(("garbage", self.stats.connections), "skipped malformed bytes from the tracking server "
                        "(no valid OpenIGTLink header or CRC); resynchronised on the next valid message")
             self.stats.garbage_bytes = self._framer.garbage
@@ -169,7 +172,8 @@ class LiveCorrector:
     # ---- correction ---------------------------------------------------------------------------
     def _samples(self, frames) -> list[tuple[str, float, np.ndarray]]:
         """(device, timestamp, signal matrix (3, 3)) of the usable tracking messages, in arrival order."""
-        names, times, positions, rotations_, signals = [], [], [], [], []
+        names, times, signals = [], [], []
+        poses, positions, rotations_ = [], [], []  # the TRANSFORM samples: index, position (m), rotation
         for f in frames:
             if f.message_type not in ("TRANSFORM", "NDARRAY"):
                 self._once(("type", f.message_type), f"ignoring {f.message_type} messages (expected TRANSFORM poses "
@@ -190,6 +194,7 @@ class LiveCorrector:
                 continue
             self._last_time[name] = f.timestamp
             if f.message_type == "TRANSFORM":
+                poses.append(len(signals))
                 positions.append(f.payload[:3, 3] * self.length_unit)
                 rotations_.append(f.payload[:3, :3])
                 signals.append(None)
@@ -199,21 +204,17 @@ class LiveCorrector:
                     self._once(("shape", name), f"sensor {name!r}: NDARRAY of shape {a.shape} is not a 3x3 signal "
                                "matrix; dropped")
                     continue
-                positions.append(np.full(3, np.nan))
-                rotations_.append(np.full((3, 3), np.nan))
                 signals.append(a)
             names.append(name)
             times.append(f.timestamp)
         if not names:
             return []
-        poses = [n for n, s in enumerate(signals) if s is None]
         if poses:
             # float32 matrices are not quite orthonormal: take the nearest rotation
-            T = rotations.to_matrix(rotations.from_matrix(np.array([rotations_[n] for n in poses])))
-            for n, S in zip(poses, dipole.signal(np.array([positions[n] for n in poses]), T), strict=True):
+            T = rotations.to_matrix(rotations.from_matrix(np.array(rotations_)))
+            for n, S in zip(poses, dipole.signal(np.array(positions), T), strict=True):
                 signals[n] = S
-        S = signals
-        return list(zip(names, times, S, strict=True))
+        return list(zip(names, times, signals, strict=True))
 
     def _process(self, frames, arrived: float) -> None:
         samples = self._samples(frames)
