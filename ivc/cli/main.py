@@ -27,7 +27,8 @@ def cli() -> None:
     built-in simulator or a real tracker's recording); `ivc info` says what a session
     holds and what it still lacks; `ivc fixtures` reports the fixture calibration;
     `ivc fit` builds the secondary-field look-up table; `ivc correct` applies it;
-    `ivc evaluate` compares corrected with true poses; `ivc export` writes the
+    `ivc evaluate` compares corrected with true poses; `ivc report` draws the
+    figures and one HTML page; `ivc export` writes the
     table for firmware, 3D Slicer, ParaView and Vrui; `ivc predict` predicts
     orientations ahead to hide display lag. `ivc demo` runs it all on a
     simulated room.
@@ -35,10 +36,10 @@ def cli() -> None:
 
 
 def _register() -> None:
-    from ivc.cli import collect, correct, demo, evaluate, export, fit, fixtures, info, predict
+    from ivc.cli import collect, correct, demo, evaluate, export, fit, fixtures, info, predict, report
 
     for command in (collect.collect, correct.correct, demo.demo, evaluate.evaluate, export.export, fit.fit,
-                    fixtures.fixtures, info.info, predict.predict):
+                    fixtures.fixtures, info.info, predict.predict, report.report):
         cli.add_command(command)
 
 

@@ -11,6 +11,7 @@ uncorrected dipole solution lives in the source frame and is compared with raw t
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -27,9 +28,34 @@ def _errors(position, rotation, true_position, true_rotation):
             1000 * rotations.angle_between_matrices(rotation, true_rotation))
 
 
-def evaluate(table: LookupTable | Corrector, check: Session, step: str = "check",
-             frame_map: tuple | None = None, progress: Callable[[int], None] | None = None) -> dict:
-    """Percentiles (25/50/75/95/99/max) of position (mm) and orientation (mrad) errors, IVC and dipole.
+@dataclass
+class CheckErrors:
+    """Per-sample errors of one check recording, (F, N) each: IVC (``ok`` samples only are
+    meaningful) and the uncorrected dipole solution (``valid`` samples), in mm and mrad.
+
+    ``ivc_*`` are judged in the declared cube frame when ``frame_map`` is known (else equal to
+    ``ivc_raw_*``, against raw truth). ``true_position`` (F, N, 3) metres is in the frame the
+    IVC errors were judged in.
+    """
+
+    valid: np.ndarray
+    ok: np.ndarray
+    flags: np.ndarray
+    iterations: np.ndarray
+    ivc_position_mm: np.ndarray
+    ivc_orientation_mrad: np.ndarray
+    ivc_raw_position_mm: np.ndarray
+    ivc_raw_orientation_mrad: np.ndarray
+    dipole_position_mm: np.ndarray
+    dipole_orientation_mrad: np.ndarray
+    true_position: np.ndarray
+    frame_map: tuple | None
+    placement_error_mm: float | None
+
+
+def check_errors(table: LookupTable | Corrector, check: Session, step: str = "check",
+                 frame_map: tuple | None = None, progress: Callable[[int], None] | None = None) -> CheckErrors:
+    """Correct ``check``'s ``step`` and compare every sample with its truth (see :class:`CheckErrors`).
 
     ``frame_map``: ``(D_R, D_t)`` taking true source-frame poses into the declared frame; by
     default from ``check``'s own cube survey and its truth, if it has them.
@@ -55,22 +81,41 @@ def evaluate(table: LookupTable | Corrector, check: Session, step: str = "check"
     raw_p, raw_a = _errors(out.position, T_ivc, true_p, true_T)
     r_dip, T_dip = closed_form_pose(S, check.hemisphere)
     dip_p, dip_a = _errors(r_dip, T_dip, true_p, true_T)
+    p, a, placement, judged = raw_p, raw_a, None, true_p
+    if frame_map is not None:
+        D_R, D_t = frame_map
+        judged = true_p @ D_R.T + D_t
+        p, a = _errors(out.position, T_ivc, judged, D_R @ true_T)
+        placement = float(1000 * np.linalg.norm(D_t + (D_R - np.eye(3)) @ np.mean(true_p[valid], axis=0)))
+    return CheckErrors(valid, ok, out.flags, out.iterations, p, a, raw_p, raw_a, dip_p, dip_a, judged, frame_map,
+                       placement)
+
+
+def evaluate(table: LookupTable | Corrector, check: Session, step: str = "check",
+             frame_map: tuple | None = None, progress: Callable[[int], None] | None = None) -> dict:
+    """Percentiles (25/50/75/95/99/max) of position (mm) and orientation (mrad) errors, IVC and dipole.
+
+    ``frame_map``: ``(D_R, D_t)`` taking true source-frame poses into the declared frame; by
+    default from ``check``'s own cube survey and its truth, if it has them.
+    """
+    e = check_errors(table, check, step, frame_map, progress)
+    ok, valid = e.ok, e.valid
     report = {
         "samples": int(valid.size),
         "corrected": int(ok.sum()),
-        "flagged": {name: int(np.sum((out.flags & bit) != 0)) for bit, name in FLAG_NAMES.items()},
-        "ivc_raw": {"position_mm": percentiles(raw_p[ok]), "orientation_mrad": percentiles(raw_a[ok])},
-        "dipole": {"position_mm": percentiles(dip_p[valid]), "orientation_mrad": percentiles(dip_a[valid])},
+        "flagged": {name: int(np.sum((e.flags & bit) != 0)) for bit, name in FLAG_NAMES.items()},
+        "ivc_raw": {"position_mm": percentiles(e.ivc_raw_position_mm[ok]),
+                    "orientation_mrad": percentiles(e.ivc_raw_orientation_mrad[ok])},
+        "dipole": {"position_mm": percentiles(e.dipole_position_mm[valid]),
+                   "orientation_mrad": percentiles(e.dipole_orientation_mrad[valid])},
         "frame": "raw truth (source frame)",
     }
-    if frame_map is not None:
-        D_R, D_t = frame_map
-        p, a = _errors(out.position, T_ivc, true_p @ D_R.T + D_t, D_R @ true_T)
-        report["ivc"] = {"position_mm": percentiles(p[ok]), "orientation_mrad": percentiles(a[ok])}
+    if e.frame_map is not None:
+        report["ivc"] = {"position_mm": percentiles(e.ivc_position_mm[ok]),
+                         "orientation_mrad": percentiles(e.ivc_orientation_mrad[ok])}
         report["frame"] = "declared cube frame (true poses moved by the declared-pose error)"
-        report["placement_error_mm"] = float(1000 * np.linalg.norm(D_t + (D_R - np.eye(3)) @ np.mean(
-            true_p[valid], axis=0)))
+        report["placement_error_mm"] = e.placement_error_mm
     else:
         report["ivc"] = report["ivc_raw"]
-    report["iterations_median"] = float(np.median(out.iterations[valid])) if valid.any() else 0.0
+    report["iterations_median"] = float(np.median(e.iterations[valid])) if valid.any() else 0.0
     return report

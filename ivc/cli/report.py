@@ -1,0 +1,53 @@
+"""``ivc report SESSION LUT [CHECKFILE] -o DIR``: figures and one self-contained HTML page."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from ivc import lut
+from ivc import session as session_io
+from ivc.cli.progress import StageBars
+from ivc.lut.build import file_digest
+from ivc.report import build_report
+from ivc.report.compute import MAX_SWEEP_FRAMES, THIN_SAMPLES
+
+
+@click.command()
+@click.argument("session_file", type=click.Path(dir_okay=False))
+@click.argument("lut_file", type=click.Path(dir_okay=False))
+@click.argument("check_file", type=click.Path(dir_okay=False), required=False)
+@click.option("-o", "--output", "directory", type=click.Path(file_okay=False), required=True,
+              help="Directory for report.html, report.json and the PNG figures (made if missing).")
+@click.option("--step", default="check", show_default=True,
+              help="Step holding the check poses (of CHECK_FILE, else of SESSION_FILE).")
+@click.option("--thin", type=int, default=THIN_SAMPLES, show_default=True,
+              help="A mapped cell with fewer kept wand samples than this is marked thin.")
+@click.option("--max-frames", type=int, default=MAX_SWEEP_FRAMES, show_default=True,
+              help="Solve at most this many sweep frames (every k-th beyond), as `ivc fit`.")
+@click.option("--force", is_flag=True, help="Replace an earlier report in the directory.")
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def report(session_file, lut_file, check_file, directory, step, thin, max_frames, force, quiet):
+    """Report on LUT_FILE fitted from SESSION_FILE: field, coverage, cube, Λ, and accuracy on check poses.
+
+    The check poses (with their truth) come from CHECK_FILE, or from SESSION_FILE's own
+    check step. Figures that need truth say so on the page when there is none.
+    """
+    if max_frames < 1:
+        raise click.BadParameter("must be at least 1", param_hint="--max-frames")
+    table = lut.read(lut_file)
+    data = session_io.read(session_file)
+    check = session_io.read(check_file) if check_file else None
+    names = {"session": str(session_file), "lut": str(lut_file), "session_sha256": file_digest(session_file)}
+    if check_file:
+        names["check"] = str(check_file)
+    with StageBars(disable=quiet) as bars:
+        result = build_report(data, table, directory, check=check, step=step, thin=thin, max_frames=max_frames,
+                              overwrite=force, names=names, progress=bars)
+    for reason in result.numbers["warnings"]:
+        click.echo(f"note: {reason}", err=True)
+    for name, reason in result.missing.items():
+        click.echo(f"not drawn: {name}: {reason}", err=True)
+    figures = sum(1 for f in result.files if f.suffix == ".png")
+    click.echo(f"wrote {result.html} ({figures} figures embedded) and report.json in {Path(directory)}")

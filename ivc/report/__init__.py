@@ -1,0 +1,200 @@
+"""``ivc report``: what a look-up table is worth, as PNG figures and one self-contained HTML page.
+
+:func:`build_report` solves the sweep in the cube again (the first pass, as ``ivc fit``
+does before refining), corrects the check poses, draws the figures of
+:mod:`ivc.report.figures`, and writes ``report.html`` (figures embedded), ``report.json``
+(every number on the page) and one PNG per figure into a directory.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+
+from ivc import __version__
+from ivc.lut.table import LookupTable
+from ivc.report import html
+from ivc.report.compute import MAX_SWEEP_FRAMES, THIN_SAMPLES, Progress, ReportData, _no_progress, gather, summary
+from ivc.report.figures import FIGURES
+from ivc.session import Session, atomic_path
+
+__all__ = ["FIGURES", "Report", "build_report", "gather", "summary"]
+
+REPORT_FILES = ("report.html", "report.json", *(f"{name}.png" for name in FIGURES))
+
+_CAPTIONS = {
+    "secondary_field": "The room's secondary field |G| as a percentage of the signal the tracker measures there "
+                       "(|f_D + G|), on horizontal slices through the mapped volume. Where it is large, uncorrected "
+                       "poses are far off; grey is outside the mapped volume, where ivc flags corrections.",
+    "error_histograms": "Check-pose errors after IVC correction and of the uncorrected dipole solution (log axis; "
+                        "dashed: medians). Only trusted (unflagged) corrections are counted for IVC.",
+    "error_vs_distance": "Errors against the distance from the cube centre (green band: inside the cube). Left: "
+                         "check poses, IVC and dipole; right: wand samples, the error eq. 101 estimates from sensor "
+                         "0's solve and the lever arm, and the true error when the session has truth.",
+    "lambda_vs_error": "Sensor 0's pose error inside the cube against the rms of the signal residual Λ (eq. 99) "
+                       "relative to rms(S), with the gate the table was fitted with (seed Fig. 35). Frames right "
+                       "of the gate were dropped.",
+    "cube_residuals": "Each cube sensor's calibrated position minus the ideal cube vertex (Table 20) and minus the "
+                      "optimised cube's vertex (eq. 108, Table 21), in the fixture frame. The fixture frame is built "
+                      "from sensors 0, 4 and 2 (origin, x axis, xy plane), so those errors are partly zero by "
+                      "construction, as in the seed's Table 20.",
+    "coverage": "Kept wand samples per grid cell on the same slices as the field. Inside the red line every node "
+                "is valid and corrections are trusted; a red x marks a thin cell: mapped, but with few samples of "
+                "its own, so its values come from the neighbours.",
+}
+
+
+@dataclass
+class Report:
+    directory: Path
+    files: list[Path]
+    numbers: dict
+    missing: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def html(self) -> Path:
+        return self.directory / "report.html"
+
+
+def _png(figure) -> bytes:
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=110)
+    return buffer.getvalue()
+
+
+def _write(path: Path, content: bytes) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(content)
+
+
+def build_report(session: Session, table: LookupTable, directory: str | os.PathLike, *, check: Session | None = None,
+                 step: str = "check", thin: int = THIN_SAMPLES, max_frames: int = MAX_SWEEP_FRAMES,
+                 overwrite: bool = False, names: dict[str, str] | None = None,
+                 progress: Progress = _no_progress) -> Report:
+    """Write the report into ``directory``; refuse to replace an earlier one unless ``overwrite``.
+
+    ``names``: file names to print on the page (``session``, ``lut``, ``check``) and the
+    session's SHA-256 (``session_sha256``) to compare with the table's provenance.
+    """
+    directory = Path(directory)
+    existing = [directory / name for name in REPORT_FILES if (directory / name).exists()]
+    if existing and not overwrite:
+        raise FileExistsError(f"{existing[0]} exists; pass --force to replace the report, or choose another -o")
+    names = names or {}
+    data = gather(session, table, check, step, thin, max_frames,
+                  names.get("check", "the session") if check is not None else "the session", progress)
+    numbers = summary(data)
+    images, missing = {}, {}
+    update = progress("drawing figures", len(FIGURES))
+    for name, (draw, _) in FIGURES.items():
+        if name == "error_histograms" and data.check is None:
+            missing[name] = data.check_missing
+        else:
+            images[name] = _png(draw(data))
+        update(1)
+    warnings = _warnings(data, names)
+    numbers["warnings"] = warnings
+    numbers["figures_missing"] = missing
+    numbers["inputs"] = {k: v for k, v in names.items()}
+    files = []
+    for name, png in images.items():
+        _write(directory / f"{name}.png", png)
+        files.append(directory / f"{name}.png")
+    _write(directory / "report.json", (json.dumps(numbers, indent=2) + "\n").encode())
+    _write(directory / "report.html", _page(data, numbers, images, missing, warnings, names).encode())
+    files += [directory / "report.json", directory / "report.html"]
+    return Report(directory, files, numbers, missing)
+
+
+def _warnings(data: ReportData, names: dict[str, str]) -> list[str]:
+    out = []
+    recorded = data.table.provenance.get("input_sha256")
+    if recorded and names.get("session_sha256") and recorded != names["session_sha256"]:
+        out.append(f"The table was fitted from {data.table.provenance.get('input', 'another file')}, whose contents "
+                   "differ from this session's: the sweep and cube figures describe this session, not the table's.")
+    if data.sweep.stride > 1:
+        out.append(f"The sweep was solved at every {data.sweep.stride}th frame (at most {MAX_SWEEP_FRAMES:,} "
+                   "frames), as `ivc fit` does.")
+    if data.check is not None:
+        e = data.check.errors
+        flagged = 1 - e.ok.sum() / max(int(e.valid.sum()), 1)
+        if flagged > 0.1:
+            out.append(f"{100 * flagged:.0f}% of the valid check poses were flagged (not trusted); the accuracy "
+                       "figures count the trusted ones only.")
+    return out
+
+
+def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings: list[str],
+          names: dict[str, str]) -> str:
+    def fig(name: str) -> str:
+        if name in images:
+            return html.figure(name, images[name], FIGURES[name][1], _CAPTIONS[name])
+        return html.missing(f"{FIGURES[name][1]}: {missing[name]}")
+
+    t, c, s, cube, cov = (numbers[k] for k in ("table", "check", "sweep", "cube", "coverage"))
+    meta = [f"session: {names.get('session', '(in memory)')}", f"table: {names.get('lut', '(in memory)')}",
+            f"check poses: {c.get('source', names.get('check', 'the session'))}",
+            f"ivc {__version__}, {datetime.now(UTC).isoformat(timespec='seconds')}"]
+    summary_rows = [
+        ["grid", f"{t['shape'][0]} x {t['shape'][1]} x {t['shape'][2]} nodes, {t['spacing_mm']:.1f} mm apart, "
+                 f"origin {t['origin_mm']} mm"],
+        ["mapped", f"{t['valid_nodes']} of {t['nodes']} nodes valid; {t['mapped_cells']} of {t['cells']} cells "
+                   "mapped"],
+        ["fit", f"{t['method']} (degree {t['degree']}), cross-validated rms {t['cv_rms_mm']:.3g} mm"
+         if t["cv_rms_mm"] is not None else str(t["method"])],
+        ["wand samples", f"{s['samples']['kept']:,} of {s['samples']['total']:,} kept"],
+    ]
+    if "missing" not in c:
+        summary_rows.append(["check poses", f"IVC median {c['ivc_position_mm']['p50']:.3g} mm / "
+                             f"{c['ivc_orientation_mrad']['p50']:.3g} mrad against the uncorrected "
+                             f"{c['dipole_position_mm']['p50']:.3g} mm / {c['dipole_orientation_mrad']['p50']:.3g} "
+                             f"mrad ({c['corrected']:,} of {c['samples']:,} corrected)"])
+    sections = [("summary", "Summary", html.table(None, summary_rows))]
+    if "missing" in c:
+        accuracy = html.missing(c["missing"])
+    else:
+        flagged = ", ".join(f"{n} {k}" for k, n in c["flagged"].items() if n) or "none"
+        placement = (f"; the declared cube pose is off by {c['placement_error_mm']:.2f} mm at the check poses"
+                     if "placement_error_mm" in c else "")
+        accuracy = (f"<p>IVC judged against {html.escape(c['frame'])}{placement}. Flagged: {flagged}.</p>"
+                    + html.percentile_table([("IVC position", c["ivc_position_mm"], "mm"),
+                                             ("IVC orientation", c["ivc_orientation_mrad"], "mrad"),
+                                             ("dipole position (uncorrected)", c["dipole_position_mm"], "mm"),
+                                             ("dipole orientation", c["dipole_orientation_mrad"], "mrad"),
+                                             ("distance from the cube centre", c["distance_from_cube_mm"], "mm")]))
+    sections.append(("accuracy", "Accuracy on the check poses", accuracy + fig("error_histograms")
+                     + fig("error_vs_distance")))
+    field_numbers = numbers["secondary_field"]["percent_of_measured_at_valid_nodes"]
+    sections.append(("field", "Secondary field", html.percentile_table(
+        [("|G| / |f_D + G| at valid nodes", field_numbers, "%")]) + fig("secondary_field")))
+    sections.append(("coverage", "Wand coverage", html.table(None, [
+        ["samples per mapped cell (median)", f"{cov['samples_per_mapped_cell'].get('p50', 0):.0f}"],
+        [f"thin mapped cells (< {cov['thin_threshold_samples']} samples)", cov["thin_mapped_cells"]],
+        ["mapped cells with no sample", cov["empty_mapped_cells"]],
+        ["sampled cells outside the mapped volume", cov["sampled_cells_outside_mapped_volume"]],
+    ]) + fig("coverage")))
+    sweep_rows = [("rms(Λ)/rms(S), sensor 0", s["residual_relative"], ""),
+                  ("estimated error of kept samples (eq. 101)", s["estimated_error_mm"], "mm")]
+    for key, label, unit in (("sensor0_position_mm", "sensor 0 position error", "mm"),
+                             ("sensor0_orientation_mrad", "sensor 0 orientation error", "mrad"),
+                             ("kept_samples_position_mm", "true error of kept samples", "mm")):
+        if key in s:
+            sweep_rows.append((label, s[key], unit))
+    dropped = ", ".join(f"{n:,} {k}" for k, n in s["samples"]["dropped"].items() if n) or "none"
+    sections.append(("sweep", "Pose in the cube and the residual Λ",
+                     f"<p>{s['frames_solved']:,} sweep frames solved; gates rms(Λ)/rms(S) ≤ {s['gate_residual']:g}, "
+                     f"estimated error ≤ {s['gate_error_mm']:g} mm. Dropped samples: {html.escape(dropped)}.</p>"
+                     + html.percentile_table(sweep_rows) + fig("lambda_vs_error")))
+    cube_html = f"<p>Fitted cube edge {cube['fitted_edge_mm']:.3f} mm (nominal {cube['nominal_edge_mm']:.1f} mm).</p>"
+    for key, title in (("minus_ideal_mm", "Table 20: calibrated minus ideal cube (mm)"),
+                       ("minus_optimised_mm", "Table 21: calibrated minus optimised cube (mm)")):
+        rows = [[axis, *[v[a] for v in cube[key]]] for a, axis in enumerate("XYZ")]
+        cube_html += f"<h3>{html.escape(title)}</h3>" + html.table(["sensor", *map(str, range(8))], rows)
+    sections.append(("cube", "Interpolation cube", cube_html + fig("cube_residuals")))
+    title = f"ivc report: {Path(names['lut']).name}" if "lut" in names else "ivc report"
+    return html.page(title, meta, warnings, sections)
+

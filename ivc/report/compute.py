@@ -1,0 +1,269 @@
+"""The numbers behind ``ivc report``: field slices, coverage, sweep and check-pose errors.
+
+Lengths are metres in the arrays and millimetres in the summaries; angles radians in the
+arrays, milliradians in the summaries. Positions are in the frame of the *declared* cube
+pose, the frame the table lives in (MATH.md §5). Truth, where a session has it, is used
+for evaluation only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ivc import dipole
+from ivc.correct.evaluate import CheckErrors, check_errors
+from ivc.correct.solver import FLAG_NAMES, Corrector
+from ivc.fixtures.cube import CUBE_BITS, NOMINAL_EDGE
+from ivc.fixtures.interpolant import INTERPOLANTS
+from ivc.fixtures.mapping import FixtureModel, Gates, SweepMapping, map_sweep
+from ivc.fixtures.report import SweepErrors, declared_frame_map, percentiles, sweep_errors
+from ivc.lut.support import MIN_SUPPORT
+from ivc.lut.table import LookupTable
+from ivc.session import Session
+
+#: horizontal slices drawn at most
+MAX_SLICES = 6
+#: interpolated points per grid cell along x and y in the field slices
+OVERSAMPLE = 6
+#: a mapped cell holding fewer wand samples than this is "thin" (by default)
+THIN_SAMPLES = MIN_SUPPORT
+#: sweep frames solved for the report at most (every k-th frame beyond), as `ivc fit`
+MAX_SWEEP_FRAMES = 100_000
+
+Progress = Callable[[str, int], Callable[[int], None]]
+
+
+def _no_progress(description: str, total: int) -> Callable[[int], None]:
+    return lambda n: None
+
+
+@dataclass
+class Slices:
+    """Horizontal planes through the table at the mid-heights of its cell layers.
+
+    ``z`` (L,) metres; ``x_edges`` (nx,), ``y_edges`` (ny,): the grid's node coordinates,
+    which bound its cells; ``x``, ``y``: the fine sample coordinates of ``percent``
+    (L, len(y), len(x)): |G| as % of the measured signal |f_D + G| (Frobenius norms,
+    orientation-free), NaN outside the mapped volume. ``counts`` (L, nx-1, ny-1): kept
+    wand samples per cell; ``mapped`` (L, nx-1, ny-1): cells whose eight nodes are valid.
+    """
+
+    z: np.ndarray
+    x_edges: np.ndarray
+    y_edges: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    percent: np.ndarray
+    counts: np.ndarray
+    mapped: np.ndarray
+
+
+@dataclass
+class SweepView:
+    """The sweep as solved for the report (first pass, before the fit's refinement)."""
+
+    mapping: SweepMapping
+    stride: int
+    errors: SweepErrors | None
+    distance: np.ndarray  # (F, W) metres from the cube centre, solved positions
+    gates: Gates
+
+
+@dataclass
+class CheckView:
+    errors: CheckErrors
+    distance: np.ndarray  # (F, N) metres from the cube centre, true positions (declared frame)
+    source: str  # where the check poses came from
+
+
+@dataclass
+class ReportData:
+    table: LookupTable
+    model: FixtureModel
+    slices: Slices
+    sweep: SweepView
+    check: CheckView | None
+    check_missing: str | None  # why there is no check evaluation
+    thin: int
+    cube_centre: np.ndarray
+
+
+def percent_of_measured(field_values: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """100·|G| / |f_D + G| at each position (Frobenius norms of the 3x3 fields)."""
+    measured = np.linalg.norm(dipole.field(positions) + field_values, axis=(-2, -1))
+    return 100.0 * np.linalg.norm(field_values, axis=(-2, -1)) / measured
+
+
+def _cell_counts(table: LookupTable, positions: np.ndarray) -> np.ndarray:
+    g = table.grid
+    edges = [g.origin[a] + g.spacing * np.arange(g.shape[a]) for a in range(3)]
+    counts, _ = np.histogramdd(positions, bins=edges)
+    return counts.astype(np.int64)
+
+
+def _layers(mapped_cells: np.ndarray, keep: int | None = None) -> np.ndarray:
+    """Up to MAX_SLICES cell layers (z) spread over those holding any mapped cell, with
+    layer ``keep`` (the cube's) among them when it holds any."""
+    filled = np.flatnonzero(mapped_cells.any(axis=(0, 1)))
+    if len(filled) == 0:
+        filled = np.arange(mapped_cells.shape[2])
+    picks = filled[np.unique(np.round(np.linspace(0, len(filled) - 1, min(MAX_SLICES, len(filled)))).astype(int))]
+    if keep is not None and keep in filled and keep not in picks:
+        picks[np.argmin(np.abs(picks - keep))] = keep
+    return np.sort(picks)
+
+
+def slices(table: LookupTable, sample_positions: np.ndarray, cube_centre: np.ndarray | None = None) -> Slices:
+    """The field and coverage slices (see :class:`Slices`), one through ``cube_centre`` (m) if mapped."""
+    g = table.grid
+    field = table.field()
+    x_edges, y_edges, z_edges = (g.origin[a] + g.spacing * np.arange(g.shape[a]) for a in range(3))
+    keep = None if cube_centre is None else int(np.floor((cube_centre[2] - g.origin[2]) / g.spacing))
+    layers = _layers(field.valid_cells, keep)
+    z = z_edges[layers] + g.spacing / 2
+    step = g.spacing / OVERSAMPLE
+    x = np.arange(x_edges[0] + step / 2, x_edges[-1], step)
+    y = np.arange(y_edges[0] + step / 2, y_edges[-1], step)
+    points = np.stack(np.broadcast_arrays(x[None, None, :], y[None, :, None], z[:, None, None]), axis=-1)
+    values, _, mapped = field.evaluate(points)
+    percent = np.where(mapped, percent_of_measured(values, points), np.nan)
+    counts = _cell_counts(table, sample_positions)
+    return Slices(z, x_edges, y_edges, x, y, percent, np.moveaxis(counts[:, :, layers], 2, 0),
+                  np.moveaxis(field.valid_cells[:, :, layers], 2, 0))
+
+
+def solve_sweep(session: Session, model: FixtureModel, table: LookupTable, max_frames: int = MAX_SWEEP_FRAMES,
+                progress: Progress = _no_progress) -> SweepView:
+    """Solve the sweep in the cube with the gates the table was fitted with."""
+    parameters = table.provenance.get("parameters", {})
+    gates = Gates(max_residual=float(parameters.get("max_residual", Gates.max_residual)),
+                  max_error=float(parameters.get("max_error", Gates.max_error)))
+    recorded = session.steps["wand_sweep"].n_frames
+    stride = max(1, -(-recorded // max_frames))
+    if stride > 1:
+        session = session.select_frames("wand_sweep", slice(None, None, stride))
+    frames = session.steps["wand_sweep"].n_frames
+    mapping = map_sweep(session, model, gates, progress=progress("solving the sweep in the cube", frames))
+    centre = model.placement.positions.mean(axis=0)
+    distance = np.linalg.norm(mapping.positions - centre, axis=-1)
+    return SweepView(mapping, stride, sweep_errors(session, mapping), distance, gates)
+
+
+def check_view(table: LookupTable, session: Session, check: Session | None, step: str, cube_centre: np.ndarray,
+               source: str, progress: Progress = _no_progress) -> tuple[CheckView | None, str | None]:
+    """Correct the check poses and judge them against truth; or why that cannot be done."""
+    check = session if check is None else check
+    if step not in check.steps:
+        return None, f"{source} has no {step!r} step (record one with `ivc collect {step}`)"
+    if step not in check.truth:
+        return None, (f"{source} has no /truth/{step}: errors need true poses (a simulation or a precision rig)")
+    # the table's frame is the session's declared cube frame: judge the check poses in it
+    found = declared_frame_map(session) if "cube_survey" in session.truth else None
+    frame_map = None if found is None else found[:2]
+    corrector = Corrector(table, check.hemisphere)
+    errors = check_errors(corrector, check, step, frame_map,
+                          progress("correcting the check poses", check.steps[step].n_frames))
+    distance = np.linalg.norm(errors.true_position - cube_centre, axis=-1)
+    return CheckView(errors, distance, source), None
+
+
+def gather(session: Session, table: LookupTable, check: Session | None = None, step: str = "check",
+           thin: int = THIN_SAMPLES, max_frames: int = MAX_SWEEP_FRAMES, check_source: str = "the session",
+           progress: Progress = _no_progress) -> ReportData:
+    """Everything the report draws. ``check``: a separate check recording (default: ``session``'s own)."""
+    if thin < 1:
+        raise ValueError(f"thin = {thin}: the thin-cell threshold is a number of samples, at least 1")
+    fixtures = table.provenance.get("fixtures", {})
+    interpolant = next((name for name, kind in INTERPOLANTS.items() if kind.__name__ == fixtures.get("interpolant")),
+                       "harmonic")
+    model = FixtureModel.from_session(session, fixtures.get("vertices", "averaged"), interpolant)
+    sweep = solve_sweep(session, model, table, max_frames, progress)
+    kept = sweep.mapping.positions[sweep.mapping.keep]
+    centre = model.placement.positions.mean(axis=0)
+    view, missing = check_view(table, session, check, step, centre, check_source, progress)
+    return ReportData(table, model, slices(table, kept, centre), sweep, view, missing, thin, centre)
+
+
+def cube_errors(model: FixtureModel) -> tuple[np.ndarray, np.ndarray]:
+    """Each cube sensor's calibrated position (fixture frame) minus the ideal cube's vertex
+    (seed Table 20) and minus the optimised cube's (eq. 108, Table 21), (8, 3) mm each."""
+    relative = model.cube.relative_positions
+    return 1000 * (relative - NOMINAL_EDGE * CUBE_BITS), 1000 * model.cube.fit.residuals
+
+
+def _rounded(values: dict) -> dict:
+    return {k: round(v, 4) for k, v in values.items()}
+
+
+def summary(data: ReportData) -> dict:
+    """The report's numbers, JSON-ready (mm, mrad, %)."""
+    table, model, sweep = data.table, data.model, data.sweep
+    mapping = sweep.mapping
+    g = table.grid
+    nodes = g.nodes()[table.valid]
+    node_percent = percent_of_measured(table.values[table.valid], nodes)
+    counts = _cell_counts(table, mapping.positions[mapping.keep])
+    cells = table.field().valid_cells
+    minus_ideal, minus_optimised = cube_errors(model)
+    out = {
+        "table": {
+            "origin_mm": (1000 * g.origin).round(3).tolist(), "spacing_mm": round(1000 * g.spacing, 3),
+            "shape": list(g.shape), "valid_nodes": int(table.valid.sum()), "nodes": int(table.valid.size),
+            "mapped_cells": int(cells.sum()), "cells": int(cells.size),
+            "method": table.fit.get("method"), "degree": table.fit.get("degree"),
+            "cv_rms_mm": table.fit.get("cv_rms_mm"), "hemisphere": table.hemisphere,
+        },
+        "secondary_field": {
+            "percent_of_measured_at_valid_nodes": _rounded(percentiles(node_percent)),
+            "slice_heights_mm": (1000 * data.slices.z).round(2).tolist(),
+        },
+        "coverage": {
+            "thin_threshold_samples": data.thin,
+            "samples_kept": int(mapping.kept),
+            "samples_per_mapped_cell": _rounded(percentiles(counts[cells])),
+            "thin_mapped_cells": int(np.sum(cells & (counts < data.thin))),
+            "empty_mapped_cells": int(np.sum(cells & (counts == 0))),
+            "sampled_cells_outside_mapped_volume": int(np.sum(~cells & (counts > 0))),
+        },
+        "cube": {
+            "fitted_edge_mm": round(1000 * model.cube.fit.edge, 4),
+            "nominal_edge_mm": 1000 * NOMINAL_EDGE,
+            "minus_ideal_mm": minus_ideal.round(4).tolist(),
+            "minus_optimised_mm": minus_optimised.round(4).tolist(),
+            "centre_mm": (1000 * data.cube_centre).round(3).tolist(),
+        },
+        "sweep": {
+            "frames_solved": int(len(mapping.inside)), "stride": sweep.stride,
+            "gate_residual": sweep.gates.max_residual, "gate_error_mm": 1000 * sweep.gates.max_error,
+            "residual_relative": percentiles(mapping.sensor0.residual[mapping.sensor0.converged]),
+            "samples": {"total": int(mapping.keep.size), "kept": mapping.kept, "dropped": mapping.dropped},
+            "estimated_error_mm": _rounded(percentiles(mapping.error_estimate[mapping.keep], 1000)),
+        },
+    }
+    if sweep.errors is not None:
+        ok0 = mapping.sensor0.converged & mapping.inside
+        out["sweep"]["sensor0_position_mm"] = _rounded(percentiles(sweep.errors.position[ok0, 0], 1000))
+        out["sweep"]["sensor0_orientation_mrad"] = _rounded(percentiles(sweep.errors.angle[ok0, 0], 1000))
+        out["sweep"]["kept_samples_position_mm"] = _rounded(percentiles(sweep.errors.position[mapping.keep], 1000))
+    if data.check is None:
+        out["check"] = {"missing": data.check_missing}
+    else:
+        e = data.check.errors
+        out["check"] = {
+            "source": data.check.source,
+            "samples": int(e.valid.size), "corrected": int(e.ok.sum()),
+            "flagged": {name: int(np.sum((e.flags & bit) != 0)) for bit, name in FLAG_NAMES.items()},
+            "frame": ("declared cube frame (true poses moved by the declared-pose error)"
+                      if e.frame_map is not None else "raw truth (source frame)"),
+            "ivc_position_mm": _rounded(percentiles(e.ivc_position_mm[e.ok])),
+            "ivc_orientation_mrad": _rounded(percentiles(e.ivc_orientation_mrad[e.ok])),
+            "dipole_position_mm": _rounded(percentiles(e.dipole_position_mm[e.valid])),
+            "dipole_orientation_mrad": _rounded(percentiles(e.dipole_orientation_mrad[e.valid])),
+            "distance_from_cube_mm": _rounded(percentiles(data.check.distance[e.valid], 1000)),
+        }
+        if e.placement_error_mm is not None:
+            out["check"]["placement_error_mm"] = round(e.placement_error_mm, 4)
+    return out

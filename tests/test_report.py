@@ -1,0 +1,149 @@
+"""``ivc report``: built from the demo session with every figure, and honest without truth."""
+
+import base64
+import json
+from html.parser import HTMLParser
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from matplotlib.image import imread
+
+from ivc import dipole, lut
+from ivc import session as session_io
+from ivc.cli import cli
+from ivc.correct.evaluate import evaluate
+from ivc.lut import Grid
+from ivc.report import FIGURES, build_report
+from ivc.report.compute import _cell_counts, _layers, percent_of_measured
+from ivc.report.figures import _boundary
+from ivc.session import Session
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """A small `ivc demo` run, kept: the session and its table."""
+    folder = tmp_path_factory.mktemp("demo")
+    result = CliRunner().invoke(cli, ["demo", "--sweep-frames", "3000", "--check-frames", "300", "--keep",
+                                      str(folder)])
+    assert result.exit_code == 0, result.output
+    return folder / "demo.h5", folder / "demo_lut.h5"
+
+
+class _Images(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.sources, self.figures = [], []
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        if tag == "img":
+            self.sources.append(attrs["src"])
+        if tag == "figure":
+            self.figures.append(attrs["id"])
+
+
+def _embedded(page: str) -> dict[str, bytes]:
+    parser = _Images()
+    parser.feed(page)
+    prefix = "data:image/png;base64,"
+    assert all(src.startswith(prefix) for src in parser.sources), "every image is embedded, none linked"
+    return {f.removeprefix("fig-"): base64.b64decode(s[len(prefix):])
+            for f, s in zip(parser.figures, parser.sources, strict=True)}
+
+
+def test_report_builds_from_the_demo_session_with_every_figure(demo, tmp_path):
+    session_file, lut_file = demo
+    out = tmp_path / "report"
+    result = CliRunner().invoke(cli, ["report", str(session_file), str(lut_file), "-o", str(out), "--quiet"])
+    assert result.exit_code == 0, result.output
+    page = (out / "report.html").read_text()
+    embedded = _embedded(page)
+    assert set(embedded) == set(FIGURES)
+    for name in FIGURES:
+        png = (out / f"{name}.png").read_bytes()
+        assert embedded[name] == png, f"{name}: the page embeds the PNG that was written"
+        image = imread(out / f"{name}.png")
+        assert image.shape[0] > 300 and image.shape[1] > 600
+        assert image[..., :3].std() > 0.05, f"{name} is blank"
+    assert "Not drawn" not in page
+
+    numbers = json.loads((out / "report.json").read_text())
+    table, session = lut.read(lut_file), session_io.read(session_file)
+    expected = evaluate(table, session)
+    check = numbers["check"]
+    assert check["corrected"] == expected["corrected"]
+    for key, values in (("ivc_position_mm", expected["ivc"]["position_mm"]),
+                        ("dipole_orientation_mrad", expected["dipole"]["orientation_mrad"])):
+        assert check[key] == pytest.approx(values, abs=1e-4)
+    # the report solves the sweep again with the fit's gates: the same samples survive
+    assert numbers["sweep"]["samples"]["kept"] == table.fit["samples"]["kept"]
+    assert numbers["table"]["valid_nodes"] == int(table.valid.sum())
+    assert numbers["sweep"]["sensor0_position_mm"]["p50"] < 1.0  # truth is there, so errors are reported
+
+    again = CliRunner().invoke(cli, ["report", str(session_file), str(lut_file), "-o", str(out), "--quiet"])
+    assert again.exit_code != 0 and "--force" in again.output
+    assert (out / "report.html").read_text() == page, "a refused run changes nothing"
+
+
+def test_report_without_truth_says_what_it_cannot_draw(demo, tmp_path):
+    session_file, lut_file = demo
+    full = session_io.read(session_file)
+    session = Session(full.hemisphere, full.steps, {}, full.attrs)
+    report = build_report(session, lut.read(lut_file), tmp_path)
+    assert set(report.missing) == {"error_histograms"}
+    assert "truth" in report.missing["error_histograms"]
+    page = report.html.read_text()
+    assert set(_embedded(page)) == set(FIGURES) - {"error_histograms"}
+    assert "Not drawn" in page and "truth" in page
+    assert "sensor0_position_mm" not in report.numbers["sweep"]
+    assert "missing" in report.numbers["check"]
+
+
+def test_a_check_file_without_the_step_is_named(demo, tmp_path):
+    session_file, lut_file = demo
+    full = session_io.read(session_file)
+    other = Session(full.hemisphere, {"cube_survey": full.steps["cube_survey"]}, {}, full.attrs)
+    check_file = tmp_path / "other.h5"
+    session_io.write(other, check_file)
+    result = CliRunner().invoke(cli, ["report", str(session_file), str(lut_file), str(check_file), "-o",
+                                      str(tmp_path / "r"), "--quiet"])
+    assert result.exit_code == 0, result.output
+    assert f"{check_file} has no 'check' step" in result.output
+
+
+def test_percent_of_the_measured_signal():
+    r = np.array([[0.4, 0.1, -0.2], [0.7, -0.3, 0.1]])
+    f = dipole.field(r)
+    assert percent_of_measured(f, r) == pytest.approx([50.0, 50.0])  # G = f_D: half of what is measured
+    assert percent_of_measured(np.zeros_like(f), r) == pytest.approx([0.0, 0.0])
+    assert percent_of_measured(-0.5 * f, r) == pytest.approx([100.0, 100.0])
+
+
+def test_cell_counts_hold_every_sample_inside_the_grid(rng):
+    grid = Grid(np.array([0.2, -0.1, -0.1]), 0.05, (5, 4, 6))
+    positions = rng.uniform([0.15, -0.15, -0.15], [0.45, 0.1, 0.2], (5000, 3))
+    from ivc.lut.table import LookupTable
+
+    table = LookupTable(grid, np.zeros((*grid.shape, 3, 3)), np.ones(grid.shape, bool), np.zeros(grid.shape))
+    counts = _cell_counts(table, positions)
+    assert counts.shape == (4, 3, 5)
+    assert counts.sum() == grid.contains(positions).sum()
+    cell = np.floor((positions[0] - grid.origin) / grid.spacing).astype(int)
+    inside = np.all(np.floor((positions - grid.origin) / grid.spacing).astype(int) == cell, axis=1)
+    if grid.contains(positions[:1])[0]:
+        assert counts[tuple(cell)] == inside.sum()
+
+
+def test_mapped_volume_outline_and_slice_choice():
+    X, Y = np.arange(4.0), np.arange(4.0)
+    single = np.zeros((3, 3), bool)
+    single[1, 1] = True
+    assert len(_boundary(single, X, Y)) == 4
+    ell = single.copy()
+    ell[1, 2] = ell[2, 1] = True  # three cells in an L: 8 edges on its outline
+    assert len(_boundary(ell, X, Y)) == 8
+    cells = np.zeros((2, 2, 20), bool)
+    cells[:, :, 3:17] = True
+    layers = _layers(cells, keep=9)
+    assert len(layers) == 6 and 9 in layers and layers[0] == 3 and layers[-1] == 16
