@@ -190,3 +190,71 @@ def test_bad_input_is_dropped_and_logged_once_and_slow_clients_do_not_block(exac
     warnings = [r.getMessage() for r in caplog.records]
     assert sum("unknown sensor 'Needle'" in w for w in warnings) == 1
     assert sum("malformed bytes" in w for w in warnings) == 1
+
+
+def test_live_prediction_matches_offline_correct_then_predict(exact_table, rng):  # noqa: F811
+    """`--predict`: each sensor's corrected orientation predicted 50 ms ahead, as `ivc correct --predict` offline."""
+    from ivc.predict import make
+    from tests.test_correct import quadratic_field
+
+    frames, rate, horizon = 60, 240.0, 0.05
+    r = np.broadcast_to(exact_table.grid.nodes()[10, 10, 10] + [[0.05, 0.02, -0.03], [-0.04, 0.06, 0.01]],
+                        (frames, 2, 3))  # two sensors held still, turning at constant rates
+    t = np.arange(frames) / rate
+    omega = np.array([[0.8, -1.5, 2.0], [-2.5, 0.4, 1.1]])  # rad/s
+    q = rotations.multiply(rotations.from_rotvec(t[:, None, None] * omega), rotations.random(2, rng))
+    S = dipole.signal(r, rotations.to_matrix(q), quadratic_field(r.reshape(-1, 3)).reshape(frames, 2, 3, 3))
+    position, rotation = dipole.closed_form_pose(S)
+    matrices = np.zeros((frames, 2, 4, 4))
+    matrices[..., :3, :3], matrices[..., :3, 3], matrices[..., 3, 3] = rotation, position * 1000.0, 1.0
+    matrices = matrices.astype(np.float32)
+    # pose-only input this strongly distorted is flagged HIGH_RESIDUAL at the default threshold (a pose cannot
+    # carry all nine signal numbers, MATH.md §9); trust it here, on both sides, to exercise the prediction
+    corrector = Corrector(exact_table, max_residual=1.0)
+    m = matrices.astype(float)
+    corrected = corrector.batch_poses(m[..., :3, 3] / 1000.0, rotations.from_matrix(m[..., :3, :3]))
+    assert np.all(corrected.flags == 0)
+    expected = make("dqekf-cv", rate).predict(corrected.quaternion, horizon, corrected.flags == 0)[0]
+
+    listener = socket.create_server(("127.0.0.1", 0))
+    live = LiveCorrector(Corrector(exact_table, max_residual=1.0), listener.getsockname(), ("127.0.0.1", 0),
+                         predictor="dqekf-cv",
+                         horizon=horizon, rate_hz=rate)
+    stop = threading.Event()
+    runner = threading.Thread(target=live.run, kwargs={"stop": stop})
+    runner.start()
+    upstream, _ = listener.accept()
+    consumer = socket.create_connection(live.publish_address)
+    received = {}
+    try:
+        time.sleep(0.2)
+        for k in range(frames):
+            upstream.sendall(b"".join(TransformMessage(matrices[k, n], timestamp=1000.0 + k / rate,
+                                                       device_name=f"S{n}").pack() for n in range(2)))
+        framer = Framer()
+        consumer.settimeout(5.0)
+        deadline = time.monotonic() + 20
+        while len(received) < 2 * frames and time.monotonic() < deadline:
+            framer.feed(consumer.recv(1 << 16))
+            for f in framer.messages():
+                if f.message_type == "TRANSFORM":
+                    received[f.device_name, round((f.timestamp - 1000.0) * rate)] = f
+    finally:
+        stop.set()
+        runner.join(10)
+        for s in (upstream, consumer, listener):
+            s.close()
+    assert len(received) == 2 * frames
+    predicted_frames = 0
+    for (device, k), frame in received.items():
+        n = int(device[1])
+        got = rotations.from_matrix(np.asarray(frame.payload[:3, :3], float))
+        if np.all(np.isfinite(expected[k, n])):
+            predicted_frames += 1
+            assert rotations.angle_between(got, expected[k, n]) < 5e-5, (device, k)
+        else:  # no prediction yet: the corrected orientation itself
+            assert rotations.angle_between(got, corrected.quaternion[k, n]) < 2e-5
+    assert predicted_frames >= 2 * (frames - 3)
+    # the prediction really looks ahead: 50 ms of rotation, not the measured orientation
+    ahead = rotations.angle_between(expected[-1], corrected.quaternion[-1])
+    assert np.allclose(ahead, np.linalg.norm(omega, axis=1) * horizon, rtol=0.05)

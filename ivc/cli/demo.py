@@ -56,3 +56,5 @@ def demo(ctx, scene, seed, sweep_frames, check_frames, method, keep_dir, force):
         click.echo("")
         where = f"; files kept in {folder}" if keep_dir else ""
         click.echo(f"ivc demo finished in {time.perf_counter() - start:.0f} s{where}")
+        if keep_dir:
+            click.echo(f"figures and an HTML page: ivc report {session_file} {table_file} -o {folder / 'report'}")
