@@ -11,7 +11,7 @@ from ivc import session as session_io
 from ivc.cli.progress import StageBars
 from ivc.lut.build import file_digest
 from ivc.report import build_report
-from ivc.report.compute import MAX_SWEEP_FRAMES, THIN_SAMPLES
+from ivc.report.compute import THIN_SAMPLES
 
 
 @click.command()
@@ -24,8 +24,8 @@ from ivc.report.compute import MAX_SWEEP_FRAMES, THIN_SAMPLES
               help="Step holding the check poses (of CHECK_FILE, else of SESSION_FILE).")
 @click.option("--thin", type=int, default=THIN_SAMPLES, show_default=True,
               help="A mapped cell with fewer kept wand samples than this is marked thin.")
-@click.option("--max-frames", type=int, default=MAX_SWEEP_FRAMES, show_default=True,
-              help="Solve at most this many sweep frames (every k-th beyond), as `ivc fit`.")
+@click.option("--max-frames", type=int, help="Solve at most this many sweep frames, every k-th beyond (default: "
+              "as the table was fitted).")
 @click.option("--force", is_flag=True, help="Replace an earlier report in the directory.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def report(session_file, lut_file, check_file, directory, step, thin, max_frames, force, quiet):
@@ -34,7 +34,7 @@ def report(session_file, lut_file, check_file, directory, step, thin, max_frames
     The check poses (with their truth) come from CHECK_FILE, or from SESSION_FILE's own
     check step. Figures that need truth say so on the page when there is none.
     """
-    if max_frames < 1:
+    if max_frames is not None and max_frames < 1:
         raise click.BadParameter("must be at least 1", param_hint="--max-frames")
     table = lut.read(lut_file)
     data = session_io.read(session_file)

@@ -18,7 +18,7 @@ from pathlib import Path
 from ivc import __version__
 from ivc.lut.table import LookupTable
 from ivc.report import html
-from ivc.report.compute import MAX_SWEEP_FRAMES, THIN_SAMPLES, Progress, ReportData, _no_progress, gather, summary
+from ivc.report.compute import THIN_SAMPLES, Progress, ReportData, _no_progress, gather, summary
 from ivc.report.figures import FIGURES
 from ivc.session import Session, atomic_path
 
@@ -72,7 +72,7 @@ def _write(path: Path, content: bytes) -> None:
 
 
 def build_report(session: Session, table: LookupTable, directory: str | os.PathLike, *, check: Session | None = None,
-                 step: str = "check", thin: int = THIN_SAMPLES, max_frames: int = MAX_SWEEP_FRAMES,
+                 step: str = "check", thin: int = THIN_SAMPLES, max_frames: int | None = None,
                  overwrite: bool = False, names: dict[str, str] | None = None,
                  progress: Progress = _no_progress) -> Report:
     """Write the report into ``directory``; refuse to replace an earlier one unless ``overwrite``.
@@ -116,9 +116,6 @@ def _warnings(data: ReportData, names: dict[str, str]) -> list[str]:
     if recorded and names.get("session_sha256") and recorded != names["session_sha256"]:
         out.append(f"The table was fitted from {data.table.provenance.get('input', 'another file')}, whose contents "
                    "differ from this session's: the sweep and cube figures describe this session, not the table's.")
-    if data.sweep.stride > 1:
-        out.append(f"The sweep was solved at every {data.sweep.stride}th frame (at most {MAX_SWEEP_FRAMES:,} "
-                   "frames), as `ivc fit` does.")
     if data.check is not None:
         e = data.check.errors
         flagged = 1 - e.ok.sum() / max(int(e.valid.sum()), 1)
@@ -185,8 +182,10 @@ def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings
         if key in s:
             sweep_rows.append((label, s[key], unit))
     dropped = ", ".join(f"{n:,} {k}" for k, n in s["samples"]["dropped"].items() if n) or "none"
+    every = "all" if s["stride"] == 1 else f"one in {s['stride']}"
     sections.append(("sweep", "Pose in the cube and the residual Λ",
-                     f"<p>{s['frames_solved']:,} sweep frames solved; gates rms(Λ)/rms(S) ≤ {s['gate_residual']:g}, "
+                     f"<p>{s['frames_solved']:,} of {s['frames_recorded']:,} sweep frames solved ({every}, as the "
+                     f"table was fitted); gates rms(Λ)/rms(S) ≤ {s['gate_residual']:g}, "
                      f"estimated error ≤ {s['gate_error_mm']:g} mm. Dropped samples: {html.escape(dropped)}.</p>"
                      + html.percentile_table(sweep_rows) + fig("lambda_vs_error")))
     cube_html = f"<p>Fitted cube edge {cube['fitted_edge_mm']:.3f} mm (nominal {cube['nominal_edge_mm']:.1f} mm).</p>"

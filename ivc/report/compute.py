@@ -20,6 +20,7 @@ from ivc.fixtures.cube import CUBE_BITS, NOMINAL_EDGE
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import FixtureModel, Gates, SweepMapping, map_sweep
 from ivc.fixtures.report import SweepErrors, declared_frame_map, percentiles, sweep_errors
+from ivc.lut.build import FitOptions
 from ivc.lut.support import MIN_SUPPORT
 from ivc.lut.table import LookupTable
 from ivc.session import Session
@@ -30,8 +31,6 @@ MAX_SLICES = 6
 OVERSAMPLE = 6
 #: a mapped cell holding fewer wand samples than this is "thin" (by default)
 THIN_SAMPLES = MIN_SUPPORT
-#: sweep frames solved for the report at most (every k-th frame beyond), as `ivc fit`
-MAX_SWEEP_FRAMES = 100_000
 
 Progress = Callable[[str, int], Callable[[int], None]]
 
@@ -66,7 +65,8 @@ class SweepView:
     """The sweep as solved for the report (first pass, before the fit's refinement)."""
 
     mapping: SweepMapping
-    stride: int
+    recorded: int  # sweep frames in the session
+    stride: int  # every stride-th frame was solved
     errors: SweepErrors | None
     distance: np.ndarray  # (F, W) metres from the cube centre, solved positions
     gates: Gates
@@ -135,10 +135,15 @@ def slices(table: LookupTable, sample_positions: np.ndarray, cube_centre: np.nda
                   np.moveaxis(field.valid_cells[:, :, layers], 2, 0))
 
 
-def solve_sweep(session: Session, model: FixtureModel, table: LookupTable, max_frames: int = MAX_SWEEP_FRAMES,
+def solve_sweep(session: Session, model: FixtureModel, table: LookupTable, max_frames: int | None = None,
                 progress: Progress = _no_progress) -> SweepView:
-    """Solve the sweep in the cube with the gates the table was fitted with."""
+    """Solve the sweep in the cube with the gates and the frames the table was fitted with: at most
+    ``max_frames`` (default: the table's own setting, else ``ivc fit``'s default), every k-th beyond."""
     parameters = table.provenance.get("parameters", {})
+    if max_frames is None:
+        max_frames = int(parameters.get("max_frames") or FitOptions.max_frames)
+    if max_frames < 1:
+        raise ValueError(f"max_frames = {max_frames}: solve at least one sweep frame")
     gates = Gates(max_residual=float(parameters.get("max_residual", Gates.max_residual)),
                   max_error=float(parameters.get("max_error", Gates.max_error)))
     recorded = session.steps["wand_sweep"].n_frames
@@ -149,7 +154,7 @@ def solve_sweep(session: Session, model: FixtureModel, table: LookupTable, max_f
     mapping = map_sweep(session, model, gates, progress=progress("solving the sweep in the cube", frames))
     centre = model.placement.positions.mean(axis=0)
     distance = np.linalg.norm(mapping.positions - centre, axis=-1)
-    return SweepView(mapping, stride, sweep_errors(session, mapping), distance, gates)
+    return SweepView(mapping, recorded, stride, sweep_errors(session, mapping), distance, gates)
 
 
 def check_view(table: LookupTable, session: Session, check: Session | None, step: str, cube_centre: np.ndarray,
@@ -171,7 +176,7 @@ def check_view(table: LookupTable, session: Session, check: Session | None, step
 
 
 def gather(session: Session, table: LookupTable, check: Session | None = None, step: str = "check",
-           thin: int = THIN_SAMPLES, max_frames: int = MAX_SWEEP_FRAMES, check_source: str = "the session",
+           thin: int = THIN_SAMPLES, max_frames: int | None = None, check_source: str = "the session",
            progress: Progress = _no_progress) -> ReportData:
     """Everything the report draws. ``check``: a separate check recording (default: ``session``'s own)."""
     if thin < 1:
@@ -236,7 +241,7 @@ def summary(data: ReportData) -> dict:
             "centre_mm": (1000 * data.cube_centre).round(3).tolist(),
         },
         "sweep": {
-            "frames_solved": int(len(mapping.inside)), "stride": sweep.stride,
+            "frames_solved": int(len(mapping.inside)), "frames_recorded": sweep.recorded, "stride": sweep.stride,
             "gate_residual": sweep.gates.max_residual, "gate_error_mm": 1000 * sweep.gates.max_error,
             "residual_relative": percentiles(mapping.sensor0.residual[mapping.sensor0.converged]),
             "samples": {"total": int(mapping.keep.size), "kept": mapping.kept, "dropped": mapping.dropped},
