@@ -59,6 +59,34 @@ def predicted_step(step: Step, name: str, horizon: float) -> Step:
                 attrs)
 
 
+def run_compensators(seed: int, evaluations: int, as_json: bool) -> None:
+    """Seed 003's designs (default, twist, hybrid) on synthetic 20 s yaw records; Table 1."""
+    import json
+
+    import numpy as np
+    from tqdm import tqdm
+
+    from ivc.predict import compensator
+    from ivc.predict.nasa import DEFAULT_W
+
+    records = compensator.yaw_records(seed=seed)
+    designs, counts = {"default": np.array(DEFAULT_W)}, {}
+    for name in ("twist", "hybrid"):
+        with tqdm(total=evaluations, desc=f"Powell: {name} design", unit="cost", leave=False) as bar:
+            designs[name], result = compensator.optimise(name, records, max_evaluations=evaluations,
+                                                         progress=bar.update)
+        counts[name] = int(result.nfev)
+    rows = {name: compensator.score(W, records).ratios for name, W in designs.items()}
+    if as_json:
+        click.echo(json.dumps({name: {"ratios": dict(zip(compensator.COLUMNS, rows[name], strict=True)),
+                                      "W": designs[name].tolist(), "paper": compensator.PAPER_TABLE1[name]}
+                               for name in designs}, indent=2))
+        return
+    click.echo(compensator.render_table1(rows, counts))
+    for name, W in designs.items():
+        click.echo(f"  W_r {name:<8}" + " ".join(f"{w:.1e}" for w in W))
+
+
 def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json):
     from tqdm import tqdm
 
@@ -105,8 +133,12 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
               help="Benchmark reference: time-shifted measurements (the thesis) or the noiseless truth.")
 @click.option("--plot", type=click.Path(dir_okay=False), help="Benchmark: write the error-vs-horizon PNG here.")
 @click.option("--json", "as_json", is_flag=True, help="Benchmark: print the figures as JSON.")
+@click.option("--compensators", is_flag=True, help="Seed 003: optimise the 10-state EKF's process noise by Powell's "
+              "method for the twist and hybrid costs on synthetic yaw records, and print Table 1.")
+@click.option("--evaluations", type=int, default=1500, show_default=True,
+              help="With --compensators: cost evaluations per design at most.")
 def predict(input_file, filters, horizon, output, steps, rate, force, benchmark, motions, frames, bench_rate, seed,
-            reference, plot, as_json):
+            reference, plot, as_json, compensators, evaluations):
     """Predict the orientations in INPUT_FILE (session .h5 or recording .csv) a horizon ahead.
 
     The output holds, at each frame's time stamp, the orientation predicted for time +
@@ -115,6 +147,11 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
     orientation. `ivc predict --benchmark` instead evaluates the predictors on synthetic head
     motion and prints the thesis's tables (Tables 5-6, 11, 12-15 layouts).
     """
+    if compensators:
+        if evaluations < 1:
+            raise click.BadParameter("must be at least 1", param_hint="--evaluations")
+        run_compensators(seed, evaluations, as_json)
+        return
     if benchmark:
         if frames < 1000:
             raise click.BadParameter("use at least 1000 frames", param_hint="--frames")

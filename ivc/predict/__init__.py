@@ -15,6 +15,7 @@ from ivc.predict.evaluate import NoPrediction
 from ivc.predict.kalman import ExtendedKalmanFilter, KalmanFilter
 from ivc.predict.linear import LinearPredictor, alpha_beta, kinematic, polynomial
 from ivc.predict.mmae import MMAE
+from ivc.predict.nasa import NasaEKF
 from ivc.predict.qekf import QEKF
 
 #: name -> factory(rate_hz) of every orientation predictor
@@ -30,6 +31,7 @@ FILTERS: dict[str, Callable[[float], Predictor]] = {
     "poly2": lambda rate_hz=120.0: polynomial(rate_hz, 2),
     "alpha-beta": alpha_beta,
     "kinematic": kinematic,
+    "nasa-ekf": lambda rate_hz=120.0: NasaEKF(rate_hz),
 }
 
 
@@ -41,4 +43,4 @@ def make(name: str, rate_hz: float = 120.0) -> Predictor:
 
 
 __all__ = ["DQPredictor", "ExtendedKalmanFilter", "FILTERS", "KalmanFilter", "LinearPredictor", "MMAE",
-           "NoPrediction", "Predictor", "PredictorError", "QEKF", "Stream", "make"]
+           "NasaEKF", "NoPrediction", "Predictor", "PredictorError", "QEKF", "Stream", "make"]
