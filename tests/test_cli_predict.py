@@ -61,3 +61,18 @@ def test_predict_benchmark_prints_the_tables(tmp_path):
     data = json.loads(CliRunner().invoke(cli, args[:-2] + ["--json"]).stdout)
     rows = {d["filter"]: d["rows"] for d in data}
     assert rows["dqekf-cv"][6]["mean"] < rows["none"][6]["mean"]
+
+
+def test_compensators_prints_table1_and_the_designs_it_scored():
+    from ivc.predict import compensator
+
+    result = CliRunner().invoke(cli, ["predict", "--compensators", "--evaluations", "15", "--json"])
+    assert result.exit_code == 0, result.output
+    designs = json.loads(result.stdout)
+    assert set(designs) == {"default", "twist", "hybrid"}
+    records = compensator.yaw_records(seed=0)
+    for name, d in designs.items():  # the printed ratios are those of the printed W_r
+        assert list(d["ratios"].values()) == list(compensator.score(np.array(d["W"]), records).ratios)
+        assert tuple(d["paper"]) == compensator.PAPER_TABLE1[name]
+    twist = designs["twist"]["ratios"]["twist"]
+    assert twist <= designs["default"]["ratios"]["twist"]  # Powell starts at the default and only descends
