@@ -23,9 +23,10 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from ivc._linalg import cholesky, cholesky_inverse, congruence, joseph
+from ivc._linalg import congruence
 from ivc.predict._quat import normalise, qmul
 from ivc.predict.base import Predictor, PredictorError, Stream, check_horizons, check_rate, check_stream
+from ivc.predict.qekf import quaternion_update
 
 #: V_r of the paper: variance of each measured quaternion component
 V_QUATERNION = 1e-4
@@ -153,34 +154,9 @@ def _step(z_in, ok, x, P, status, W, V, h, p0, work):
     congruence(Phi, P, N, tmp, Pp)
     for a in range(N):
         Pp[a, a] += W[a]
-    if z[0] * xp[0] + z[1] * xp[1] + z[2] * xp[2] + z[3] * xp[3] < 0.0:
-        for i in range(4):
-            z[i] = -z[i]
-    for r in range(4):
-        for c in range(4):
-            S[r, c] = Pp[r, c]
-        S[r, r] += V[r]
-        nu[r] = z[r] - xp[r]
-    if not cholesky(S, 4, L):
+    if not quaternion_update(z, xp, Pp, V, N, x, P, S, L, nu, K, IKH, tmp):
         status[0] = 0
         return False
-    cholesky_inverse(L, 4, S)
-    for a in range(N):  # K = P⁻Hᵀ S⁻¹, H = [I 0]
-        for r in range(4):
-            acc = 0.0
-            for c in range(4):
-                acc += Pp[a, c] * S[c, r]
-            K[a, r] = acc
-    for a in range(N):
-        acc = 0.0
-        for r in range(4):
-            acc += K[a, r] * nu[r]
-        x[a] = xp[a] + acc
-    normalise(x[:4])
-    for a in range(N):
-        for b in range(N):
-            IKH[a, b] = (1.0 if a == b else 0.0) - (K[a, b] if b < 4 else 0.0)
-    joseph(IKH, Pp, K, V, N, 4, tmp, P)
     return True
 
 

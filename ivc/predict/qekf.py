@@ -91,39 +91,50 @@ def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
                 acc += W[a, c] * qvar[c] * W[b, c]
             Pp[a, b] = acc
             Pp[b, a] = acc
-    xq = np.empty(4)
-    qmul(dq, q, xq)
-    if np.dot(z, xq) < 0.0:
+    xp = np.empty(7)
+    qmul(dq, q, xp[:4])
+    for i in range(4, 7):
+        xp[i] = x[i]
+    if not quaternion_update(z, xp, Pp, R, 7, x, P, S, L, nu, K, IKH, T):
+        status[0] = 0
+        status[1] = 0
+        return False
+    return True
+
+
+@numba.njit(cache=True)
+def quaternion_update(z, xp, Pp, R, n, x, P, S, L, nu, K, IKH, T):
+    """EKF update of an n-state filter whose first 4 states are the orientation, measured directly
+    (z (4,), H = [I₄ 0], variances R (4,)): z's sign is aligned with the predicted xp[:4] (q ≡ −q),
+    x = xp + K ν with q̂ renormalised, P by the Joseph form from Pp. False (x, P untouched) when
+    the innovation covariance is not positive definite."""
+    if z[0] * xp[0] + z[1] * xp[1] + z[2] * xp[2] + z[3] * xp[3] < 0.0:
         for i in range(4):
             z[i] = -z[i]
     for r in range(4):
         for c in range(4):
             S[r, c] = Pp[r, c]
         S[r, r] += R[r]
-        nu[r] = z[r] - xq[r]
+        nu[r] = z[r] - xp[r]
     if not cholesky(S, 4, L):
-        status[0] = 0
-        status[1] = 0
         return False
     cholesky_inverse(L, 4, S)
-    for a in range(7):  # K = P⁻Hᵀ S⁻¹ with H = [I 0]
+    for a in range(n):  # K = P⁻Hᵀ S⁻¹
         for r in range(4):
             acc = 0.0
             for c in range(4):
                 acc += Pp[a, c] * S[c, r]
             K[a, r] = acc
-    for a in range(4):
-        x[a] = xq[a]
-    for a in range(7):
+    for a in range(n):
         acc = 0.0
         for r in range(4):
             acc += K[a, r] * nu[r]
-        x[a] += acc
+        x[a] = xp[a] + acc
     normalise(x[:4])
-    for a in range(7):
-        for b in range(7):
+    for a in range(n):
+        for b in range(n):
             IKH[a, b] = (1.0 if a == b else 0.0) - (K[a, b] if b < 4 else 0.0)
-    joseph(IKH, Pp, K, R, 7, 4, T, P)
+    joseph(IKH, Pp, K, R, n, 4, T, P)
     return True
 
 
