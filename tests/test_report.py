@@ -73,9 +73,8 @@ def test_report_builds_from_the_demo_session_with_every_figure(demo, tmp_path):
     expected = evaluate(table, session)
     check = numbers["check"]
     assert check["corrected"] == expected["corrected"]
-    for key, values in (("ivc_position_mm", expected["ivc"]["position_mm"]),
-                        ("dipole_orientation_mrad", expected["dipole"]["orientation_mrad"])):
-        assert check[key] == pytest.approx(values, abs=1e-4)
+    assert check["ivc"]["position_mm"] == pytest.approx(expected["ivc"]["position_mm"], abs=1e-4)
+    assert check["dipole"]["orientation_mrad"] == pytest.approx(expected["dipole"]["orientation_mrad"], abs=1e-4)
     # the report solves the sweep again with the fit's gates: the same samples survive
     assert numbers["sweep"]["samples"]["kept"] == table.fit["samples"]["kept"]
     assert numbers["table"]["valid_nodes"] == int(table.valid.sum())

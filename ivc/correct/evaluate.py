@@ -18,7 +18,7 @@ import numpy as np
 from ivc import rotations
 from ivc.correct.solver import FLAG_NAMES, Corrector
 from ivc.dipole import closed_form_pose
-from ivc.fixtures.report import declared_frame_map, percentiles
+from ivc.fixtures.report import DECLARED_FRAME, RAW_FRAME, declared_frame_map, percentiles
 from ivc.lut.table import LookupTable
 from ivc.session import Session, SessionError
 
@@ -91,14 +91,9 @@ def check_errors(table: LookupTable | Corrector, check: Session, step: str = "ch
                        placement)
 
 
-def evaluate(table: LookupTable | Corrector, check: Session, step: str = "check",
-             frame_map: tuple | None = None, progress: Callable[[int], None] | None = None) -> dict:
-    """Percentiles (25/50/75/95/99/max) of position (mm) and orientation (mrad) errors, IVC and dipole.
-
-    ``frame_map``: ``(D_R, D_t)`` taking true source-frame poses into the declared frame; by
-    default from ``check``'s own cube survey and its truth, if it has them.
-    """
-    e = check_errors(table, check, step, frame_map, progress)
+def summarise(e: CheckErrors) -> dict:
+    """Percentiles (25/50/75/95/99/max) of position (mm) and orientation (mrad) errors, IVC and dipole,
+    with the flag counts: the layout of seed Table 24 (``ivc evaluate``)."""
     ok, valid = e.ok, e.valid
     report = {
         "samples": int(valid.size),
@@ -108,14 +103,24 @@ def evaluate(table: LookupTable | Corrector, check: Session, step: str = "check"
                     "orientation_mrad": percentiles(e.ivc_raw_orientation_mrad[ok])},
         "dipole": {"position_mm": percentiles(e.dipole_position_mm[valid]),
                    "orientation_mrad": percentiles(e.dipole_orientation_mrad[valid])},
-        "frame": "raw truth (source frame)",
+        "frame": RAW_FRAME,
     }
     if e.frame_map is not None:
         report["ivc"] = {"position_mm": percentiles(e.ivc_position_mm[ok]),
                          "orientation_mrad": percentiles(e.ivc_orientation_mrad[ok])}
-        report["frame"] = "declared cube frame (true poses moved by the declared-pose error)"
+        report["frame"] = DECLARED_FRAME
         report["placement_error_mm"] = e.placement_error_mm
     else:
         report["ivc"] = report["ivc_raw"]
     report["iterations_median"] = float(np.median(e.iterations[valid])) if valid.any() else 0.0
     return report
+
+
+def evaluate(table: LookupTable | Corrector, check: Session, step: str = "check",
+             frame_map: tuple | None = None, progress: Callable[[int], None] | None = None) -> dict:
+    """:func:`summarise` of :func:`check_errors`: how good the table is on ``check``'s ``step``.
+
+    ``frame_map``: ``(D_R, D_t)`` taking true source-frame poses into the declared frame; by
+    default from ``check``'s own cube survey and its truth, if it has them.
+    """
+    return summarise(check_errors(table, check, step, frame_map, progress))

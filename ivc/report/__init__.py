@@ -99,7 +99,7 @@ def build_report(session: Session, table: LookupTable, directory: str | os.PathL
     warnings = _warnings(data, names)
     numbers["warnings"] = warnings
     numbers["figures_missing"] = missing
-    numbers["inputs"] = {k: v for k, v in names.items()}
+    numbers["inputs"] = dict(names)
     files = []
     for name, png in images.items():
         _write(directory / f"{name}.png", png)
@@ -146,9 +146,10 @@ def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings
         ["wand samples", f"{s['samples']['kept']:,} of {s['samples']['total']:,} kept"],
     ]
     if "missing" not in c:
-        summary_rows.append(["check poses", f"IVC median {c['ivc_position_mm']['p50']:.3g} mm / "
-                             f"{c['ivc_orientation_mrad']['p50']:.3g} mrad against the uncorrected "
-                             f"{c['dipole_position_mm']['p50']:.3g} mm / {c['dipole_orientation_mrad']['p50']:.3g} "
+        ivc, dipole = c["ivc"], c["dipole"]
+        summary_rows.append(["check poses", f"IVC median {ivc['position_mm']['p50']:.3g} mm / "
+                             f"{ivc['orientation_mrad']['p50']:.3g} mrad against the uncorrected "
+                             f"{dipole['position_mm']['p50']:.3g} mm / {dipole['orientation_mrad']['p50']:.3g} "
                              f"mrad ({c['corrected']:,} of {c['samples']:,} corrected)"])
     sections = [("summary", "Summary", html.table(None, summary_rows))]
     if "missing" in c:
@@ -158,10 +159,10 @@ def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings
         placement = (f"; the declared cube pose is off by {c['placement_error_mm']:.2f} mm at the check poses"
                      if "placement_error_mm" in c else "")
         accuracy = (f"<p>IVC judged against {html.escape(c['frame'])}{placement}. Flagged: {flagged}.</p>"
-                    + html.percentile_table([("IVC position", c["ivc_position_mm"], "mm"),
-                                             ("IVC orientation", c["ivc_orientation_mrad"], "mrad"),
-                                             ("dipole position (uncorrected)", c["dipole_position_mm"], "mm"),
-                                             ("dipole orientation", c["dipole_orientation_mrad"], "mrad"),
+                    + html.percentile_table([("IVC position", c["ivc"]["position_mm"], "mm"),
+                                             ("IVC orientation", c["ivc"]["orientation_mrad"], "mrad"),
+                                             ("dipole position (uncorrected)", c["dipole"]["position_mm"], "mm"),
+                                             ("dipole orientation", c["dipole"]["orientation_mrad"], "mrad"),
                                              ("distance from the cube centre", c["distance_from_cube_mm"], "mm")]))
     sections.append(("accuracy", "Accuracy on the check poses", accuracy + fig("error_histograms")
                      + fig("error_vs_distance")))

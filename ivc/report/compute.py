@@ -14,13 +14,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from ivc import dipole
-from ivc.correct.evaluate import CheckErrors, check_errors
-from ivc.correct.solver import FLAG_NAMES, Corrector
+from ivc.correct.evaluate import CheckErrors, check_errors, summarise
+from ivc.correct.solver import Corrector
 from ivc.fixtures.cube import CUBE_BITS, NOMINAL_EDGE
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import FixtureModel, Gates, SweepMapping, map_sweep
 from ivc.fixtures.report import SweepErrors, declared_frame_map, percentiles, sweep_errors
 from ivc.lut.build import FitOptions
+from ivc.lut.grid import GridField
 from ivc.lut.support import MIN_SUPPORT
 from ivc.lut.table import LookupTable
 from ivc.session import Session
@@ -47,7 +48,8 @@ class Slices:
     which bound its cells; ``x``, ``y``: the fine sample coordinates of ``percent``
     (L, len(y), len(x)): |G| as % of the measured signal |f_D + G| (Frobenius norms,
     orientation-free), NaN outside the mapped volume. ``counts`` (L, nx-1, ny-1): kept
-    wand samples per cell; ``mapped`` (L, nx-1, ny-1): cells whose eight nodes are valid.
+    wand samples per cell; ``mapped`` (L, nx-1, ny-1): cells whose eight nodes are valid
+    (both the layers of :class:`ReportData`'s whole-grid arrays).
     """
 
     z: np.ndarray
@@ -89,6 +91,8 @@ class ReportData:
     check_missing: str | None  # why there is no check evaluation
     thin: int
     cube_centre: np.ndarray
+    cell_counts: np.ndarray  # (nx-1, ny-1, nz-1) kept wand samples per grid cell
+    mapped_cells: np.ndarray  # (nx-1, ny-1, nz-1) cells whose eight nodes are valid
 
 
 def percent_of_measured(field_values: np.ndarray, positions: np.ndarray) -> np.ndarray:
@@ -116,10 +120,11 @@ def _layers(mapped_cells: np.ndarray, keep: int | None = None) -> np.ndarray:
     return np.sort(picks)
 
 
-def slices(table: LookupTable, sample_positions: np.ndarray, cube_centre: np.ndarray | None = None) -> Slices:
-    """The field and coverage slices (see :class:`Slices`), one through ``cube_centre`` (m) if mapped."""
+def slices(table: LookupTable, field: GridField, cell_counts: np.ndarray,
+           cube_centre: np.ndarray | None = None) -> Slices:
+    """The field and coverage slices (see :class:`Slices`) of the table's interpolated ``field`` and
+    its per-cell sample counts, one slice through ``cube_centre`` (m) if that layer is mapped."""
     g = table.grid
-    field = table.field()
     x_edges, y_edges, z_edges = (g.origin[a] + g.spacing * np.arange(g.shape[a]) for a in range(3))
     keep = None if cube_centre is None else int(np.floor((cube_centre[2] - g.origin[2]) / g.spacing))
     layers = _layers(field.valid_cells, keep)
@@ -130,13 +135,12 @@ def slices(table: LookupTable, sample_positions: np.ndarray, cube_centre: np.nda
     points = np.stack(np.broadcast_arrays(x[None, None, :], y[None, :, None], z[:, None, None]), axis=-1)
     values, _, mapped = field.evaluate(points)
     percent = np.where(mapped, percent_of_measured(values, points), np.nan)
-    counts = _cell_counts(table, sample_positions)
-    return Slices(z, x_edges, y_edges, x, y, percent, np.moveaxis(counts[:, :, layers], 2, 0),
+    return Slices(z, x_edges, y_edges, x, y, percent, np.moveaxis(cell_counts[:, :, layers], 2, 0),
                   np.moveaxis(field.valid_cells[:, :, layers], 2, 0))
 
 
-def solve_sweep(session: Session, model: FixtureModel, table: LookupTable, max_frames: int | None = None,
-                progress: Progress = _no_progress) -> SweepView:
+def solve_sweep(session: Session, model: FixtureModel, table: LookupTable, cube_centre: np.ndarray,
+                max_frames: int | None = None, progress: Progress = _no_progress) -> SweepView:
     """Solve the sweep in the cube with the gates and the frames the table was fitted with: at most
     ``max_frames`` (default: the table's own setting, else ``ivc fit``'s default), every k-th beyond."""
     parameters = table.provenance.get("parameters", {})
@@ -152,8 +156,7 @@ def solve_sweep(session: Session, model: FixtureModel, table: LookupTable, max_f
         session = session.select_frames("wand_sweep", slice(None, None, stride))
     frames = session.steps["wand_sweep"].n_frames
     mapping = map_sweep(session, model, gates, progress=progress("solving the sweep in the cube", frames))
-    centre = model.placement.positions.mean(axis=0)
-    distance = np.linalg.norm(mapping.positions - centre, axis=-1)
+    distance = np.linalg.norm(mapping.positions - cube_centre, axis=-1)
     return SweepView(mapping, recorded, stride, sweep_errors(session, mapping), distance, gates)
 
 
@@ -185,11 +188,13 @@ def gather(session: Session, table: LookupTable, check: Session | None = None, s
     interpolant = next((name for name, kind in INTERPOLANTS.items() if kind.__name__ == fixtures.get("interpolant")),
                        "harmonic")
     model = FixtureModel.from_session(session, fixtures.get("vertices", "averaged"), interpolant)
-    sweep = solve_sweep(session, model, table, max_frames, progress)
-    kept = sweep.mapping.positions[sweep.mapping.keep]
     centre = model.placement.positions.mean(axis=0)
+    sweep = solve_sweep(session, model, table, centre, max_frames, progress)
+    counts = _cell_counts(table, sweep.mapping.positions[sweep.mapping.keep])
+    field = table.field()
     view, missing = check_view(table, session, check, step, centre, check_source, progress)
-    return ReportData(table, model, slices(table, kept, centre), sweep, view, missing, thin, centre)
+    return ReportData(table, model, slices(table, field, counts, centre), sweep, view, missing, thin, centre, counts,
+                      field.valid_cells)
 
 
 def cube_errors(model: FixtureModel) -> tuple[np.ndarray, np.ndarray]:
@@ -210,8 +215,7 @@ def summary(data: ReportData) -> dict:
     g = table.grid
     nodes = g.nodes()[table.valid]
     node_percent = percent_of_measured(table.values[table.valid], nodes)
-    counts = _cell_counts(table, mapping.positions[mapping.keep])
-    cells = table.field().valid_cells
+    counts, cells = data.cell_counts, data.mapped_cells
     minus_ideal, minus_optimised = cube_errors(model)
     out = {
         "table": {
@@ -256,19 +260,6 @@ def summary(data: ReportData) -> dict:
     if data.check is None:
         out["check"] = {"missing": data.check_missing}
     else:
-        e = data.check.errors
-        out["check"] = {
-            "source": data.check.source,
-            "samples": int(e.valid.size), "corrected": int(e.ok.sum()),
-            "flagged": {name: int(np.sum((e.flags & bit) != 0)) for bit, name in FLAG_NAMES.items()},
-            "frame": ("declared cube frame (true poses moved by the declared-pose error)"
-                      if e.frame_map is not None else "raw truth (source frame)"),
-            "ivc_position_mm": _rounded(percentiles(e.ivc_position_mm[e.ok])),
-            "ivc_orientation_mrad": _rounded(percentiles(e.ivc_orientation_mrad[e.ok])),
-            "dipole_position_mm": _rounded(percentiles(e.dipole_position_mm[e.valid])),
-            "dipole_orientation_mrad": _rounded(percentiles(e.dipole_orientation_mrad[e.valid])),
-            "distance_from_cube_mm": _rounded(percentiles(data.check.distance[e.valid], 1000)),
-        }
-        if e.placement_error_mm is not None:
-            out["check"]["placement_error_mm"] = round(e.placement_error_mm, 4)
+        out["check"] = {"source": data.check.source, **summarise(data.check.errors),
+                        "distance_from_cube_mm": percentiles(data.check.distance[data.check.errors.valid], 1000)}
     return out
