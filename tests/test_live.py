@@ -28,21 +28,26 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def reported_poses(rng, frames):
-    """What a tracker reports (dipole solution of the distorted signal) for len(SENSORS) sensors: matrices (F, N, 4, 4)
-    with translations in mm, in float32 as OpenIGTLink carries them."""
-    r, T, S = distorted(rng, frames * len(SENSORS))
+def reported_matrices(S):
+    """What a tracker reports for signals S (..., 3, 3): the dipole solution as 4x4 matrices with translations
+    in mm, in float32 as OpenIGTLink carries them."""
     position, rotation = dipole.closed_form_pose(S)
-    m = np.zeros((len(S), 4, 4))
-    m[:, :3, :3], m[:, :3, 3], m[:, 3, 3] = rotation, position * 1000.0, 1.0
-    return m.astype(np.float32).reshape(frames, len(SENSORS), 4, 4)
+    m = np.zeros((*S.shape[:-2], 4, 4))
+    m[..., :3, :3], m[..., :3, 3], m[..., 3, 3] = rotation, position * 1000.0, 1.0
+    return m.astype(np.float32)
 
 
-def offline(table, matrices):
+def reported_poses(rng, frames):
+    """Reported poses (F, N, 4, 4) of len(SENSORS) sensors at random distorted poses."""
+    r, T, S = distorted(rng, frames * len(SENSORS))
+    return reported_matrices(S).reshape(frames, len(SENSORS), 4, 4)
+
+
+def offline(table_or_corrector, matrices):
     """``ivc correct`` on the same (float32) poses: batch, each sample on its own."""
+    corrector = table_or_corrector if isinstance(table_or_corrector, Corrector) else Corrector(table_or_corrector)
     m = matrices.astype(float)
-    q = rotations.from_matrix(m[..., :3, :3])
-    return Corrector(table).batch_poses(m[..., :3, 3] / 1000.0, q)
+    return corrector.batch_poses(m[..., :3, 3] / 1000.0, rotations.from_matrix(m[..., :3, :3]))
 
 
 def test_framer_resynchronises_after_garbage_and_checks_the_crc():
@@ -204,15 +209,10 @@ def test_live_prediction_matches_offline_correct_then_predict(exact_table, rng):
     omega = np.array([[0.8, -1.5, 2.0], [-2.5, 0.4, 1.1]])  # rad/s
     q = rotations.multiply(rotations.from_rotvec(t[:, None, None] * omega), rotations.random(2, rng))
     S = dipole.signal(r, rotations.to_matrix(q), quadratic_field(r.reshape(-1, 3)).reshape(frames, 2, 3, 3))
-    position, rotation = dipole.closed_form_pose(S)
-    matrices = np.zeros((frames, 2, 4, 4))
-    matrices[..., :3, :3], matrices[..., :3, 3], matrices[..., 3, 3] = rotation, position * 1000.0, 1.0
-    matrices = matrices.astype(np.float32)
+    matrices = reported_matrices(S)
     # pose-only input this strongly distorted is flagged HIGH_RESIDUAL at the default threshold (a pose cannot
     # carry all nine signal numbers, MATH.md §9); trust it here, on both sides, to exercise the prediction
-    corrector = Corrector(exact_table, max_residual=1.0)
-    m = matrices.astype(float)
-    corrected = corrector.batch_poses(m[..., :3, 3] / 1000.0, rotations.from_matrix(m[..., :3, :3]))
+    corrected = offline(Corrector(exact_table, max_residual=1.0), matrices)
     assert np.all(corrected.flags == 0)
     expected = make("dqekf-cv", rate).predict(corrected.quaternion, horizon, corrected.flags == 0)[0]
 
