@@ -61,15 +61,11 @@ def omega_matrix(w, out):
 def jacobian(x, F):
     """F (10, 10) = ∂ẋ/∂x of ẋ = [½ q ⊗ ω, α, 0] (eq. 20 with Q_r corrected)."""
     F[:, :] = 0.0
-    Om = np.empty((4, 4))
-    Q = np.empty((4, 3))
-    omega_matrix(x[4:7], Om)
-    q_matrix(x[:4], Q)
+    omega_matrix(x[4:7], F[:4, :4])
+    q_matrix(x[:4], F[:4, 4:7])
     for r in range(4):
-        for c in range(4):
-            F[r, c] = 0.5 * Om[r, c]
-        for c in range(3):
-            F[r, 4 + c] = 0.5 * Q[r, c]
+        for c in range(7):
+            F[r, c] *= 0.5
     for i in range(3):
         F[4 + i, 7 + i] = 1.0
 

@@ -27,7 +27,7 @@ R_QUATERNION = (2.55e-07, 4.67e-07, 4.10e-07, 3.28e-07)
 @numba.njit(cache=True)
 def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
     """One Q-EKF cycle for one sensor; x = [q(4), ω(3)], status = [initialised, have_prev]."""
-    z, dq, J, RJ, A, W, T, Pp, S, L, nu, y, K, IKH = work
+    z, dq, J, RJ, A, W, T, Pp, S, L, nu, xp, K, IKH, Rq = work
     if not ok:
         status[1] = 0
         return status[0] == 1
@@ -58,7 +58,6 @@ def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
     wx, wy, wz = x[4], x[5], x[6]
     delta_q_jacobian(wx, wy, wz, tau, J, dq)
     q = x[:4]
-    Rq = np.empty((4, 4))
     Rq[0, 0], Rq[0, 1], Rq[0, 2], Rq[0, 3] = q[0], -q[1], -q[2], -q[3]
     Rq[1, 0], Rq[1, 1], Rq[1, 2], Rq[1, 3] = q[1], q[0], q[3], -q[2]
     Rq[2, 0], Rq[2, 1], Rq[2, 2], Rq[2, 3] = q[2], -q[3], q[0], q[1]
@@ -91,7 +90,6 @@ def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
                 acc += W[a, c] * qvar[c] * W[b, c]
             Pp[a, b] = acc
             Pp[b, a] = acc
-    xp = np.empty(7)
     qmul(dq, q, xp[:4])
     for i in range(4, 7):
         xp[i] = x[i]
@@ -140,9 +138,10 @@ def quaternion_update(z, xp, Pp, R, n, x, P, S, L, nu, K, IKH, T):
 
 @numba.njit(cache=True)
 def _work():
+    """Scratch for :func:`_step`, made once per sensor (nothing is allocated per step)."""
     return (np.empty(4), np.empty(4), np.empty((4, 3)), np.empty((4, 3)), np.empty((7, 7)), np.empty((7, 3)),
-            np.empty((7, 7)), np.empty((7, 7)), np.empty((4, 4)), np.empty((4, 4)), np.empty(4), np.empty(4),
-            np.empty((7, 4)), np.empty((7, 7)))
+            np.empty((7, 7)), np.empty((7, 7)), np.empty((4, 4)), np.empty((4, 4)), np.empty(4), np.empty(7),
+            np.empty((7, 4)), np.empty((7, 7)), np.empty((4, 4)))
 
 
 @numba.njit(cache=True, parallel=True)
