@@ -139,15 +139,14 @@ class Scores:
 def score(W: np.ndarray, records: YawRecords, horizon: float = HORIZON_S) -> Scores:
     """The costs of a design W_r (10,) on the records (see :class:`Scores`)."""
     steps = int(round(horizon * records.rate_hz))
-    actual, predicted = _predicted(np.asarray(W, float), records.tracking, records.rate_hz, steps)
-    if not np.all(np.isfinite(predicted)):
+    W = np.asarray(W, float)
+    actual, predicted = _predicted(W, records.tracking, records.rate_hz, steps)
+    _, still = _predicted(W, records.still, records.rate_hz, steps)
+    if not (np.all(np.isfinite(predicted)) and np.all(np.isfinite(still))):  # the filter diverged
         inf = (np.inf, np.inf)
         return Scores(np.inf, inf, inf, 1.0, (1.0, 1.0), (1.0, 1.0))
     start = int(WARMUP_S * records.rate_hz)
     delayed = records.tracking[start:len(records.tracking) - steps]
-    _, still = _predicted(np.asarray(W, float), records.still, records.rate_hz, steps)
-    if not np.all(np.isfinite(still)):
-        still = np.full_like(still, np.inf)
     identity = np.broadcast_to(rotations.IDENTITY, still.shape)
     return Scores(_rms(twist(actual, predicted)), _horizontal_vertical(displacement(actual, predicted)),
                   _horizontal_vertical(displacement(identity, still)), _rms(twist(actual, delayed)),
