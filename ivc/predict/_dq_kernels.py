@@ -20,7 +20,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc._linalg import cholesky, cholesky_inverse, cholesky_logdet, joseph
+from ivc._linalg import cholesky, cholesky_inverse, cholesky_logdet
 from ivc.predict._quat import delta_q_jacobian, predict_orientation, qmul_conj, rate_of
 
 LOG_2PI = np.log(2.0 * np.pi)
@@ -54,22 +54,25 @@ def reset(x, P, probs, tpm, q_prev, status, est, mu0, Pi0):
 
 
 @numba.njit(cache=True, inline="always")
-def _ekf(j, kind, qv, z, R, cfg, x0, P0, x, P, work):
-    """One EKF predict+update of model j from the mixed (x0, P0); returns the log-likelihood of z."""
+def _ekf(n, hcols, qv, z, R, cfg, x0, P0, x, P, work):
+    """One EKF predict+update from the mixed (x0, P0) into (x, P); returns the log-likelihood of z.
+
+    n = 3 (CV) or 6 (CA) states; H = [J, cJ] has hcols = 6 non-zero columns, or 3 when c = 0
+    (CV, and CA with the standard H). Both are compile-time constants at each call site, so the
+    loops unroll, and the products skip H's zero columns and the identity block of I − KH:
+    the terms skipped are exact zeros, so the result is the same to the bit.
+    """
     (_, _, _, xp, Pp, J, H, PHt, S, L, h, nu, y, K, IKH, T, _, _, _) = work
     tau = cfg[CFG_TAU]
-    n = 6 if kind == 1 else 3
+    ca = n == 6
     for a in range(n):
         xp[a] = x0[a]
         for b in range(n):
             Pp[a, b] = P0[a, b]
-    if kind == 1:
+    if ca:
         for i in range(3):
             xp[i] += tau * x0[3 + i]
         # A P Aᵀ with A = [[I, τI], [0, I]], then + W Q Wᵀ with W = [τ²/2 I; τ I]
-        for a in range(6):
-            for b in range(6):
-                Pp[a, b] = P0[a, b]
         for a in range(3):
             for b in range(6):
                 Pp[a, b] += tau * P0[a + 3, b]
@@ -85,30 +88,30 @@ def _ekf(j, kind, qv, z, R, cfg, x0, P0, x, P, work):
         for i in range(3):
             Pp[i, i] += tau * tau * qv[i]
     shift = 0.0
-    if kind == 1 and cfg[CFG_H] == 2.0:
+    if ca and cfg[CFG_H] == 2.0:
         shift = -0.5 * tau
-    wx = xp[0] + shift * (xp[3] if kind == 1 else 0.0)
-    wy = xp[1] + shift * (xp[4] if kind == 1 else 0.0)
-    wz = xp[2] + shift * (xp[5] if kind == 1 else 0.0)
+    wx = xp[0] + shift * (xp[3] if ca else 0.0)
+    wy = xp[1] + shift * (xp[4] if ca else 0.0)
+    wz = xp[2] + shift * (xp[5] if ca else 0.0)
     delta_q_jacobian(wx, wy, wz, tau, J, h)
     alpha_col = 0.0
-    if kind == 1:
+    if ca:
         alpha_col = tau if cfg[CFG_H] == 1.0 else shift
     for r in range(4):
         for c in range(3):
             H[r, c] = J[r, c]
-            if kind == 1:
+            if hcols == 6:
                 H[r, c + 3] = alpha_col * J[r, c]
     for a in range(n):
         for r in range(4):
             acc = 0.0
-            for b in range(n):
+            for b in range(hcols):
                 acc += Pp[a, b] * H[r, b]
             PHt[a, r] = acc
-    for r in range(4):
-        for c in range(4):
+    for r in range(4):  # the lower triangle: all the Cholesky factorisation reads
+        for c in range(r + 1):
             acc = 0.0
-            for a in range(n):
+            for a in range(hcols):
                 acc += H[r, a] * PHt[a, c]
             S[r, c] = acc
         S[r, r] += R[r]
@@ -134,21 +137,47 @@ def _ekf(j, kind, qv, z, R, cfg, x0, P0, x, P, work):
             K[a, r] = k
             acc += k * nu[r]
         x[a] = xp[a] + acc
-    # Joseph form (I − KH) P⁻ (I − KH)ᵀ + K R Kᵀ
+    # Joseph form (I − KH) P⁻ (I − KH)ᵀ + K R Kᵀ; columns of I − KH from hcols on are those of I
     for a in range(n):
-        for b in range(n):
+        for b in range(hcols):
             acc = 1.0 if a == b else 0.0
             for r in range(4):
                 acc -= K[a, r] * H[r, b]
             IKH[a, b] = acc
-    joseph(IKH, Pp, K, R, n, 4, T, P)
-    if kind == 0:
+    for a in range(n):
+        for b in range(n):
+            acc = 0.0
+            for c in range(hcols):
+                acc += IKH[a, c] * Pp[c, b]
+            T[a, b] = acc + Pp[a, b] if a >= hcols else acc
+    for a in range(n):
+        for b in range(a + 1):
+            acc = 0.0
+            for c in range(hcols):
+                acc += T[a, c] * IKH[b, c]
+            if b >= hcols:
+                acc += T[a, b]
+            for r in range(4):
+                acc += K[a, r] * R[r] * K[b, r]
+            P[a, b] = acc
+            P[b, a] = acc
+    if not ca:
         for a in range(3, 6):
             x[a] = 0.0
             for b in range(6):
                 P[a, b] = 0.0
                 P[b, a] = 0.0
     return -0.5 * maha - 0.5 * (logdet + 4.0 * LOG_2PI)
+
+
+@numba.njit(cache=True)
+def _ekf_model(kind, qv, z, R, cfg, x0, P0, x, P, work):
+    """:func:`_ekf` for a CV (kind 0) or CA (kind 1) model, with the sizes as constants."""
+    if kind == 0:
+        return _ekf(3, 3, qv, z, R, cfg, x0, P0, x, P, work)
+    if cfg[CFG_H] == 0.0:
+        return _ekf(6, 3, qv, z, R, cfg, x0, P0, x, P, work)
+    return _ekf(6, 6, qv, z, R, cfg, x0, P0, x, P, work)
 
 
 @numba.njit(cache=True, inline="always")
@@ -223,7 +252,7 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
         _update_tpm(probs, tpm, M)
     Pi = tpm[0]
     if M == 1:  # a single filter: no mixing, the mode probability stays 1
-        _ekf(0, kinds[0], qvar[0], z, R, cfg, x[0], P[0], x[0], P[0], work)
+        _ekf_model(kinds[0], qvar[0], z, R, cfg, x[0], P[0], x[0], P[0], work)
         for a in range(6):
             est[a] = x[0, a]
         return True
@@ -240,21 +269,23 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
         for i in range(M):
             mix[i, j] /= total
     for j in range(M):
-        for a in range(6):
+        n = 6 if kinds[j] == 1 else 3  # a CV model reads only its ω block
+        for a in range(n):
             acc = 0.0
             for i in range(M):
                 acc += mix[i, j] * x[i, a]
             x0[j, a] = acc
-        for a in range(6):
-            for b in range(6):
+        for a in range(n):
+            for b in range(a + 1):  # P0 is symmetric to the bit: each P is, and the products commute
                 acc = 0.0
                 for i in range(M):
                     acc += mix[i, j] * (P[i, a, b] + (x[i, a] - x0[j, a]) * (x[i, b] - x0[j, b]))
                 P0[j, a, b] = acc
+                P0[j, b, a] = acc
     # filters, log-likelihoods, mode probabilities
     best = -np.inf
     for j in range(M):
-        ell[j] = _ekf(j, kinds[j], qvar[j], z, R, cfg, x0[j], P0[j], x[j], P[j], work)
+        ell[j] = _ekf_model(kinds[j], qvar[j], z, R, cfg, x0[j], P0[j], x[j], P[j], work)
         best = max(best, ell[j])
     if best == -np.inf:  # every filter lost positive definiteness: restart from this Δq
         status[0] = 0
