@@ -8,7 +8,7 @@ from ivc import rotations
 from ivc.predict import FILTERS, PredictorError, make
 from ivc.predict import _quat as Q
 from ivc.predict.delta import delta_q, delta_q_jacobian, deltas, extrapolate, rate_from_delta
-from ivc.predict.dq import PI_MMDQ3, dqekf_cv, mmdq2, mmdq3
+from ivc.predict.dq import PI_MMDQ3, SIGMA_CA, SIGMA_CV1, SIGMA_DQ, DQPredictor, Model, dqekf_cv, mmdq2, mmdq3
 from ivc.predict.motion import head_motion
 
 TAU = 1.0 / 120.0
@@ -111,6 +111,52 @@ def test_streaming_equals_batch_with_gaps(name):
     assert np.nanmax(np.abs(batch - live)) < 1e-9
     assert np.all(np.isnan(batch[100, 0])) and np.all(np.isnan(batch[201, 1]))
     assert np.isfinite(batch[300:]).all()
+
+
+def _dense_dq_ekf(z, qv, ca, h_jacobian):
+    """Textbook EKF on the Δq stream, NumPy matrices: the reference for the compiled kernel's shortcuts."""
+    n = 6 if ca else 3
+    R = np.diag(np.square(SIGMA_DQ))
+    x = np.zeros(n)
+    x[:3] = rate_from_delta(z[0], TAU)
+    P = np.diag([1.0] * 3 + [100.0] * (n - 3))
+    I3 = np.eye(3)
+    if ca:
+        A = np.block([[I3, TAU * I3], [np.zeros((3, 3)), I3]])
+        W = np.vstack([TAU**2 / 2 * I3, TAU * I3])
+    else:
+        A, W = I3, TAU * I3
+    shift = -0.5 * TAU if ca and h_jacobian == "midpoint" else 0.0
+    c = {"standard": 0.0, "thesis": TAU, "midpoint": shift}[h_jacobian]
+    out = [x.copy()]
+    for zk in z[1:]:
+        xp, Pp = A @ x, A @ P @ A.T + W @ np.diag(qv) @ W.T
+        w = xp[:3] + (shift * xp[3:] if ca else 0.0)
+        J = delta_q_jacobian(w, TAU)
+        H = np.hstack([J, c * J]) if ca else J
+        S = H @ Pp @ H.T + R
+        K = Pp @ H.T @ np.linalg.inv(S)
+        x = xp + K @ (zk - delta_q(w, TAU))
+        IKH = np.eye(n) - K @ H
+        P = IKH @ Pp @ IKH.T + K @ R @ K.T
+        out.append(x.copy())
+    return np.array(out)
+
+
+@pytest.mark.parametrize("model, h_jacobian", [("cv", "standard"), ("ca", "standard"), ("ca", "thesis"),
+                                               ("ca", "midpoint")])
+def test_dq_ekf_equals_a_dense_textbook_ekf(model, h_jacobian):
+    """The kernel skips H's zero columns, the identity block of I − KH and half of S: same filter, every variant."""
+    q = head_motion("aggressive", 400, seed=3).measured
+    sigma = SIGMA_CA if model == "ca" else SIGMA_CV1
+    predictor = DQPredictor([Model(model, sigma)], 120.0, h_jacobian=h_jacobian)
+    _, est, usable, _ = predictor.filter(q)
+    assert usable[1:].all() and not usable[0]
+    reference = _dense_dq_ekf(deltas(q), np.square(sigma), model == "ca", h_jacobian)
+    n = reference.shape[1]
+    scale = np.abs(reference).max(axis=0)  # ω in rad/s, α in rad/s²: each relative to its own size
+    np.testing.assert_allclose((est[1:, 0, :n] - reference) / scale, 0.0, atol=1e-9)
+    assert not np.any(est[:, 0, n:])
 
 
 def test_imm_probabilities_and_adaptive_tpm_stay_stochastic():
