@@ -159,6 +159,24 @@ def test_dq_ekf_equals_a_dense_textbook_ekf(model, h_jacobian):
     assert not np.any(est[:, 0, n:])
 
 
+@pytest.mark.parametrize("name", ["dqekf-cv", "mmdq2"])
+def test_a_diverged_filter_restarts_and_recovers(name):
+    """Every model's covariance NaN (a diverged filter): the filter restarts from the next Δq with a fresh P.
+
+    A single DQ-EKF then equals a fresh filter; the IMM keeps its mode probabilities and TPM, so it is close to one.
+    """
+    q = head_motion("moderate", 60, seed=2).measured
+    stream = make(name).stream(1)
+    for k in range(30):
+        stream.update(q[k:k + 1])
+    stream.state[1][:] = np.nan  # P of every model
+    for k in range(30, 34):
+        stream.update(q[k:k + 1])
+    assert stream.ready[0] and np.all(np.isfinite(stream.state[1]))
+    reference = make(name).rates(q[30:34])[-1]  # a fresh filter started from the same Δq
+    np.testing.assert_allclose(stream.omega[0], reference, rtol=1e-12 if name == "dqekf-cv" else 0.1)
+
+
 def test_imm_probabilities_and_adaptive_tpm_stay_stochastic():
     motion = head_motion("full", 3000, seed=5)
     q = motion.measured

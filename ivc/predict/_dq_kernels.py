@@ -238,6 +238,7 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
     if status[0] == 0:
         rate_of(z, tau, est)
         for j in range(M):
+            P[j, :, :] = 0.0  # a restart after divergence must not keep the old off-diagonals
             for a in range(3):
                 x[j, a] = est[a]
                 x[j, a + 3] = 0.0
@@ -252,7 +253,9 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
         _update_tpm(probs, tpm, M)
     Pi = tpm[0]
     if M == 1:  # a single filter: no mixing, the mode probability stays 1
-        _ekf_model(kinds[0], qvar[0], z, R, cfg, x[0], P[0], x[0], P[0], work)
+        if _ekf_model(kinds[0], qvar[0], z, R, cfg, x[0], P[0], x[0], P[0], work) == -np.inf:
+            status[0] = 0  # lost positive definiteness: restart from the next Δq, as the IMM does
+            return False
         for a in range(6):
             est[a] = x[0, a]
         return True
