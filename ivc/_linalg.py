@@ -78,27 +78,34 @@ def cholesky_inverse(L, n, out):
 
 
 @numba.njit(inline="always")
-def congruence(A, P, n, T, out):
-    """out = A P Aᵀ (n x n, symmetric by construction); T is n x n scratch."""
+def congruence(A, P, n, T, out, ncols):
+    """out = A P Aᵀ (n x n, symmetric by construction); T is n x n scratch.
+
+    A's columns from ``ncols`` on must be those of I (pass n for a general A); they are not read,
+    and the products skip them: the terms skipped are exact zeros, so the result is the same to the bit.
+    """
     for a in range(n):
         for b in range(n):
             acc = 0.0
-            for c in range(n):
+            for c in range(ncols):
                 acc += A[a, c] * P[c, b]
-            T[a, b] = acc
+            T[a, b] = acc + P[a, b] if a >= ncols else acc
     for a in range(n):
         for b in range(a + 1):
             acc = 0.0
-            for c in range(n):
+            for c in range(ncols):
                 acc += T[a, c] * A[b, c]
-            out[a, b] = acc
-            out[b, a] = acc
+            out[a, b] = acc + T[a, b] if b >= ncols else acc
+            out[b, a] = out[a, b]
 
 
 @numba.njit(inline="always")
-def joseph(IKH, Pp, K, R, n, m, T, P):
-    """Joseph-form covariance update P = (I − KH) P⁻ (I − KH)ᵀ + K diag(R) Kᵀ; IKH = I − KH (n x n), K n x m."""
-    congruence(IKH, Pp, n, T, P)
+def joseph(IKH, Pp, K, R, n, m, T, P, ncols):
+    """Joseph-form covariance update P = (I − KH) P⁻ (I − KH)ᵀ + K diag(R) Kᵀ; IKH = I − KH (n x n), K n x m.
+
+    H's columns from ``ncols`` on are zero (pass n for a general H), so those of I − KH are I's.
+    """
+    congruence(IKH, Pp, n, T, P, ncols)
     for a in range(n):
         for b in range(a + 1):
             acc = P[a, b]

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc._linalg import cholesky, cholesky_inverse, cholesky_logdet
+from ivc._linalg import cholesky, cholesky_inverse, cholesky_logdet, joseph
 from ivc.predict._quat import delta_q_jacobian, predict_orientation, qmul_conj, rate_of
 
 LOG_2PI = np.log(2.0 * np.pi)
@@ -137,30 +137,14 @@ def _ekf(n, hcols, qv, z, R, cfg, x0, P0, x, P, work):
             K[a, r] = k
             acc += k * nu[r]
         x[a] = xp[a] + acc
-    # Joseph form (I − KH) P⁻ (I − KH)ᵀ + K R Kᵀ; columns of I − KH from hcols on are those of I
+    # I − KH: its columns from hcols on are I's (H's are zero there), left unwritten for the Joseph form
     for a in range(n):
         for b in range(hcols):
             acc = 1.0 if a == b else 0.0
             for r in range(4):
                 acc -= K[a, r] * H[r, b]
             IKH[a, b] = acc
-    for a in range(n):
-        for b in range(n):
-            acc = 0.0
-            for c in range(hcols):
-                acc += IKH[a, c] * Pp[c, b]
-            T[a, b] = acc + Pp[a, b] if a >= hcols else acc
-    for a in range(n):
-        for b in range(a + 1):
-            acc = 0.0
-            for c in range(hcols):
-                acc += T[a, c] * IKH[b, c]
-            if b >= hcols:
-                acc += T[a, b]
-            for r in range(4):
-                acc += K[a, r] * R[r] * K[b, r]
-            P[a, b] = acc
-            P[b, a] = acc
+    joseph(IKH, Pp, K, R, n, 4, T, P, hcols)
     if not ca:
         for a in range(3, 6):
             x[a] = 0.0
@@ -267,7 +251,7 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
         cbar[j] = c
         total = 0.0
         for i in range(M):
-            mix[i, j] = max(Pi[i, j] * mu[i] / c, cfg[CFG_EPS_MIX]) if M > 1 else 1.0
+            mix[i, j] = max(Pi[i, j] * mu[i] / c, cfg[CFG_EPS_MIX])
             total += mix[i, j]
         for i in range(M):
             mix[i, j] /= total
@@ -302,7 +286,7 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
         total += ell[j]
     total2 = 0.0
     for j in range(M):
-        mu[j] = max(ell[j] / total, cfg[CFG_EPS_MU]) if M > 1 else 1.0
+        mu[j] = max(ell[j] / total, cfg[CFG_EPS_MU])
         total2 += mu[j]
     for j in range(M):
         mu[j] /= total2

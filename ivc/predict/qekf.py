@@ -82,7 +82,7 @@ def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
         A[4 + i, 4 + i] = 1.0
         for c in range(3):
             W[4 + i, c] = tau if i == c else 0.0
-    congruence(A, P, 7, T, Pp)
+    congruence(A, P, 7, T, Pp, 7)
     for a in range(7):
         for b in range(a + 1):
             acc = Pp[a, b]
@@ -132,7 +132,7 @@ def quaternion_update(z, xp, Pp, R, n, x, P, S, L, nu, K, IKH, T):
     for a in range(n):
         for b in range(n):
             IKH[a, b] = (1.0 if a == b else 0.0) - (K[a, b] if b < 4 else 0.0)
-    joseph(IKH, Pp, K, R, n, 4, T, P)
+    joseph(IKH, Pp, K, R, n, 4, T, P, n)
     return True
 
 
