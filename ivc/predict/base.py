@@ -74,6 +74,11 @@ def check_stream(q: ArrayLike, valid: ArrayLike | None) -> tuple[FloatArray, NDA
     return q, ok, single
 
 
+def as_given(out: FloatArray, single: bool) -> FloatArray:
+    """``out`` (..., S, k) without its sensor axis when the input stream had none (frames, 4)."""
+    return out[..., 0, :] if single else out
+
+
 def check_horizons(horizons: float | Sequence[float]) -> FloatArray:
     """Horizons (s) as a 1-D array, each in [0, MAX_HORIZON]."""
     h = np.atleast_1d(np.asarray(horizons, dtype=float))

@@ -28,6 +28,7 @@ from ivc.predict.base import (
     Predictor,
     PredictorError,
     Stream,
+    as_given,
     check_horizons,
     check_rate,
     check_stream,
@@ -138,7 +139,7 @@ class DQPredictor(Predictor):
     def rates(self, q, valid=None):
         qs, est, usable, _ = self.filter(q, valid)
         out = np.where(usable[..., None], est[..., :3], np.nan)
-        return out[:, 0] if np.asarray(q).ndim == 2 else out
+        return as_given(out, np.ndim(q) == 2)
 
     def predict(self, q, horizons, valid=None):
         h = check_horizons(horizons)
@@ -146,7 +147,7 @@ class DQPredictor(Predictor):
         has_alpha = bool(np.any(est[..., 3:]))
         out = np.stack([extrapolate(qs, est[..., :3], est[..., 3:] if has_alpha else None, d, self.tau) for d in h])
         out[:, ~usable] = np.nan
-        return out[:, :, 0] if np.asarray(q).ndim == 2 else out
+        return as_given(out, np.ndim(q) == 2)
 
     def stream(self, n_sensors: int = 1) -> DQStream:
         return DQStream(self, n_sensors)

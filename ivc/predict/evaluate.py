@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter1d
 
 from ivc import rotations
-from ivc.predict.base import Predictor, Stream, check_horizons, check_stream
+from ivc.predict.base import Predictor, Stream, as_given, check_horizons, check_stream
 
 FloatArray = NDArray[np.float64]
 
@@ -117,7 +117,7 @@ class NoPrediction(Predictor):
         h = check_horizons(horizons)
         qs, _, single = check_stream(q, valid)  # invalid samples are NaN
         out = np.broadcast_to(qs, (len(h),) + qs.shape).copy()
-        return out[:, :, 0] if single else out
+        return as_given(out, single)
 
     def stream(self, n_sensors=1):
         return LastSample(n_sensors)

@@ -22,7 +22,16 @@ import numpy as np
 from scipy.signal import lfilter, ss2tf
 
 from ivc import rotations
-from ivc.predict.base import FloatArray, Predictor, PredictorError, Stream, check_horizons, check_rate, check_stream
+from ivc.predict.base import (
+    FloatArray,
+    Predictor,
+    PredictorError,
+    Stream,
+    as_given,
+    check_horizons,
+    check_rate,
+    check_stream,
+)
 from ivc.predict.delta import deltas
 from ivc.predict.frequency import kinematic_gain
 
@@ -75,7 +84,7 @@ class LinearPredictor(Predictor):
             out.append(rotations.multiply(rotations.from_rotvec(ahead), qs))
         out = np.stack(out)
         out[:, ~ok] = np.nan
-        return out[:, :, 0] if single else out
+        return as_given(out, single)
 
     def stream(self, n_sensors: int = 1) -> LinearStream:
         return LinearStream(self, n_sensors)

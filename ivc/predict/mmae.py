@@ -31,7 +31,16 @@ import numpy as np
 from scipy.linalg import expm
 
 from ivc import rotations
-from ivc.predict.base import FloatArray, Predictor, PredictorError, Stream, check_horizons, check_rate, check_stream
+from ivc.predict.base import (
+    FloatArray,
+    Predictor,
+    PredictorError,
+    Stream,
+    as_given,
+    check_horizons,
+    check_rate,
+    check_stream,
+)
 
 KINDS = ("cp", "fogmv", "fogma", "phi2")
 LOG_2PI = np.log(2.0 * np.pi)
@@ -260,7 +269,7 @@ class MMAE(Predictor):
         pred = frame_from_axes(out[..., 0, :], out[..., 1, :])
         pred[~ok] = np.nan
         pred = np.moveaxis(pred, 2, 0)
-        return pred[:, :, 0] if single else pred
+        return as_given(pred, single)
 
     def stream(self, n_sensors: int = 1) -> MMAEStream:
         return MMAEStream(self, n_sensors)

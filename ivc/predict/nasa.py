@@ -25,7 +25,7 @@ import numpy as np
 
 from ivc._linalg import congruence
 from ivc.predict._quat import normalise, qmul
-from ivc.predict.base import Predictor, PredictorError, Stream, check_horizons, check_rate, check_stream
+from ivc.predict.base import Predictor, PredictorError, Stream, as_given, check_horizons, check_rate, check_stream
 from ivc.predict.qekf import quaternion_update
 
 #: V_r of the paper: variance of each measured quaternion component
@@ -217,13 +217,13 @@ class NasaEKF(Predictor):
     def rates(self, q, valid=None):
         _, x, usable = self.filter(q, valid)
         out = np.where(usable[..., None], x[..., 4:7], np.nan)
-        return out[:, 0] if np.asarray(q).ndim == 2 else out
+        return as_given(out, np.ndim(q) == 2)
 
     def predict(self, q, horizons, valid=None):
         h = check_horizons(horizons)
         _, x, usable = self.filter(q, valid)
         out = np.stack([extrapolate(x, usable, d) for d in h])
-        return out[:, :, 0] if np.asarray(q).ndim == 2 else out
+        return as_given(out, np.ndim(q) == 2)
 
     def stream(self, n_sensors: int = 1) -> NasaStream:
         return NasaStream(self, n_sensors)

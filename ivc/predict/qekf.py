@@ -16,7 +16,7 @@ import numpy as np
 
 from ivc._linalg import cholesky, cholesky_inverse, congruence, joseph
 from ivc.predict._quat import delta_q_jacobian, normalise, qmul, qmul_conj, rate_of
-from ivc.predict.base import Predictor, PredictorError, Stream, check_horizons, check_rate, check_stream
+from ivc.predict.base import Predictor, PredictorError, Stream, as_given, check_horizons, check_rate, check_stream
 from ivc.predict.delta import extrapolate
 from ivc.predict.dq import SIGMA_CV1
 
@@ -187,7 +187,7 @@ class QEKF(Predictor):
     def rates(self, q, valid=None):
         _, x, usable = self.filter(q, valid)
         out = np.where(usable[..., None], x[..., 4:], np.nan)
-        return out[:, 0] if np.asarray(q).ndim == 2 else out
+        return as_given(out, np.ndim(q) == 2)
 
     def predict(self, q, horizons, valid=None):
         h = check_horizons(horizons)
@@ -195,7 +195,7 @@ class QEKF(Predictor):
         base = x[..., :4] if self.base == "state" else qs
         out = np.stack([extrapolate(base, x[..., 4:], None, d, self.tau) for d in h])
         out[:, ~usable] = np.nan
-        return out[:, :, 0] if np.asarray(q).ndim == 2 else out
+        return as_given(out, np.ndim(q) == 2)
 
     def stream(self, n_sensors: int = 1) -> QStream:
         return QStream(self, n_sensors)
