@@ -21,10 +21,10 @@ def _factor_and_invert(S):
 
 
 @numba.njit(cache=True)
-def _joseph(IKH, Pp, K, R):
+def _joseph(IKH, Pp, K, R, ncols):
     n, m = K.shape
     T, P = np.zeros((n, n)), np.zeros((n, n))
-    la.joseph(IKH, Pp, K, R, n, m, T, P)
+    la.joseph(IKH, Pp, K, R, n, m, T, P, ncols)
     return P
 
 
@@ -46,13 +46,18 @@ def test_cholesky_refuses_indefinite_and_nan():
     assert not _factor_and_invert(np.array([[np.nan]]))[0]
 
 
-def test_joseph_matches_the_textbook_form(rng):
+@pytest.mark.parametrize("ncols", [6, 3])
+def test_joseph_matches_the_textbook_form(rng, ncols):
+    """With H zero from column ncols on, the columns of I − KH there are I's: not read, and skipped exactly."""
     n, m = 6, 4
     A = rng.normal(size=(n, n))
     Pp = A @ A.T
     K = rng.normal(size=(n, m))
     H = rng.normal(size=(m, n))
+    H[:, ncols:] = 0.0
     R = rng.uniform(0.1, 1.0, m)
     IKH = np.eye(n) - K @ H
     expected = IKH @ Pp @ IKH.T + K @ np.diag(R) @ K.T
-    assert np.allclose(_joseph(IKH, Pp, K, R), expected, rtol=1e-12, atol=1e-12)
+    given = IKH.copy()
+    given[:, ncols:] = np.nan  # the identity columns must not be read
+    assert np.allclose(_joseph(given, Pp, K, R, ncols), expected, rtol=1e-12, atol=1e-12)
