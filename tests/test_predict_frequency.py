@@ -5,6 +5,7 @@ import pytest
 from scipy.integrate import quad
 
 from ivc import rotations
+from ivc.predict.base import PredictorError
 from ivc.predict.delta import delta_q
 from ivc.predict.frequency import (
     AB_CASES,
@@ -106,6 +107,32 @@ def test_time_domain_linear_predictor_equals_its_frequency_response(make):
     O = response([f], 1 / rate, predictor.G, predictor.K, predictor.D(p))[0]
     expected = amp * abs(O) * np.sin(2 * np.pi * f * t + np.angle(O))
     assert np.max(np.abs(got[1000:] - expected[1000:])) < 1e-9
+
+
+@pytest.mark.parametrize("order, window", [(1, 2), (1, 5), (2, 3), (2, 12)])
+def test_polynomial_predictor_extrapolates_its_own_order_exactly(order, window):
+    """Yaw that is a polynomial of the predictor's order is predicted exactly, fractional horizons too."""
+    predictor = polynomial(120.0, order, window)
+    t = np.arange(60) / 120.0
+    coefficients = [0.1, 0.8, -2.5][:order + 1]
+    yaw = np.polynomial.polynomial.polyval(t, coefficients)
+    horizon = 0.0437
+    pred = predictor.predict(delta_q(np.outer(yaw, [0.0, 0.0, 1.0]), 1.0), horizon)[0]
+    got = 2 * np.arctan2(pred[:, 3], pred[:, 0])
+    expected = np.polynomial.polynomial.polyval(t + horizon, coefficients)
+    assert np.max(np.abs(got[window:] - expected[window:])) < 1e-11
+
+
+def test_polynomial_window_trades_noise_gain_for_a_longer_fit():
+    """The order-1 default is the backward difference; a longer order-2 fit amplifies white noise less."""
+    T, p = 1 / 120.0, 0.05
+    assert np.allclose(polynomial(120.0, 1).D(p), [1 + p / T, -p / T], atol=1e-12)
+    gains = [np.linalg.norm(polynomial(120.0, 2, w).D(p)) for w in (3, 6, 12, 24)]
+    assert np.all(np.diff(gains) < 0) and gains[0] > 50 and gains[2] < 4
+    assert polynomial(120.0, 2).name == "poly2" and len(polynomial(120.0, 2).K) == 12
+    assert len(polynomial(240.0, 2).K) == 24
+    with pytest.raises(PredictorError, match="window of at least 3"):
+        polynomial(120.0, 2, 2)
 
 
 def test_kinematic_gain_matches_the_notes_example():

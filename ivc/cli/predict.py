@@ -26,7 +26,7 @@ from ivc.session import Session, Step
 
 #: the benchmark's default filters: the thesis's, Kyger's and the linear ones
 BENCHMARK_FILTERS = ("none", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", "mmae", "alpha-beta", "kinematic",
-                     "poly1")
+                     "poly1", "poly2")
 
 
 def parse_horizon(text: str) -> float:
@@ -117,7 +117,7 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
 @click.command()
 @click.argument("input_file", required=False, type=click.Path(dir_okay=False))
 @click.option("--filter", "filters", multiple=True, type=click.Choice(list(FILTERS)),
-              help="Predictor (default mmdq2). With --benchmark: repeat to choose several (default: all but poly2).")
+              help="Predictor (default mmdq2). With --benchmark: repeat to choose several (default: all but nasa-ekf).")
 @click.option("--horizon", default="50ms", show_default=True, help="How far ahead: 50ms, 0.05s, or ms.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), help="Output: session .h5 or .csv, as the input.")
 @click.option("--step", "steps", multiple=True, help="Session input: step(s) to predict (default: all).")
