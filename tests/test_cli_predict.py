@@ -50,6 +50,24 @@ def test_predict_csv_and_session_match_the_library(tmp_path):
     assert bad.exit_code != 0 and "50ms" in bad.output
 
 
+def test_predict_tune_estimates_the_noise_from_the_input(tmp_path):
+    from ivc.predict.tuning import estimate
+
+    step = motion_step(frames=1500)
+    csv_in, csv_out = tmp_path / "head.csv", tmp_path / "ahead.csv"
+    write_csv(step, csv_in)
+    result = CliRunner().invoke(cli, ["predict", str(csv_in), "--filter", "q-ekf", "--tune", "-o", str(csv_out)])
+    assert result.exit_code == 0, result.output
+    assert "Q-EKF sigma_v" in result.output and "λ quartiles" in result.output
+    tuning = estimate(step.quaternion, 120.0)
+    expected = make("q-ekf", 120.0, tuning).predict(step.quaternion, 0.05)[0]
+    assert np.allclose(read_csv(csv_out).quaternion[5:], expected[5:], atol=1e-12)
+    short = tmp_path / "short.csv"
+    write_csv(motion_step(frames=30), short)
+    refused = CliRunner().invoke(cli, ["predict", str(short), "--tune", "-o", str(tmp_path / "s.csv")])
+    assert refused.exit_code != 0 and "gap-free stretch" in refused.output
+
+
 def test_predict_benchmark_prints_the_tables(tmp_path):
     plot = tmp_path / "h.png"
     args = ["predict", "--benchmark", "--frames", "1500", "--motion", "moderate", "--filter", "none",
@@ -61,6 +79,8 @@ def test_predict_benchmark_prints_the_tables(tmp_path):
     data = json.loads(CliRunner().invoke(cli, args[:-2] + ["--json"]).stdout)
     rows = {d["filter"]: d["rows"] for d in data}
     assert rows["dqekf-cv"][6]["mean"] < rows["none"][6]["mean"]
+    tuned = CliRunner().invoke(cli, args[:-2] + ["--tune"])
+    assert tuned.exit_code == 0 and "DQ    sigma_v" in tuned.output and "tuned on the set above" in tuned.output
 
 
 def test_compensators_prints_table1_and_the_designs_it_scored():

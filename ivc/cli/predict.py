@@ -11,7 +11,7 @@ import numpy as np
 from ivc import session as session_io
 from ivc.cli.paths import input_and_output
 from ivc.collect.replay import read_csv, write_csv
-from ivc.predict import FILTERS, make
+from ivc.predict import FILTERS, TUNABLE, Tuning, make
 from ivc.predict.base import MAX_HORIZON
 from ivc.predict.evaluate import (
     error_table,
@@ -22,6 +22,7 @@ from ivc.predict.evaluate import (
     velocity_table,
 )
 from ivc.predict.motion import MOTIONS, head_motion
+from ivc.predict.tuning import estimate
 from ivc.session import Session, Step
 
 #: the benchmark's default filters: the thesis's, Kyger's and the linear ones
@@ -40,21 +41,29 @@ def parse_horizon(text: str) -> float:
     return value
 
 
-def predicted_quaternions(step: Step, name: str, horizon: float, valid: np.ndarray | None = None) -> np.ndarray:
+def predicted_quaternions(step: Step, name: str, horizon: float, valid: np.ndarray | None = None,
+                          tune: bool = False) -> np.ndarray:
     """The step's orientations predicted ``horizon`` s ahead; samples without a prediction (the filter's first
-    frames, invalid samples) keep the measured orientation."""
+    frames, invalid samples) keep the measured orientation. ``tune``: the filter's measurement noise is
+    estimated from the step itself (:mod:`ivc.predict.tuning`)."""
     if step.quaternion is None:
         raise click.UsageError("this input has no orientations (signals only): run `ivc correct` first")
     if not step.sample_rate_hz:
         raise click.UsageError("the input does not give its sample rate; pass --rate HZ")
     ok = step.valid_mask if valid is None else valid & step.valid_mask
-    predicted = make(name, step.sample_rate_hz).predict(step.quaternion, horizon, ok)[0]
+    tuning = None
+    if tune and name in TUNABLE:
+        tuning = estimate(step.quaternion, step.sample_rate_hz, valid=ok)
+        click.echo(tuning.summary())
+    predicted = make(name, step.sample_rate_hz, tuning).predict(step.quaternion, horizon, ok)[0]
     return np.where(np.all(np.isfinite(predicted), axis=-1, keepdims=True), predicted, step.quaternion)
 
 
-def predicted_step(step: Step, name: str, horizon: float) -> Step:
-    attrs = dict(step.attrs, predicted_with=name, prediction_horizon_s=horizon)
-    return Step(step.time, None, step.position, predicted_quaternions(step, name, horizon), step.valid_mask,
+def predicted_step(step: Step, name: str, horizon: float, tune: bool = False) -> Step:
+    attrs = dict(step.attrs, predicted_with=name, prediction_horizon_s=horizon,
+                 tuned_from_input=bool(tune and name in TUNABLE))
+    return Step(step.time, None, step.position, predicted_quaternions(step, name, horizon, tune=tune),
+                step.valid_mask,
                 step.sample_rate_hz, step.sensor_ids, f"{step.description} (orientation predicted by ivc)".strip(),
                 attrs)
 
@@ -87,23 +96,34 @@ def run_compensators(seed: int, evaluations: int, as_json: bool) -> None:
         click.echo(f"  W_r {name:<8}" + " ".join(f"{w:.1e}" for w in W))
 
 
-def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json):
+def tuning_set(frames: int, rate: float, seed: int) -> Tuning:
+    """Tuning from a synthetic composite set like the thesis's (benign, moderate, aggressive, 2 x full range),
+    with seeds of its own so that the benchmark never scores a filter on its tuning data."""
+    sets = ("benign", "moderate", "aggressive", "full", "full")
+    return estimate([head_motion(m, frames, rate, seed=seed + 1000 + i).measured for i, m in enumerate(sets)], rate)
+
+
+def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json, tune=False):
     from tqdm import tqdm
 
     results, runs = [], [(m, f) for m in motions for f in filters]
     recordings = {}
+    tuning = tuning_set(frames, rate, seed) if tune else None
+    if tuning is not None and not as_json:
+        click.echo(tuning.summary() + "\n")
     for motion, name in tqdm(runs, desc="benchmark", unit="run", leave=False):
         if motion not in recordings:
             recordings[motion] = head_motion(motion, frames, rate, seed=seed)
         h = recordings[motion]
         truth = h.truth if reference == "truth" else None
-        results.append(evaluate(make(name, rate), h.measured, rate, motion, truth=truth, omega_true=h.omega))
+        results.append(evaluate(make(name, rate, tuning), h.measured, rate, motion, truth=truth, omega_true=h.omega))
     if as_json:
         click.echo(json.dumps([{"filter": r.name, "motion": r.motion, "horizons_ms": r.horizons_ms.tolist(),
                                 "rows": r.rows, "velocity": r.velocity} for r in results], indent=1))
     else:
         click.echo(f"synthetic head motion, {frames} frames at {rate:g} Hz, seed {seed}; errors against the "
-                   f"{'noiseless truth' if reference == 'truth' else 'time-shifted measurements'}\n")
+                   f"{'noiseless truth' if reference == 'truth' else 'time-shifted measurements'}; measurement "
+                   f"noise {'tuned on the set above' if tune else 'of the thesis (Table 3, eq. 67)'}\n")
         click.echo(overshoot_table(results) + "\n")
         click.echo(error_table(results) + "\n")
         for m in motions:
@@ -133,12 +153,15 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
               help="Benchmark reference: time-shifted measurements (the thesis) or the noiseless truth.")
 @click.option("--plot", type=click.Path(dir_okay=False), help="Benchmark: write the error-vs-horizon PNG here.")
 @click.option("--json", "as_json", is_flag=True, help="Benchmark: print the figures as JSON.")
+@click.option("--tune", is_flag=True, help="Estimate the measurement noise of the seed-001 filters (q-ekf, "
+              "dqekf-*, mmdq*) from the data instead of using the thesis's tracker values: from each input step "
+              "itself, or with --benchmark from a separate synthetic tuning set. Prints the estimates.")
 @click.option("--compensators", is_flag=True, help="Seed 003: optimise the 10-state EKF's process noise by Powell's "
               "method for the twist and hybrid costs on synthetic yaw records, and print Table 1.")
 @click.option("--evaluations", type=int, default=1500, show_default=True,
               help="With --compensators: cost evaluations per design at most.")
 def predict(input_file, filters, horizon, output, steps, rate, force, benchmark, motions, frames, bench_rate, seed,
-            reference, plot, as_json, compensators, evaluations):
+            reference, plot, as_json, tune, compensators, evaluations):
     """Predict the orientations in INPUT_FILE (session .h5 or recording .csv) a horizon ahead.
 
     The output holds, at each frame's time stamp, the orientation predicted for time +
@@ -156,7 +179,7 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
         if frames < 1000:
             raise click.BadParameter("use at least 1000 frames", param_hint="--frames")
         run_benchmark(list(motions) or list(MOTIONS), list(filters) or list(BENCHMARK_FILTERS), frames,
-                      float(bench_rate), seed, reference, plot, as_json)
+                      float(bench_rate), seed, reference, plot, as_json, tune)
         return
     if input_file is None or output is None:
         raise click.UsageError("give INPUT_FILE and -o OUTPUT (or --benchmark)")
@@ -169,7 +192,7 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
         if output_path.suffix.lower() != ".csv":
             raise click.UsageError("a CSV input is predicted into a CSV output (-o FILE.csv)")
         step = read_csv(input_path, rate)
-        out = predicted_step(step, name, delta)
+        out = predicted_step(step, name, delta, tune)
         with session_io.atomic_path(output_path) as tmp:
             write_csv(out, tmp)
         click.echo(f"{input_path.name}: {step.n_frames} frames x {step.n_sensors} sensors predicted "
@@ -186,7 +209,7 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
         step = data.steps[n]
         if rate and not step.sample_rate_hz:
             step.sample_rate_hz = rate
-        out_steps[n] = predicted_step(step, name, delta)
+        out_steps[n] = predicted_step(step, name, delta, tune)
         click.echo(f"{n}: {step.n_frames} frames x {step.n_sensors} sensors predicted {delta * 1e3:g} ms ahead")
     predicted = Session(data.hemisphere, out_steps, {n: data.truth[n] for n in names if n in data.truth},
                         dict(data.attrs, predicted_with=name, prediction_horizon_s=delta))

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
+
 from ivc.predict.base import Predictor, PredictorError, Stream
 from ivc.predict.dq import DQPredictor, dqekf_ca, dqekf_cv, mmdq2, mmdq3
 from ivc.predict.evaluate import NoPrediction
@@ -17,6 +19,7 @@ from ivc.predict.linear import LinearPredictor, alpha_beta, kinematic, polynomia
 from ivc.predict.mmae import MMAE
 from ivc.predict.nasa import NasaEKF
 from ivc.predict.qekf import QEKF
+from ivc.predict.tuning import Tuning
 
 #: name -> factory(rate_hz) of every orientation predictor
 FILTERS: dict[str, Callable[[float], Predictor]] = {
@@ -35,12 +38,28 @@ FILTERS: dict[str, Callable[[float], Predictor]] = {
 }
 
 
-def make(name: str, rate_hz: float = 120.0) -> Predictor:
-    """The predictor called ``name`` (see :data:`FILTERS`) for a stream at ``rate_hz``."""
+#: the predictors whose measurement noise :func:`ivc.predict.tuning.estimate` re-derives (seed 001's)
+TUNABLE = ("q-ekf", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3")
+
+
+def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Predictor:
+    """The predictor called ``name`` (see :data:`FILTERS`) for a stream at ``rate_hz``.
+
+    With ``tuning``, the filters of :data:`TUNABLE` take their measurement noise from it instead
+    of the thesis's tracker (Table 3, eq. 67); the other filters have no such noise model and
+    are made as without it.
+    """
     if name not in FILTERS:
         raise PredictorError(f"unknown filter {name!r}; choose one of {', '.join(FILTERS)}")
-    return FILTERS[name](rate_hz)
+    if tuning is None or name not in TUNABLE:
+        return FILTERS[name](rate_hz)
+    if not np.isclose(tuning.rate_hz, rate_hz, rtol=1e-9):
+        raise PredictorError(f"the tuning is for {tuning.rate_hz:g} Hz, the stream is at {rate_hz:g} Hz: "
+                             "tune from a recording at the stream's rate")
+    if name == "q-ekf":
+        return QEKF(rate_hz, sigma_v=tuple(tuning.sigma_q))
+    return FILTERS[name](rate_hz, sigma_v=tuple(tuning.sigma_dq))
 
 
 __all__ = ["DQPredictor", "ExtendedKalmanFilter", "FILTERS", "KalmanFilter", "LinearPredictor", "MMAE",
-           "NasaEKF", "NoPrediction", "Predictor", "PredictorError", "QEKF", "Stream", "make"]
+           "NasaEKF", "NoPrediction", "Predictor", "PredictorError", "QEKF", "Stream", "TUNABLE", "Tuning", "make"]
