@@ -32,7 +32,9 @@ FloatArray = NDArray[np.float64]
 
 MOTIONS = ("benign", "moderate", "aggressive", "full")
 AXIS_WEIGHTS = np.array([1.0, 0.6, 0.3])
-#: white rotation noise per axis (rad): √2 x the Δq noise of eq. 67 (notes §13.3)
+#: white rotation noise per axis (rad), in the range of notes §13.3 (0.9e-4 to 3.1e-4). The Δq noise it
+#: gives is σ/√2 per axis, [1.56e-4, 6.4e-5, 6.4e-5]: Table 3's DQ values on the 2nd and 3rd axes, 0.71 x
+#: eq. 67's on all three (√2 x eq. 67, the top of the range, would match eq. 67 itself)
 NOISE_RAD = (2.2e-4, 0.9e-4, 0.9e-4)
 #: slow error per unit angular speed (rad per rad/s), AR(1) with φ = 0.99
 DYNAMIC_ERROR = 2e-4
