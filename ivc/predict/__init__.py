@@ -28,18 +28,20 @@ FILTERS: dict[str, Callable[[float], Predictor]] = {
     "dqekf-ca": dqekf_ca,
     "mmdq2": mmdq2,
     "mmdq3": mmdq3,
-    "q-ekf": lambda rate_hz=120.0: QEKF(rate_hz),
-    "mmae": lambda rate_hz=120.0: MMAE(rate_hz),
+    "q-ekf": QEKF,
+    "mmae": MMAE,
     "poly1": lambda rate_hz=120.0: polynomial(rate_hz, 1),
     "poly2": lambda rate_hz=120.0: polynomial(rate_hz, 2),
     "alpha-beta": alpha_beta,
     "kinematic": kinematic,
-    "nasa-ekf": lambda rate_hz=120.0: NasaEKF(rate_hz),
+    "nasa-ekf": NasaEKF,
 }
 
 
-#: the predictors whose measurement noise :func:`ivc.predict.tuning.estimate` re-derives (seed 001's)
-TUNABLE = ("q-ekf", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3")
+#: the predictors whose measurement noise :func:`ivc.predict.tuning.estimate` re-derives (seed 001's),
+#: each with the :class:`Tuning` attribute that holds it (passed as the predictor's ``sigma_v``)
+TUNABLE = {"q-ekf": "sigma_q", "dqekf-cv": "sigma_dq", "dqekf-ca": "sigma_dq", "mmdq2": "sigma_dq",
+           "mmdq3": "sigma_dq"}
 
 
 def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Predictor:
@@ -56,9 +58,7 @@ def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Pre
     if not np.isclose(tuning.rate_hz, rate_hz, rtol=1e-9):
         raise PredictorError(f"the tuning is for {tuning.rate_hz:g} Hz, the stream is at {rate_hz:g} Hz: "
                              "tune from a recording at the stream's rate")
-    if name == "q-ekf":
-        return QEKF(rate_hz, sigma_v=tuple(tuning.sigma_q))
-    return FILTERS[name](rate_hz, sigma_v=tuple(tuning.sigma_dq))
+    return FILTERS[name](rate_hz, sigma_v=tuple(getattr(tuning, TUNABLE[name])))
 
 
 __all__ = ["DQPredictor", "ExtendedKalmanFilter", "FILTERS", "KalmanFilter", "LinearPredictor", "MMAE",
