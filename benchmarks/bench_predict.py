@@ -27,7 +27,7 @@ from ivc.predict.delta import delta_q, delta_q_jacobian, deltas
 from ivc.predict.dq import SIGMA_CA1, SIGMA_CA2, SIGMA_CV1, SIGMA_DQ, dqekf_cv, mmdq2, mmdq3
 from ivc.predict.evaluate import NoPrediction, evaluate
 from ivc.predict.motion import head_motion
-from ivc.predict.tuning import estimate
+from ivc.predict.tuning import synthetic
 
 TAU = 1.0 / 120.0
 COMPARED = ("dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", "mmae", "alpha-beta", "kinematic", "poly1", "poly2")
@@ -147,8 +147,7 @@ def run() -> list[Figure]:
     # Accuracy, twice: with the thesis's tuning (the filters' defaults: Table 3 and eq. 67 R, Table 10 σ_w),
     # and with the seed-001 filters' measurement noise estimated by the thesis's own procedure (notes §9.1)
     # from a separate synthetic composite set (ivc.predict.tuning; never the evaluation data).
-    tuning = estimate([head_motion(m, 20_000, seed=1000 + i).measured
-                       for i, m in enumerate(("benign", "moderate", "aggressive", "full", "full"))])
+    tuning = synthetic(20_000, 120.0, seed=0)
     errors = {}
     for name in ("moderate", "aggressive"):
         h = head_motion(name, 20_000, seed=1)

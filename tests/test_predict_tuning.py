@@ -7,7 +7,7 @@ from ivc.predict import PredictorError, make
 from ivc.predict.dq import SIGMA_CA, SIGMA_CV1, SIGMA_DQ
 from ivc.predict.evaluate import evaluate
 from ivc.predict.motion import head_motion
-from ivc.predict.tuning import Tuning, estimate
+from ivc.predict.tuning import EDGES_MMDQ2, EDGES_MMDQ3, Tuning, estimate
 
 WHITE = 1e-4  # rad per axis
 
@@ -38,7 +38,7 @@ def test_lambda_orders_the_motions_and_the_transition_matrix_is_stochastic(recor
     assert medians["benign"] < medians["moderate"] < medians["aggressive"]
     assert medians["aggressive"] > 0.5 > 0.2 > medians["benign"]
     t = estimate(list(h.measured for h in recordings.values()))
-    for edges in ((0.75,), (0.75, 1.0)):
+    for edges in (EDGES_MMDQ2, EDGES_MMDQ3):
         Pi = t.transition(edges)
         assert Pi.shape == (len(edges) + 1,) * 2 and np.allclose(Pi.sum(axis=1), 1.0) and np.all(Pi > 0)
         assert np.all(np.diag(Pi) > 0.5)  # labels persist from frame to frame

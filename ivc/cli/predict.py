@@ -11,7 +11,7 @@ import numpy as np
 from ivc import session as session_io
 from ivc.cli.paths import input_and_output
 from ivc.collect.replay import read_csv, write_csv
-from ivc.predict import FILTERS, TUNABLE, Tuning, make
+from ivc.predict import FILTERS, TUNABLE, make
 from ivc.predict.base import MAX_HORIZON
 from ivc.predict.evaluate import (
     error_table,
@@ -22,7 +22,7 @@ from ivc.predict.evaluate import (
     velocity_table,
 )
 from ivc.predict.motion import MOTIONS, head_motion
-from ivc.predict.tuning import estimate
+from ivc.predict.tuning import estimate, synthetic
 from ivc.session import Session, Step
 
 #: the benchmark's default filters: the thesis's, Kyger's and the linear ones
@@ -70,9 +70,6 @@ def predicted_step(step: Step, name: str, horizon: float, tune: bool = False) ->
 
 def run_compensators(seed: int, evaluations: int, as_json: bool) -> None:
     """Seed 003's designs (default, twist, hybrid) on synthetic 20 s yaw records; Table 1."""
-    import json
-
-    import numpy as np
     from tqdm import tqdm
 
     from ivc.predict import compensator
@@ -96,19 +93,12 @@ def run_compensators(seed: int, evaluations: int, as_json: bool) -> None:
         click.echo(f"  W_r {name:<8}" + " ".join(f"{w:.1e}" for w in W))
 
 
-def tuning_set(frames: int, rate: float, seed: int) -> Tuning:
-    """Tuning from a synthetic composite set like the thesis's (benign, moderate, aggressive, 2 x full range),
-    with seeds of its own so that the benchmark never scores a filter on its tuning data."""
-    sets = ("benign", "moderate", "aggressive", "full", "full")
-    return estimate([head_motion(m, frames, rate, seed=seed + 1000 + i).measured for i, m in enumerate(sets)], rate)
-
-
 def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json, tune=False):
     from tqdm import tqdm
 
     results, runs = [], [(m, f) for m in motions for f in filters]
     recordings = {}
-    tuning = tuning_set(frames, rate, seed) if tune else None
+    tuning = synthetic(frames, rate, seed) if tune else None
     if tuning is not None and not as_json:
         click.echo(tuning.summary() + "\n")
     for motion, name in tqdm(runs, desc="benchmark", unit="run", leave=False):
