@@ -55,26 +55,46 @@ def cholesky_solve(L, n, b, x):
 
 
 @numba.njit(inline="always")
-def cholesky_inverse(L, n, out):
-    """out = S⁻¹ (n x n, symmetric) from the Cholesky factor L of S: one reciprocal per row, no solves."""
-    # out's lower triangle first holds M = L⁻¹ (forward substitution on the columns of I)
-    for j in range(n):
-        out[j, j] = 1.0 / L[j, j]
-        for i in range(j + 1, n):
-            acc = 0.0
-            for k in range(j, i):
-                acc -= L[i, k] * out[k, j]
-            out[i, j] = acc / L[i, i]
-    # S⁻¹ = Mᵀ M, built from the top row down so each M entry is read before it is overwritten
-    for i in range(n):
-        for j in range(i, n):
-            acc = 0.0
-            for k in range(j, n):
-                acc += out[k, i] * out[k, j]
-            out[i, j] = acc
-    for i in range(n):
-        for j in range(i):
-            out[i, j] = out[j, i]
+def factored_update(L, PHt, nu, xp, Pp, n, m, U, w, x, P):
+    """Kalman update with the optimal gain through the Cholesky factor L of S = H P⁻ Hᵀ + R (m x m).
+
+    With U = P⁻Hᵀ L⁻ᵀ (n x m) and w = L⁻¹ ν: K = U L⁻¹, x = x⁻ + U w and
+    P = P⁻ − K S Kᵀ = P⁻ − U Uᵀ, symmetric by construction, for a quarter of the Joseph form's
+    products. Returns νᵀ S⁻¹ ν = wᵀ w, or −1 (x and P untouched) when a posterior variance
+    is not positive (the subtraction lost it to rounding). x and P may be xp and Pp, and w may be
+    nu (the forward substitution reads each ν entry before it writes the same entry of w).
+    """
+    maha = 0.0
+    for r in range(m):
+        acc = nu[r]
+        for c in range(r):
+            acc -= L[r, c] * w[c]
+        w[r] = acc / L[r, r]
+        maha += w[r] * w[r]
+    for a in range(n):
+        for r in range(m):
+            acc = PHt[a, r]
+            for c in range(r):
+                acc -= L[r, c] * U[a, c]
+            U[a, r] = acc / L[r, r]
+        acc = Pp[a, a]
+        for r in range(m):
+            acc -= U[a, r] * U[a, r]
+        if not acc > 0.0:
+            return -1.0
+    for a in range(n):
+        acc = xp[a]
+        for r in range(m):
+            acc += U[a, r] * w[r]
+        x[a] = acc
+    for a in range(n):
+        for b in range(a + 1):
+            acc = Pp[a, b]
+            for r in range(m):
+                acc -= U[a, r] * U[b, r]
+            P[a, b] = acc
+            P[b, a] = acc
+    return maha
 
 
 @numba.njit(inline="always")
@@ -97,19 +117,3 @@ def congruence(A, P, n, T, out, ncols):
                 acc += T[a, c] * A[b, c]
             out[a, b] = acc + T[a, b] if b >= ncols else acc
             out[b, a] = out[a, b]
-
-
-@numba.njit(inline="always")
-def joseph(IKH, Pp, K, R, n, m, T, P, ncols):
-    """Joseph-form covariance update P = (I − KH) P⁻ (I − KH)ᵀ + K diag(R) Kᵀ; IKH = I − KH (n x n), K n x m.
-
-    H's columns from ``ncols`` on are zero (pass n for a general H), so those of I − KH are I's.
-    """
-    congruence(IKH, Pp, n, T, P, ncols)
-    for a in range(n):
-        for b in range(a + 1):
-            acc = P[a, b]
-            for r in range(m):
-                acc += K[a, r] * R[r] * K[b, r]
-            P[a, b] = acc
-            P[b, a] = acc

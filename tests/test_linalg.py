@@ -8,56 +8,66 @@ from ivc import _linalg as la
 
 
 @numba.njit(cache=True)
-def _factor_and_invert(S):
+def _factor_and_solve(S):
     n = S.shape[0]
     L = np.zeros((n, n))
     ok = la.cholesky(S, n, L)
-    inv = np.zeros((n, n))
     x = np.zeros(n)
     if ok:
-        la.cholesky_inverse(L, n, inv)
         la.cholesky_solve(L, n, np.ones(n), x)
-    return ok, L, inv, x, la.cholesky_logdet(L, n) if ok else 0.0
+    return ok, L, x, la.cholesky_logdet(L, n) if ok else 0.0
 
 
 @numba.njit(cache=True)
-def _joseph(IKH, Pp, K, R, ncols):
-    n, m = K.shape
-    T, P = np.zeros((n, n)), np.zeros((n, n))
-    la.joseph(IKH, Pp, K, R, n, m, T, P, ncols)
-    return P
+def _update(L, PHt, nu, xp, Pp, in_place):
+    n, m = PHt.shape
+    U = np.zeros((n, m))
+    if in_place:  # x, P over xp, Pp and w over nu, as the filters call it
+        maha = la.factored_update(L, PHt, nu, xp, Pp, n, m, U, nu, xp, Pp)
+        return maha, xp, Pp
+    x, P, w = np.full(n, np.nan), np.full((n, n), np.nan), np.zeros(m)
+    maha = la.factored_update(L, PHt, nu, xp, Pp, n, m, U, w, x, P)
+    return maha, x, P
 
 
 @pytest.mark.parametrize("n", [1, 3, 4, 6, 7])
-def test_cholesky_inverse_solve_and_logdet_match_numpy(rng, n):
+def test_cholesky_solve_and_logdet_match_numpy(rng, n):
     A = rng.normal(size=(n, n))
     S = A @ A.T + 0.1 * np.eye(n)
-    ok, L, inv, x, logdet = _factor_and_invert(S)
+    ok, L, x, logdet = _factor_and_solve(S)
     assert ok
     assert np.allclose(L, np.linalg.cholesky(S), atol=1e-12)
-    assert np.allclose(inv, np.linalg.inv(S), rtol=1e-9, atol=1e-9)
-    assert np.array_equal(inv, inv.T)
     assert np.allclose(x, np.linalg.solve(S, np.ones(n)), rtol=1e-9, atol=1e-9)
     assert logdet == pytest.approx(np.linalg.slogdet(S)[1], abs=1e-10)
 
 
 def test_cholesky_refuses_indefinite_and_nan():
-    assert not _factor_and_invert(np.diag([1.0, -1.0, 2.0]))[0]
-    assert not _factor_and_invert(np.array([[np.nan]]))[0]
+    assert not _factor_and_solve(np.diag([1.0, -1.0, 2.0]))[0]
+    assert not _factor_and_solve(np.array([[np.nan]]))[0]
 
 
-@pytest.mark.parametrize("ncols", [6, 3])
-def test_joseph_matches_the_textbook_form(rng, ncols):
-    """With H zero from column ncols on, the columns of I − KH there are I's: not read, and skipped exactly."""
-    n, m = 6, 4
+@pytest.mark.parametrize("in_place", [False, True])
+@pytest.mark.parametrize("n, m", [(3, 4), (6, 4), (7, 4), (2, 1)])
+def test_factored_update_is_the_textbook_kalman_update(rng, n, m, in_place):
+    """x⁻ + Kν and the Joseph form with the optimal gain K = P⁻Hᵀ S⁻¹, and νᵀS⁻¹ν."""
     A = rng.normal(size=(n, n))
-    Pp = A @ A.T
-    K = rng.normal(size=(n, m))
+    Pp = A @ A.T + 0.1 * np.eye(n)
     H = rng.normal(size=(m, n))
-    H[:, ncols:] = 0.0
     R = rng.uniform(0.1, 1.0, m)
+    xp, nu = rng.normal(size=n), rng.normal(size=m)
+    S = H @ Pp @ H.T + np.diag(R)
+    K = Pp @ H.T @ np.linalg.inv(S)
     IKH = np.eye(n) - K @ H
-    expected = IKH @ Pp @ IKH.T + K @ np.diag(R) @ K.T
-    given = IKH.copy()
-    given[:, ncols:] = np.nan  # the identity columns must not be read
-    assert np.allclose(_joseph(given, Pp, K, R, ncols), expected, rtol=1e-12, atol=1e-12)
+    maha, x, P = _update(np.linalg.cholesky(S), Pp @ H.T, nu.copy(), xp.copy(), Pp.copy(), in_place)
+    assert maha == pytest.approx(nu @ np.linalg.solve(S, nu), rel=1e-10)
+    assert np.allclose(x, xp + K @ nu, rtol=1e-10, atol=1e-12)
+    assert np.allclose(P, IKH @ Pp @ IKH.T + K @ np.diag(R) @ K.T, rtol=1e-9, atol=1e-12)
+    assert np.array_equal(P, P.T)
+
+
+def test_factored_update_refuses_a_posterior_that_is_not_positive():
+    """P⁻Hᵀ inconsistent with P⁻ (a corrupted state): the subtraction would leave a negative variance."""
+    Pp = np.diag([1e-6, 1.0])
+    PHt = np.array([[1.0], [0.0]])
+    maha, x, P = _update(np.array([[1.0]]), PHt, np.array([0.5]), np.zeros(2), Pp, False)
+    assert maha == -1.0 and np.all(np.isnan(x)) and np.all(np.isnan(P))

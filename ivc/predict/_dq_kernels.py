@@ -20,7 +20,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc._linalg import cholesky, cholesky_inverse, cholesky_logdet, joseph
+from ivc._linalg import cholesky, cholesky_logdet, factored_update
 from ivc.predict._quat import delta_q_jacobian, predict_orientation, qmul_conj, rate_of
 
 LOG_2PI = np.log(2.0 * np.pi)
@@ -31,11 +31,14 @@ CFG_TAU, CFG_EPS_MIX, CFG_EPS_MU, CFG_ADAPTIVE, CFG_WEIGHTS, CFG_H, CFG_P0W, CFG
 
 @numba.njit(cache=True)
 def make_work(n_models):
-    """Scratch arrays for one sensor's step (allocated once per sensor in batch runs)."""
+    """Scratch arrays for one sensor's step (allocated once per sensor in batch runs).
+
+    (x0, P0, mix, ell, cbar, z) for the mixing, then the EKF's vectors (4, 6) and matrices (7, 6, 6):
+    the EKF takes its scratch as two arrays because each array argument of a compiled call is
+    passed as several machine words, and 11 of them cost more than the call's arithmetic.
+    """
     return (np.empty((n_models, 6)), np.empty((n_models, 6, 6)), np.empty((n_models, n_models)),
-            np.empty(6), np.empty((6, 6)), np.empty((4, 3)), np.empty((4, 6)), np.empty((6, 4)),
-            np.empty((4, 4)), np.empty((4, 4)), np.empty(4), np.empty(4), np.empty(4), np.empty((6, 4)),
-            np.empty((6, 6)), np.empty((6, 6)), np.empty(n_models), np.empty(n_models), np.empty(4))
+            np.empty(n_models), np.empty(n_models), np.empty(4), np.empty((4, 6)), np.empty((7, 6, 6)))
 
 
 @numba.njit(cache=True)
@@ -54,15 +57,16 @@ def reset(x, P, probs, tpm, q_prev, status, est, mu0, Pi0):
 
 
 @numba.njit(cache=True, inline="always")
-def _ekf(n, hcols, qv, z, R, cfg, x0, P0, x, P, work):
+def _ekf(n, hcols, qv, z, R, cfg, x0, P0, x, P, vecs, mats):
     """One EKF predict+update from the mixed (x0, P0) into (x, P); returns the log-likelihood of z.
 
     n = 3 (CV) or 6 (CA) states; H = [J, cJ] has hcols = 6 non-zero columns, or 3 when c = 0
     (CV, and CA with the standard H). Both are compile-time constants at each call site, so the
-    loops unroll, and the products skip H's zero columns and the identity block of I − KH:
-    the terms skipped are exact zeros, so the result is the same to the bit.
+    loops unroll, and the products skip H's zero columns (exact zeros: the same result to the bit).
+    The covariance update is P⁻ − K S Kᵀ through the Cholesky factor of S (:func:`factored_update`).
     """
-    (_, _, _, xp, Pp, J, H, PHt, S, L, h, nu, y, K, IKH, T, _, _, _) = work
+    xp, h, nu, w = vecs[0], vecs[1], vecs[2], vecs[3]
+    Pp, J, H, PHt, S, L, U = mats[0], mats[1], mats[2], mats[3], mats[4], mats[5], mats[6]
     tau = cfg[CFG_TAU]
     ca = n == 6
     for a in range(n):
@@ -118,50 +122,26 @@ def _ekf(n, hcols, qv, z, R, cfg, x0, P0, x, P, work):
         nu[r] = z[r] - h[r]
     if not cholesky(S, 4, L):
         return -np.inf
-    logdet = cholesky_logdet(L, 4)
-    cholesky_inverse(L, 4, S)
-    maha = 0.0
-    for r in range(4):
-        acc = 0.0
-        for c in range(4):
-            acc += S[r, c] * nu[c]
-        y[r] = acc
-        maha += nu[r] * acc
-    # K = P⁻Hᵀ S⁻¹
-    for a in range(n):
-        acc = 0.0
-        for r in range(4):
-            k = 0.0
-            for c in range(4):
-                k += PHt[a, c] * S[c, r]
-            K[a, r] = k
-            acc += k * nu[r]
-        x[a] = xp[a] + acc
-    # I − KH: its columns from hcols on are I's (H's are zero there), left unwritten for the Joseph form
-    for a in range(n):
-        for b in range(hcols):
-            acc = 1.0 if a == b else 0.0
-            for r in range(4):
-                acc -= K[a, r] * H[r, b]
-            IKH[a, b] = acc
-    joseph(IKH, Pp, K, R, n, 4, T, P, hcols)
+    maha = factored_update(L, PHt, nu, xp, Pp, n, 4, U, w, x, P)
+    if maha < 0.0:
+        return -np.inf
     if not ca:
         for a in range(3, 6):
             x[a] = 0.0
             for b in range(6):
                 P[a, b] = 0.0
                 P[b, a] = 0.0
-    return -0.5 * maha - 0.5 * (logdet + 4.0 * LOG_2PI)
+    return -0.5 * maha - 0.5 * (cholesky_logdet(L, 4) + 4.0 * LOG_2PI)
 
 
-@numba.njit(cache=True)
-def _ekf_model(kind, qv, z, R, cfg, x0, P0, x, P, work):
+@numba.njit(cache=True, _nrt=False)
+def _ekf_model(kind, qv, z, R, cfg, x0, P0, x, P, vecs, mats):
     """:func:`_ekf` for a CV (kind 0) or CA (kind 1) model, with the sizes as constants."""
     if kind == 0:
-        return _ekf(3, 3, qv, z, R, cfg, x0, P0, x, P, work)
+        return _ekf(3, 3, qv, z, R, cfg, x0, P0, x, P, vecs, mats)
     if cfg[CFG_H] == 0.0:
-        return _ekf(6, 3, qv, z, R, cfg, x0, P0, x, P, work)
-    return _ekf(6, 6, qv, z, R, cfg, x0, P0, x, P, work)
+        return _ekf(6, 3, qv, z, R, cfg, x0, P0, x, P, vecs, mats)
+    return _ekf(6, 6, qv, z, R, cfg, x0, P0, x, P, vecs, mats)
 
 
 @numba.njit(cache=True, inline="always")
@@ -204,7 +184,7 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
     """
     M = kinds.shape[0]
     tau = cfg[CFG_TAU]
-    (x0, P0, mix, _, _, _, _, _, _, _, _, _, _, _, _, _, ell, cbar, z) = work
+    x0, P0, mix, ell, cbar, z, vecs, mats = work
     if not ok:
         status[1] = 0
         return status[0] == 1
@@ -237,7 +217,7 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
         _update_tpm(probs, tpm, M)
     Pi = tpm[0]
     if M == 1:  # a single filter: no mixing, the mode probability stays 1
-        if _ekf_model(kinds[0], qvar[0], z, R, cfg, x[0], P[0], x[0], P[0], work) == -np.inf:
+        if _ekf_model(kinds[0], qvar[0], z, R, cfg, x[0], P[0], x[0], P[0], vecs, mats) == -np.inf:
             status[0] = 0  # lost positive definiteness: restart from the next Δq, as the IMM does
             return False
         for a in range(6):
@@ -272,7 +252,7 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
     # filters, log-likelihoods, mode probabilities
     best = -np.inf
     for j in range(M):
-        ell[j] = _ekf_model(kinds[j], qvar[j], z, R, cfg, x0[j], P0[j], x[j], P[j], work)
+        ell[j] = _ekf_model(kinds[j], qvar[j], z, R, cfg, x0[j], P0[j], x[j], P[j], vecs, mats)
         best = max(best, ell[j])
     if best == -np.inf:  # every filter lost positive definiteness: restart from this Δq
         status[0] = 0

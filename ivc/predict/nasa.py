@@ -111,14 +111,13 @@ def advance(q, w, a, t, out, dq):
 @numba.njit(cache=True)
 def _work():
     return (np.empty(4), np.empty(4), np.empty((N, N)), np.empty((N, N)), np.empty((N, N)), np.empty((N, N)),
-            np.empty((N, N)), np.empty((4, 4)), np.empty((4, 4)), np.empty(4), np.empty((N, 4)), np.empty((N, N)),
-            np.empty(N))
+            np.empty((N, N)), np.empty((4, 4)), np.empty((4, 4)), np.empty(4), np.empty((N, 4)), np.empty(N))
 
 
 @numba.njit(cache=True)
 def _step(z_in, ok, x, P, status, W, V, h, p0, work):
     """One EKF cycle for one sensor; status = [initialised, have_prev]; returns whether x is an estimate."""
-    z, dq, F, Phi, term, tmp, Pp, S, L, nu, K, IKH, xp = work
+    z, dq, F, Phi, term, tmp, Pp, S, L, nu, U, xp = work
     if not ok:
         status[1] = 0
         return status[0] == 1
@@ -150,7 +149,7 @@ def _step(z_in, ok, x, P, status, W, V, h, p0, work):
     congruence(Phi, P, N, tmp, Pp, N)
     for a in range(N):
         Pp[a, a] += W[a]
-    if not quaternion_update(z, xp, Pp, V, N, x, P, S, L, nu, K, IKH, tmp):
+    if not quaternion_update(z, xp, Pp, V, N, x, P, S, L, nu, U):
         status[0] = 0
         return False
     return True

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from ivc._linalg import cholesky, cholesky_inverse, congruence, joseph
+from ivc._linalg import cholesky, congruence, factored_update
 from ivc.predict._quat import delta_q_jacobian, normalise, qmul, qmul_conj, rate_of
 from ivc.predict.base import Predictor, PredictorError, Stream, as_given, check_horizons, check_rate, check_stream
 from ivc.predict.delta import extrapolate
@@ -27,7 +27,7 @@ R_QUATERNION = (2.55e-07, 4.67e-07, 4.10e-07, 3.28e-07)
 @numba.njit(cache=True)
 def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
     """One Q-EKF cycle for one sensor; x = [q(4), ω(3)], status = [initialised, have_prev]."""
-    z, dq, J, RJ, A, W, T, Pp, S, L, nu, xp, K, IKH, Rq = work
+    z, dq, J, RJ, A, W, T, Pp, S, L, nu, xp, U, Rq = work
     if not ok:
         status[1] = 0
         return status[0] == 1
@@ -93,7 +93,7 @@ def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
     qmul(dq, q, xp[:4])
     for i in range(4, 7):
         xp[i] = x[i]
-    if not quaternion_update(z, xp, Pp, R, 7, x, P, S, L, nu, K, IKH, T):
+    if not quaternion_update(z, xp, Pp, R, 7, x, P, S, L, nu, U):
         status[0] = 0
         status[1] = 0
         return False
@@ -101,11 +101,11 @@ def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
 
 
 @numba.njit(cache=True)
-def quaternion_update(z, xp, Pp, R, n, x, P, S, L, nu, K, IKH, T):
+def quaternion_update(z, xp, Pp, R, n, x, P, S, L, nu, U):
     """EKF update of an n-state filter whose first 4 states are the orientation, measured directly
     (z (4,), H = [I₄ 0], variances R (4,)): z's sign is aligned with the predicted xp[:4] (q ≡ −q),
-    x = xp + K ν with q̂ renormalised, P by the Joseph form from Pp. False (x, P untouched) when
-    the innovation covariance is not positive definite."""
+    x = xp + K ν with q̂ renormalised, P = P⁻ − K S Kᵀ (:func:`ivc._linalg.factored_update`).
+    False (x, P untouched) when the innovation covariance, or the posterior, is not positive definite."""
     if z[0] * xp[0] + z[1] * xp[1] + z[2] * xp[2] + z[3] * xp[3] < 0.0:
         for i in range(4):
             z[i] = -z[i]
@@ -116,23 +116,10 @@ def quaternion_update(z, xp, Pp, R, n, x, P, S, L, nu, K, IKH, T):
         nu[r] = z[r] - xp[r]
     if not cholesky(S, 4, L):
         return False
-    cholesky_inverse(L, 4, S)
-    for a in range(n):  # K = P⁻Hᵀ S⁻¹
-        for r in range(4):
-            acc = 0.0
-            for c in range(4):
-                acc += Pp[a, c] * S[c, r]
-            K[a, r] = acc
-    for a in range(n):
-        acc = 0.0
-        for r in range(4):
-            acc += K[a, r] * nu[r]
-        x[a] = xp[a] + acc
+    # P⁻Hᵀ is the first 4 columns of P⁻; L⁻¹ν is solved in place in nu
+    if factored_update(L, Pp, nu, xp, Pp, n, 4, U, nu, x, P) < 0.0:
+        return False
     normalise(x[:4])
-    for a in range(n):
-        for b in range(n):
-            IKH[a, b] = (1.0 if a == b else 0.0) - (K[a, b] if b < 4 else 0.0)
-    joseph(IKH, Pp, K, R, n, 4, T, P, n)
     return True
 
 
@@ -141,7 +128,7 @@ def _work():
     """Scratch for :func:`_step`, made once per sensor (nothing is allocated per step)."""
     return (np.empty(4), np.empty(4), np.empty((4, 3)), np.empty((4, 3)), np.empty((7, 7)), np.empty((7, 3)),
             np.empty((7, 7)), np.empty((7, 7)), np.empty((4, 4)), np.empty((4, 4)), np.empty(4), np.empty(7),
-            np.empty((7, 4)), np.empty((7, 7)), np.empty((4, 4)))
+            np.empty((7, 4)), np.empty((4, 4)))
 
 
 @numba.njit(cache=True, parallel=True)
