@@ -1,0 +1,71 @@
+"""The shipped recordings in sample_data/ still read, correct and predict as sample_data/README.md says."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+from click.testing import CliRunner
+
+from ivc import lut, rotations
+from ivc import session as session_io
+from ivc.cli import cli
+from ivc.collect.replay import read_csv
+from ivc.correct.evaluate import evaluate
+from ivc.fixtures.report import DECLARED_FRAME
+
+SAMPLES = Path(__file__).resolve().parents[1] / "sample_data"
+RECORDINGS = SAMPLES / "recordings"
+TABLE, CHECK, CHECK_CSV, HEAD_CSV = (RECORDINGS / name for name in (
+    "default_room_lut.h5", "default_room_check.h5", "default_room_check.csv", "head_aggressive_120hz.csv"))
+
+
+def test_shipped_table_corrects_the_shipped_check_poses():
+    report = evaluate(lut.read(TABLE), session_io.read(CHECK))
+    assert report["samples"] == 1000 and report["corrected"] >= 998
+    assert report["frame"] == DECLARED_FRAME and abs(report["placement_error_mm"] - 1.25) < 0.05
+    # the seed's Table 24 scale: IVC to a fraction of a millimetre, the dipole solution tens of millimetres off
+    assert report["ivc"]["position_mm"]["p50"] < 0.2
+    assert report["ivc"]["orientation_mrad"]["p50"] < 1.0
+    assert report["dipole"]["position_mm"]["p50"] > 30.0
+
+
+def test_correct_the_shipped_csv_against_its_truth(tmp_path):
+    out = tmp_path / "corrected.csv"
+    result = CliRunner().invoke(cli, ["correct", str(TABLE), str(CHECK_CSV), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    measured, corrected = read_csv(CHECK_CSV), read_csv(out)
+    truth = session_io.read(CHECK).truth["check"]
+    frames = measured.n_frames
+    ok = corrected.valid_mask[:, 0]
+    assert ok.sum() >= frames - 2
+    before = np.linalg.norm(measured.position - truth.position[:frames], axis=-1)[:, 0][ok] * 1e3
+    after = np.linalg.norm(corrected.position - truth.position[:frames], axis=-1)[:, 0][ok] * 1e3
+    # corrected poses are in the declared cube frame, 1.25 mm from the simulator's (sample_data/README.md)
+    assert np.median(after) < 2.0 < 30.0 < np.median(before)
+
+
+def test_predict_the_shipped_head_recording(tmp_path):
+    out = tmp_path / "ahead.csv"
+    result = CliRunner().invoke(cli, ["predict", str(HEAD_CSV), "--filter", "mmdq2", "--horizon", "50ms",
+                                      "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    measured, predicted = read_csv(HEAD_CSV).quaternion[:, 0], read_csv(out).quaternion[:, 0]
+    ahead = round(0.05 * 120)
+    later = measured[ahead:]
+    error = rotations.angle_between(predicted[:-ahead], later)[60:]  # after the filter has settled
+    none = rotations.angle_between(measured[:-ahead], later)[60:]
+    assert error.mean() < none.mean() / 3
+
+
+def test_the_maker_writes_a_head_recording_and_never_replaces_one(tmp_path):
+    args = [sys.executable, str(SAMPLES / "make.py"), "--only", "head", "--out", str(tmp_path)]
+    subprocess.run(args, check=True, capture_output=True)
+    step = read_csv(tmp_path / "head_aggressive_120hz.csv")
+    shipped = read_csv(HEAD_CSV)
+    assert step.quaternion.shape == shipped.quaternion.shape
+    assert step.sample_rate_hz == shipped.sample_rate_hz == 120.0
+    before = (tmp_path / "head_aggressive_120hz.csv").read_bytes()
+    again = subprocess.run(args, capture_output=True, text=True)
+    assert again.returncode != 0 and "not replaced" in again.stderr
+    assert (tmp_path / "head_aggressive_120hz.csv").read_bytes() == before
