@@ -75,6 +75,7 @@ def test_predict_benchmark_prints_the_tables(tmp_path):
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 0, result.output
     assert "% overshoot" in result.output and "50 med" in result.output and "angular-velocity" in result.output
+    assert "output SNR (dB)" in result.output
     assert plot.stat().st_size > 5000
     data = json.loads(CliRunner().invoke(cli, args[:-2] + ["--json"]).stdout)
     rows = {d["filter"]: d["rows"] for d in data}

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ivc.predict import make
-from ivc.predict.evaluate import HORIZONS_MS, evaluate, plot_error_vs_horizon
+from ivc.predict.evaluate import HORIZONS_MS, evaluate, plot_error_vs_horizon, snr_table
 from ivc.predict.motion import head_motion
 
 NAMES = ("none", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf")
@@ -64,6 +64,13 @@ def test_snr_falls_with_horizon_and_error_grows(results):
         assert np.all(np.diff(means[1:]) > 0)
     assert results["moderate", "none"].rows[0]["mean"] < 1e-9
     assert len(results["moderate", "none"].rows) == len(HORIZONS_MS)
+
+
+def test_snr_table_prints_the_evaluated_snr(results):
+    chosen = [results["moderate", n] for n in ("none", "dqekf-cv")]
+    lines = snr_table(chosen, (0.0, 50.0)).splitlines()
+    row = next(line for line in lines if line.startswith("dqekf-cv"))
+    assert row.split()[1:] == [f"{chosen[1].at(h)['snr_db']:.1f}" for h in (0.0, 50.0)]
 
 
 def test_velocity_error_is_reported_for_rate_estimators(results):

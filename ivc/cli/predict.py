@@ -19,6 +19,7 @@ from ivc.predict.evaluate import (
     horizon_table,
     overshoot_table,
     plot_error_vs_horizon,
+    snr_table,
     velocity_table,
 )
 from ivc.predict.motion import MOTIONS, head_motion
@@ -118,7 +119,8 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
         click.echo(error_table(results) + "\n")
         for m in motions:
             click.echo(horizon_table(results, m) + "\n")
-        click.echo(velocity_table(results))
+        click.echo(velocity_table(results) + "\n")
+        click.echo(snr_table(results))
     if plot:
         plot_error_vs_horizon(results, plot)
         click.echo(f"wrote {plot}")
@@ -158,7 +160,7 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
     horizon from that frame and the ones before it; positions are copied unchanged. Samples
     the filter cannot predict yet (its first frames) or that are invalid keep their measured
     orientation. `ivc predict --benchmark` instead evaluates the predictors on synthetic head
-    motion and prints the thesis's tables (Tables 5-6, 11, 12-15 layouts).
+    motion and prints the thesis's tables (Tables 5-6, 11, 12-15 layouts, and the SNR of Figs. 16-17).
     """
     if compensators:
         if evaluations < 1:

@@ -208,26 +208,60 @@ def velocity_table(results: list[Evaluation]) -> str:
     return "\n".join(lines)
 
 
+def snr_table(results: list[Evaluation], horizons_ms: Sequence[float] = (0.0, 50.0, 100.0)) -> str:
+    """Output SNR (dB) per filter and motion at a few horizons (the thesis's Figs. 16-17 as numbers)."""
+    motions = list(dict.fromkeys(r.motion for r in results))
+    names = list(dict.fromkeys(r.name for r in results))
+    head = "".join(f"{m[:5] + f' {h:g}':>11}" if i == 0 else f"{h:>7g}"
+                   for m in motions for i, h in enumerate(horizons_ms))
+    lines = ["output SNR (dB) at horizons (ms)", f"{'filter':<12}{head}"]
+    width = 11 + 7 * (len(horizons_ms) - 1)
+    for n in names:
+        cells = ""
+        for m in motions:
+            r = next((r for r in results if r.name == n and r.motion == m), None)
+            cells += ("".join(f"{r.at(h)['snr_db']:>{11 if i == 0 else 7}.1f}" for i, h in enumerate(horizons_ms))
+                      if r else " " * width)
+        lines.append(f"{n:<12}{cells}")
+    return "\n".join(lines)
+
+
+#: errors below this (mrad) are exact zeros up to rounding (a filter returning the measurement at 0 ms)
+PLOT_FLOOR_MRAD = 1e-6
+
+
 def plot_error_vs_horizon(results: list[Evaluation], path, metric: str = "mean") -> None:
-    """One panel per motion: ``metric`` error (mrad) against horizon (ms) for every filter; PNG."""
+    """One column per motion: ``metric`` error (mrad, log axis) and output SNR (dB) against horizon (ms); PNG.
+
+    Errors of zero (to rounding) are left off the log axis, which starts just below the smallest other one.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     motions = list(dict.fromkeys(r.motion for r in results))
-    fig, axes = plt.subplots(1, len(motions), figsize=(4.2 * len(motions), 3.8), squeeze=False)
-    for ax, m in zip(axes[0], motions, strict=True):
+    fig, axes = plt.subplots(2, len(motions), figsize=(4.2 * len(motions), 6.6), squeeze=False, sharex=True)
+    for column, m in enumerate(motions):
+        ax_error, ax_snr = axes[0, column], axes[1, column]
+        shown = []
         for r in (r for r in results if r.motion == m):
             style = "k--" if r.name == "none" else "-"
-            ax.plot(r.horizons_ms, [row[metric] for row in r.rows], style, marker=".", label=r.name)
-        ax.set_title(f"{m} motion")
-        ax.set_xlabel("prediction horizon (ms)")
-        ax.set_yscale("log")
-        ax.grid(True, which="both", alpha=0.3)
+            error = np.array([row[metric] for row in r.rows])
+            error = np.where(error > PLOT_FLOOR_MRAD, error, np.nan)
+            shown.append(error)
+            ax_error.plot(r.horizons_ms, error, style, marker=".", label=r.name)
+            ax_snr.plot(r.horizons_ms, [row["snr_db"] for row in r.rows], style, marker=".", label=r.name)
+        ax_error.set_title(f"{m} motion")
+        ax_error.set_yscale("log")
+        if np.any(np.isfinite(np.concatenate(shown))):
+            ax_error.set_ylim(bottom=0.5 * np.nanmin(np.concatenate(shown)))
+        ax_snr.set_xlabel("prediction horizon (ms)")
+        for ax in (ax_error, ax_snr):
+            ax.grid(True, which="both", alpha=0.3)
     axes[0, 0].set_ylabel(f"{metric} compound angular error (mrad)")
+    axes[1, 0].set_ylabel("output SNR (dB)")
     axes[0, -1].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
-
