@@ -111,6 +111,19 @@ def test_a_check_file_without_the_step_is_named(demo, tmp_path):
     assert f"{check_file} has no 'check' step" in result.output
 
 
+def test_a_session_without_its_sweep_is_refused_before_anything_is_written(demo, tmp_path):
+    session_file, lut_file = demo
+    full = session_io.read(session_file)
+    steps = {name: step for name, step in full.steps.items() if name != "wand_sweep"}
+    partial = tmp_path / "no_sweep.h5"
+    session_io.write(Session(full.hemisphere, steps, {}, full.attrs), partial)
+    out = tmp_path / "r"
+    result = CliRunner().invoke(cli, ["report", str(partial), str(lut_file), "-o", str(out), "--quiet"])
+    assert result.exit_code != 0 and "Traceback" not in result.output
+    assert "wand_sweep" in result.output and "ivc evaluate" in result.output
+    assert not out.exists() or not any(out.iterdir())
+
+
 def test_percent_of_the_measured_signal():
     r = np.array([[0.4, 0.1, -0.2], [0.7, -0.3, 0.1]])
     f = dipole.field(r)

@@ -24,7 +24,7 @@ from ivc.lut.build import FitOptions
 from ivc.lut.grid import GridField
 from ivc.lut.support import MIN_SUPPORT
 from ivc.lut.table import LookupTable
-from ivc.session import Session
+from ivc.session import Session, SessionError
 
 #: horizontal slices drawn at most
 MAX_SLICES = 6
@@ -184,6 +184,11 @@ def gather(session: Session, table: LookupTable, check: Session | None = None, s
     """Everything the report draws. ``check``: a separate check recording (default: ``session``'s own)."""
     if thin < 1:
         raise ValueError(f"thin = {thin}: the thin-cell threshold is a number of samples, at least 1")
+    missing = session.missing_for_fit()
+    if missing:
+        raise SessionError("the report describes a table with the mapping session it was fitted from, and this "
+                           "session lacks:\n  " + "\n  ".join(missing) + "\nto judge a table on check poses "
+                           "alone, run `ivc evaluate LUT CHECKFILE`")
     fixtures = table.provenance.get("fixtures", {})
     interpolant = next((name for name, kind in INTERPOLANTS.items() if kind.__name__ == fixtures.get("interpolant")),
                        "harmonic")
