@@ -63,10 +63,9 @@ def predicted_quaternions(step: Step, name: str, horizon: float, valid: np.ndarr
 def predicted_step(step: Step, name: str, horizon: float, tune: bool = False) -> Step:
     attrs = dict(step.attrs, predicted_with=name, prediction_horizon_s=horizon,
                  tuned_from_input=bool(tune and name in TUNABLE))
-    return Step(step.time, None, step.position, predicted_quaternions(step, name, horizon, tune=tune),
-                step.valid_mask,
-                step.sample_rate_hz, step.sensor_ids, f"{step.description} (orientation predicted by ivc)".strip(),
-                attrs)
+    quaternion = predicted_quaternions(step, name, horizon, tune=tune)
+    return Step(step.time, None, step.position, quaternion, step.valid_mask, step.sample_rate_hz, step.sensor_ids,
+                f"{step.description} (orientation predicted by ivc)".strip(), attrs)
 
 
 def run_compensators(seed: int, evaluations: int, as_json: bool) -> None:

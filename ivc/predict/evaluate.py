@@ -212,16 +212,16 @@ def snr_table(results: list[Evaluation], horizons_ms: Sequence[float] = (0.0, 50
     """Output SNR (dB) per filter and motion at a few horizons (the thesis's Figs. 16-17 as numbers)."""
     motions = list(dict.fromkeys(r.motion for r in results))
     names = list(dict.fromkeys(r.name for r in results))
-    head = "".join(f"{m[:5] + f' {h:g}':>11}" if i == 0 else f"{h:>7g}"
-                   for m in motions for i, h in enumerate(horizons_ms))
+    widths = [11] + [7] * (len(horizons_ms) - 1)  # each motion's first column also carries its name
+    head = "".join(f"{(f'{m[:5]} ' if i == 0 else '') + f'{h:g}':>{w}}"
+                   for m in motions for i, (h, w) in enumerate(zip(horizons_ms, widths, strict=True)))
     lines = ["output SNR (dB) at horizons (ms)", f"{'filter':<12}{head}"]
-    width = 11 + 7 * (len(horizons_ms) - 1)
     for n in names:
         cells = ""
         for m in motions:
             r = next((r for r in results if r.name == n and r.motion == m), None)
-            cells += ("".join(f"{r.at(h)['snr_db']:>{11 if i == 0 else 7}.1f}" for i, h in enumerate(horizons_ms))
-                      if r else " " * width)
+            cells += ("".join(f"{r.at(h)['snr_db']:>{w}.1f}" for h, w in zip(horizons_ms, widths, strict=True))
+                      if r else " " * sum(widths))
         lines.append(f"{n:<12}{cells}")
     return "\n".join(lines)
 
@@ -244,18 +244,18 @@ def plot_error_vs_horizon(results: list[Evaluation], path, metric: str = "mean")
     fig, axes = plt.subplots(2, len(motions), figsize=(4.2 * len(motions), 6.6), squeeze=False, sharex=True)
     for column, m in enumerate(motions):
         ax_error, ax_snr = axes[0, column], axes[1, column]
-        shown = []
+        lowest = np.inf
         for r in (r for r in results if r.motion == m):
             style = "k--" if r.name == "none" else "-"
             error = np.array([row[metric] for row in r.rows])
             error = np.where(error > PLOT_FLOOR_MRAD, error, np.nan)
-            shown.append(error)
+            lowest = min(lowest, np.nanmin(error, initial=np.inf))
             ax_error.plot(r.horizons_ms, error, style, marker=".", label=r.name)
             ax_snr.plot(r.horizons_ms, [row["snr_db"] for row in r.rows], style, marker=".", label=r.name)
         ax_error.set_title(f"{m} motion")
         ax_error.set_yscale("log")
-        if np.any(np.isfinite(np.concatenate(shown))):
-            ax_error.set_ylim(bottom=0.5 * np.nanmin(np.concatenate(shown)))
+        if np.isfinite(lowest):
+            ax_error.set_ylim(bottom=0.5 * lowest)
         ax_snr.set_xlabel("prediction horizon (ms)")
         for ax in (ax_error, ax_snr):
             ax.grid(True, which="both", alpha=0.3)
