@@ -1,5 +1,6 @@
 """The shipped recordings in sample_data/ still read, correct and predict as sample_data/README.md says."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -43,6 +44,16 @@ def test_correct_the_shipped_csv_against_its_truth(tmp_path):
     after = np.linalg.norm(corrected.position - truth.position[:frames], axis=-1)[:, 0][ok] * 1e3
     # corrected poses are in the declared cube frame, 1.25 mm from the simulator's (sample_data/README.md)
     assert np.median(after) < 2.0 < 30.0 < np.median(before)
+
+
+def test_report_on_the_shipped_table_and_check_poses(tmp_path):
+    out = tmp_path / "report"
+    result = CliRunner().invoke(cli, ["report", str(CHECK), str(TABLE), "-o", str(out), "--quiet"])
+    assert result.exit_code == 0, result.output
+    numbers = json.loads((out / "report.json").read_text())
+    assert numbers["check"]["ivc"]["position_mm"]["p50"] < 0.2 < 30.0 < numbers["check"]["dipole"]["position_mm"]["p50"]
+    assert sorted(p.name for p in out.glob("*.png")) == ["error_histograms.png", "error_vs_distance.png",
+                                                          "secondary_field.png"]
 
 
 def test_predict_the_shipped_head_recording(tmp_path):

@@ -32,7 +32,9 @@ def report(session_file, lut_file, check_file, directory, step, thin, max_frames
     """Report on LUT_FILE fitted from SESSION_FILE: field, coverage, cube, Λ, and accuracy on check poses.
 
     The check poses (with their truth) come from CHECK_FILE, or from SESSION_FILE's own
-    check step. Figures that need truth say so on the page when there is none.
+    check step. Figures that need truth say so on the page when there is none. A
+    SESSION_FILE without the mapping steps (a check recording) gives the field and the
+    accuracy sections only.
     """
     if max_frames is not None and max_frames < 1:
         raise click.BadParameter("must be at least 1", param_hint="--max-frames")
@@ -47,7 +49,10 @@ def report(session_file, lut_file, check_file, directory, step, thin, max_frames
                               overwrite=force, names=names, progress=bars)
     for reason in result.numbers["warnings"]:
         click.echo(f"note: {reason}", err=True)
+    by_reason: dict[str, list[str]] = {}
     for name, reason in result.missing.items():
-        click.echo(f"not drawn: {name}: {reason}", err=True)
+        by_reason.setdefault(reason, []).append(name)
+    for reason, figure_names in by_reason.items():
+        click.echo(f"not drawn: {', '.join(figure_names)}: {reason}", err=True)
     figures = sum(1 for f in result.files if f.suffix == ".png")
     click.echo(f"wrote {result.html} ({figures} figures embedded) and report.json in {Path(directory)}")

@@ -16,9 +16,19 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from ivc import __version__
+from ivc.fixtures.cube import NOMINAL_EDGE
 from ivc.lut.table import LookupTable
 from ivc.report import html
-from ivc.report.compute import THIN_SAMPLES, Progress, ReportData, _no_progress, gather, summary
+from ivc.report.compute import (
+    THIN_SAMPLES,
+    Progress,
+    ReportData,
+    _no_progress,
+    figures_missing,
+    gather,
+    lacks_sentence,
+    summary,
+)
 from ivc.report.figures import FIGURES
 from ivc.session import Session, atomic_path
 
@@ -32,9 +42,7 @@ _CAPTIONS = {
                        "poses are far off; grey is outside the mapped volume, where ivc flags corrections.",
     "error_histograms": "Check-pose errors after IVC correction and of the uncorrected dipole solution (log axis; "
                         "dashed: medians). Only trusted (unflagged) corrections are counted for IVC.",
-    "error_vs_distance": "Errors against the distance from the cube centre (green band: inside the cube). Left: "
-                         "check poses, IVC and dipole; right: wand samples, the error eq. 101 estimates from sensor "
-                         "0's solve and the lever arm, and the true error when the session has truth.",
+    "error_vs_distance": "Errors against the distance from the cube centre (green band: inside the cube).",
     "lambda_vs_error": "Sensor 0's pose error inside the cube against the rms of the signal residual Λ (eq. 99) "
                        "relative to rms(S), with the gate the table was fitted with (seed Fig. 35). Frames right "
                        "of the gate were dropped.",
@@ -88,12 +96,10 @@ def build_report(session: Session, table: LookupTable, directory: str | os.PathL
     data = gather(session, table, check, step, thin, max_frames,
                   names.get("check", "the session") if check is not None else "the session", progress)
     numbers = summary(data)
-    images, missing = {}, {}
+    images, missing = {}, figures_missing(data)
     update = progress("drawing figures", len(FIGURES))
     for name, (draw, _) in FIGURES.items():
-        if name == "error_histograms" and data.check is None:
-            missing[name] = data.check_missing
-        else:
+        if name not in missing:
             images[name] = _png(draw(data))
         update(1)
     warnings = _warnings(data, names)
@@ -112,8 +118,13 @@ def build_report(session: Session, table: LookupTable, directory: str | os.PathL
 
 def _warnings(data: ReportData, names: dict[str, str]) -> list[str]:
     out = []
+    if data.mapping_missing:
+        lacks = lacks_sentence(data.mapping_missing)
+        out.append(f"{lacks[0].upper()}{lacks[1:]}, so the report covers the table's field and the check poses "
+                   "only; the cube, coverage and sweep sections need the session the table was fitted from.")
     recorded = data.table.provenance.get("input_sha256")
-    if recorded and names.get("session_sha256") and recorded != names["session_sha256"]:
+    if (not data.mapping_missing and recorded and names.get("session_sha256")
+            and recorded != names["session_sha256"]):
         out.append(f"The table was fitted from {data.table.provenance.get('input', 'another file')}, whose contents "
                    "differ from this session's: the sweep and cube figures describe this session, not the table's.")
     if data.check is not None:
@@ -129,7 +140,7 @@ def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings
           names: dict[str, str]) -> str:
     def fig(name: str) -> str:
         if name in images:
-            return html.figure(name, images[name], FIGURES[name][1], _CAPTIONS[name])
+            return html.figure(name, images[name], FIGURES[name][1], _caption(name, data))
         return html.missing(f"{FIGURES[name][1]}: {missing[name]}")
 
     t, c, s, cube, cov = (numbers[k] for k in ("table", "check", "sweep", "cube", "coverage"))
@@ -143,8 +154,9 @@ def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings
                    "mapped"],
         ["fit", f"{t['method']} (degree {t['degree']}), cross-validated rms {t['cv_rms_mm']:.3g} mm"
          if t["cv_rms_mm"] is not None else str(t["method"])],
-        ["wand samples", f"{s['samples']['kept']:,} of {s['samples']['total']:,} kept"],
     ]
+    if "missing" not in s:
+        summary_rows.append(["wand samples", f"{s['samples']['kept']:,} of {s['samples']['total']:,} kept"])
     if "missing" not in c:
         ivc, dipole = c["ivc"], c["dipole"]
         summary_rows.append(["check poses", f"IVC median {ivc['position_mm']['p50']:.3g} mm / "
@@ -158,43 +170,79 @@ def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings
         flagged = ", ".join(f"{n} {k}" for k, n in c["flagged"].items() if n) or "none"
         placement = (f"; the declared cube pose is off by {c['placement_error_mm']:.2f} mm at the check poses"
                      if "placement_error_mm" in c else "")
+        rows = [("IVC position", c["ivc"]["position_mm"], "mm"),
+                ("IVC orientation", c["ivc"]["orientation_mrad"], "mrad"),
+                ("dipole position (uncorrected)", c["dipole"]["position_mm"], "mm"),
+                ("dipole orientation", c["dipole"]["orientation_mrad"], "mrad")]
+        if "distance_from_cube_mm" in c:
+            rows.append(("distance from the cube centre", c["distance_from_cube_mm"], "mm"))
         accuracy = (f"<p>IVC judged against {html.escape(c['frame'])}{placement}. Flagged: {flagged}.</p>"
-                    + html.percentile_table([("IVC position", c["ivc"]["position_mm"], "mm"),
-                                             ("IVC orientation", c["ivc"]["orientation_mrad"], "mrad"),
-                                             ("dipole position (uncorrected)", c["dipole"]["position_mm"], "mm"),
-                                             ("dipole orientation", c["dipole"]["orientation_mrad"], "mrad"),
-                                             ("distance from the cube centre", c["distance_from_cube_mm"], "mm")]))
+                    + html.percentile_table(rows))
     sections.append(("accuracy", "Accuracy on the check poses", accuracy + fig("error_histograms")
                      + fig("error_vs_distance")))
     field_numbers = numbers["secondary_field"]["percent_of_measured_at_valid_nodes"]
     sections.append(("field", "Secondary field", html.percentile_table(
         [("|G| / |f_D + G| at valid nodes", field_numbers, "%")]) + fig("secondary_field")))
-    sections.append(("coverage", "Wand coverage", html.table(None, [
+    sections.append(("coverage", "Wand coverage", _coverage(cov) + fig("coverage")))
+    sections.append(("sweep", "Pose in the cube and the residual Λ", _sweep(s) + fig("lambda_vs_error")))
+    sections.append(("cube", "Interpolation cube", _cube(cube) + fig("cube_residuals")))
+    title = f"ivc report: {Path(names['lut']).name}" if "lut" in names else "ivc report"
+    return html.page(title, meta, warnings, sections)
+
+
+def _caption(name: str, data: ReportData) -> str:
+    if name != "error_vs_distance":
+        return _CAPTIONS[name]
+    check = "check poses, IVC and dipole"
+    wand = ("wand samples, the error eq. 101 estimates from sensor 0's solve and the lever arm, and the true error "
+            "when the session has truth")
+    if data.sweep is None:
+        panels = (f"{check[0].upper()}{check[1:]}. The cube is the ideal one at the declared pose (the session "
+                  "does not calibrate it).")
+    elif data.check is None or data.check.distance is None:
+        panels = f"{wand[0].upper()}{wand[1:]}."
+    else:
+        panels = f"Left: {check}; right: {wand}."
+    return f"{_CAPTIONS[name]} {panels}"
+
+
+def _coverage(cov: dict) -> str:
+    if "missing" in cov:
+        return ""
+    return html.table(None, [
         ["samples per mapped cell (median)", f"{cov['samples_per_mapped_cell'].get('p50', 0):.0f}"],
         [f"thin mapped cells (< {cov['thin_threshold_samples']} samples)", cov["thin_mapped_cells"]],
         ["mapped cells with no sample", cov["empty_mapped_cells"]],
         ["sampled cells outside the mapped volume", cov["sampled_cells_outside_mapped_volume"]],
-    ]) + fig("coverage")))
-    sweep_rows = [("rms(Λ)/rms(S), sensor 0", s["residual_relative"], ""),
-                  ("estimated error of kept samples (eq. 101)", s["estimated_error_mm"], "mm")]
+    ])
+
+
+def _sweep(s: dict) -> str:
+    if "missing" in s:
+        return ""
+    rows = [("rms(Λ)/rms(S), sensor 0", s["residual_relative"], ""),
+            ("estimated error of kept samples (eq. 101)", s["estimated_error_mm"], "mm")]
     for key, label, unit in (("sensor0_position_mm", "sensor 0 position error", "mm"),
                              ("sensor0_orientation_mrad", "sensor 0 orientation error", "mrad"),
                              ("kept_samples_position_mm", "true error of kept samples", "mm")):
         if key in s:
-            sweep_rows.append((label, s[key], unit))
+            rows.append((label, s[key], unit))
     dropped = ", ".join(f"{n:,} {k}" for k, n in s["samples"]["dropped"].items() if n) or "none"
     every = "all" if s["stride"] == 1 else f"one in {s['stride']}"
-    sections.append(("sweep", "Pose in the cube and the residual Λ",
-                     f"<p>{s['frames_solved']:,} of {s['frames_recorded']:,} sweep frames solved ({every}, as the "
-                     f"table was fitted); gates rms(Λ)/rms(S) ≤ {s['gate_residual']:g}, "
-                     f"estimated error ≤ {s['gate_error_mm']:g} mm. Dropped samples: {html.escape(dropped)}.</p>"
-                     + html.percentile_table(sweep_rows) + fig("lambda_vs_error")))
-    cube_html = f"<p>Fitted cube edge {cube['fitted_edge_mm']:.3f} mm (nominal {cube['nominal_edge_mm']:.1f} mm).</p>"
+    return (f"<p>{s['frames_solved']:,} of {s['frames_recorded']:,} sweep frames solved ({every}, as the table was "
+            f"fitted); gates rms(Λ)/rms(S) ≤ {s['gate_residual']:g}, estimated error ≤ {s['gate_error_mm']:g} mm. "
+            f"Dropped samples: {html.escape(dropped)}.</p>" + html.percentile_table(rows))
+
+
+def _cube(cube: dict) -> str:
+    if "missing" in cube:
+        if "centre_mm" not in cube:
+            return ""
+        return (f"<p>Not calibrated in this session: distances are measured from the centre of the ideal "
+                f"{1000 * NOMINAL_EDGE:.1f} mm cube at the declared pose, {cube['centre_mm']} mm.</p>")
+    out = f"<p>Fitted cube edge {cube['fitted_edge_mm']:.3f} mm (nominal {cube['nominal_edge_mm']:.1f} mm).</p>"
     for key, title in (("minus_ideal_mm", "Table 20: calibrated minus ideal cube (mm)"),
                        ("minus_optimised_mm", "Table 21: calibrated minus optimised cube (mm)")):
         rows = [[axis, *[v[a] for v in cube[key]]] for a, axis in enumerate("XYZ")]
-        cube_html += f"<h3>{html.escape(title)}</h3>" + html.table(["sensor", *map(str, range(8))], rows)
-    sections.append(("cube", "Interpolation cube", cube_html + fig("cube_residuals")))
-    title = f"ivc report: {Path(names['lut']).name}" if "lut" in names else "ivc report"
-    return html.page(title, meta, warnings, sections)
-
+        out += f"<h3>{html.escape(title)}</h3>" + html.table(["sensor", *map(str, range(8))], rows)
+    return out

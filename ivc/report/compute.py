@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ivc import dipole
+from ivc import dipole, rotations
 from ivc.correct.evaluate import CheckErrors, check_errors, summarise
 from ivc.correct.solver import Corrector
 from ivc.fixtures.cube import CUBE_BITS, NOMINAL_EDGE
@@ -24,7 +24,7 @@ from ivc.lut.build import FitOptions
 from ivc.lut.grid import GridField
 from ivc.lut.support import MIN_SUPPORT
 from ivc.lut.table import LookupTable
-from ivc.session import Session, SessionError
+from ivc.session import FIT_STEPS, Session
 
 #: horizontal slices drawn at most
 MAX_SLICES = 6
@@ -77,22 +77,38 @@ class SweepView:
 @dataclass
 class CheckView:
     errors: CheckErrors
-    distance: np.ndarray  # (F, N) metres from the cube centre, true positions (declared frame)
+    distance: np.ndarray | None  # (F, N) metres from the cube centre, true positions (declared frame)
     source: str  # where the check poses came from
 
 
 @dataclass
 class ReportData:
+    """What the report draws. Without the mapping steps (a check recording, say) ``model``,
+    ``sweep`` and ``cell_counts`` are None and ``mapping_missing`` lists what the session lacks;
+    the cube is then the ideal one at the declared pose, or None without a declared pose."""
+
     table: LookupTable
-    model: FixtureModel
+    model: FixtureModel | None
     slices: Slices
-    sweep: SweepView
+    sweep: SweepView | None
     check: CheckView | None
     check_missing: str | None  # why there is no check evaluation
     thin: int
-    cube_centre: np.ndarray
-    cell_counts: np.ndarray  # (nx-1, ny-1, nz-1) kept wand samples per grid cell
+    cube_vertices: np.ndarray | None  # (8, 3) m, declared frame: calibrated, else the ideal cube
+    cell_counts: np.ndarray | None  # (nx-1, ny-1, nz-1) kept wand samples per grid cell
     mapped_cells: np.ndarray  # (nx-1, ny-1, nz-1) cells whose eight nodes are valid
+    mapping_missing: tuple[str, ...] = ()
+
+    @property
+    def cube_centre(self) -> np.ndarray | None:
+        return None if self.cube_vertices is None else self.cube_vertices.mean(axis=0)
+
+    @property
+    def cube_half_diagonal(self) -> float | None:
+        """The cube's centre-to-vertex distance (m)."""
+        if self.cube_vertices is None:
+            return None
+        return float(np.linalg.norm(self.cube_vertices - self.cube_centre, axis=1).mean())
 
 
 def percent_of_measured(field_values: np.ndarray, positions: np.ndarray) -> np.ndarray:
@@ -120,10 +136,13 @@ def _layers(mapped_cells: np.ndarray, keep: int | None = None) -> np.ndarray:
     return np.sort(picks)
 
 
-def slices(table: LookupTable, field: GridField, cell_counts: np.ndarray,
+def slices(table: LookupTable, field: GridField, cell_counts: np.ndarray | None,
            cube_centre: np.ndarray | None = None) -> Slices:
     """The field and coverage slices (see :class:`Slices`) of the table's interpolated ``field`` and
-    its per-cell sample counts, one slice through ``cube_centre`` (m) if that layer is mapped."""
+    its per-cell sample counts (zero without them), one slice through ``cube_centre`` (m) if that
+    layer is mapped."""
+    if cell_counts is None:
+        cell_counts = np.zeros(field.valid_cells.shape, dtype=np.int64)
     g = table.grid
     x_edges, y_edges, z_edges = (g.origin[a] + g.spacing * np.arange(g.shape[a]) for a in range(3))
     keep = None if cube_centre is None else int(np.floor((cube_centre[2] - g.origin[2]) / g.spacing))
@@ -160,8 +179,9 @@ def solve_sweep(session: Session, model: FixtureModel, table: LookupTable, cube_
     return SweepView(mapping, recorded, stride, sweep_errors(session, mapping), distance, gates)
 
 
-def check_view(table: LookupTable, session: Session, check: Session | None, step: str, cube_centre: np.ndarray,
-               source: str, progress: Progress = _no_progress) -> tuple[CheckView | None, str | None]:
+def check_view(table: LookupTable, session: Session, check: Session | None, step: str,
+               cube_centre: np.ndarray | None, source: str,
+               progress: Progress = _no_progress) -> tuple[CheckView | None, str | None]:
     """Correct the check poses and judge them against truth; or why that cannot be done."""
     check = session if check is None else check
     if step not in check.steps:
@@ -174,32 +194,77 @@ def check_view(table: LookupTable, session: Session, check: Session | None, step
     corrector = Corrector(table, check.hemisphere)
     errors = check_errors(corrector, check, step, frame_map,
                           progress("correcting the check poses", check.steps[step].n_frames))
-    distance = np.linalg.norm(errors.true_position - cube_centre, axis=-1)
+    distance = None if cube_centre is None else np.linalg.norm(errors.true_position - cube_centre, axis=-1)
     return CheckView(errors, distance, source), None
+
+
+def declared_cube(session: Session) -> np.ndarray | None:
+    """The ideal cube's vertices (8, 3) m at the pose declared in ``cube_survey`` (eq. 87 with the
+    nominal edge), for a session without the cube's calibration; None without a declared pose."""
+    survey = session.steps.get("cube_survey")
+    if survey is None or not {"declared_position", "declared_quaternion"} <= survey.attrs.keys():
+        return None
+    T_I = rotations.to_matrix(rotations.canonical(np.asarray(survey.attrs["declared_quaternion"], float)))
+    return np.asarray(survey.attrs["declared_position"], float) + NOMINAL_EDGE * CUBE_BITS @ T_I.T
+
+
+def mapping_lacks(session: Session) -> tuple[str, ...]:
+    """What ``session`` lacks of the mapping: step names, and the declared cube pose, in a few words each."""
+    lacks = [f"no {name} step" for name in FIT_STEPS if name not in session.steps]
+    if "cube_survey" in session.steps and declared_cube(session) is None:
+        lacks.append("no declared cube pose in cube_survey")
+    return tuple(lacks)
+
+
+def lacks_sentence(lacks: tuple[str, ...]) -> str:
+    """``("no a step", "no b step")`` as "the session has no a step and no b step"."""
+    listed = ", ".join(lacks[:-1]) + (" and " if len(lacks) > 1 else "") + lacks[-1]
+    return f"the session has {listed}"
 
 
 def gather(session: Session, table: LookupTable, check: Session | None = None, step: str = "check",
            thin: int = THIN_SAMPLES, max_frames: int | None = None, check_source: str = "the session",
            progress: Progress = _no_progress) -> ReportData:
-    """Everything the report draws. ``check``: a separate check recording (default: ``session``'s own)."""
+    """Everything the report draws. ``check``: a separate check recording (default: ``session``'s own).
+
+    A session without the mapping steps (a check recording, say) gives the table's field and the
+    check poses only; ``mapping_missing`` says what it lacks.
+    """
     if thin < 1:
         raise ValueError(f"thin = {thin}: the thin-cell threshold is a number of samples, at least 1")
-    missing = session.missing_for_fit()
-    if missing:
-        raise SessionError("the report describes a table with the mapping session it was fitted from, and this "
-                           "session lacks:\n  " + "\n  ".join(missing) + "\nto judge a table on check poses "
-                           "alone, run `ivc evaluate LUT CHECKFILE`")
-    fixtures = table.provenance.get("fixtures", {})
-    interpolant = next((name for name, kind in INTERPOLANTS.items() if kind.__name__ == fixtures.get("interpolant")),
-                       "harmonic")
-    model = FixtureModel.from_session(session, fixtures.get("vertices", "averaged"), interpolant)
-    centre = model.placement.positions.mean(axis=0)
-    sweep = solve_sweep(session, model, table, centre, max_frames, progress)
-    counts = _cell_counts(table, sweep.mapping.positions[sweep.mapping.keep])
     field = table.field()
+    lacks = mapping_lacks(session)
+    if lacks:
+        model = sweep = counts = None
+        vertices = declared_cube(session)
+    else:
+        fixtures = table.provenance.get("fixtures", {})
+        interpolant = next((name for name, kind in INTERPOLANTS.items()
+                            if kind.__name__ == fixtures.get("interpolant")), "harmonic")
+        model = FixtureModel.from_session(session, fixtures.get("vertices", "averaged"), interpolant)
+        vertices = model.placement.positions
+        sweep = solve_sweep(session, model, table, vertices.mean(axis=0), max_frames, progress)
+        counts = _cell_counts(table, sweep.mapping.positions[sweep.mapping.keep])
+    centre = None if vertices is None else vertices.mean(axis=0)
     view, missing = check_view(table, session, check, step, centre, check_source, progress)
-    return ReportData(table, model, slices(table, field, counts, centre), sweep, view, missing, thin, centre, counts,
-                      field.valid_cells)
+    return ReportData(table, model, slices(table, field, counts, centre), sweep, view, missing, thin, vertices,
+                      counts, field.valid_cells, lacks)
+
+
+def figures_missing(data: ReportData) -> dict[str, str]:
+    """The figures that cannot be drawn from ``data``, each with the reason."""
+    out = {}
+    if data.check is None:
+        out["error_histograms"] = data.check_missing
+    if data.sweep is None:
+        lacks = lacks_sentence(data.mapping_missing)
+        for name in ("lambda_vs_error", "cube_residuals", "coverage"):
+            out[name] = lacks
+        if data.check is None:
+            out["error_vs_distance"] = f"{lacks}, and {data.check_missing}"
+        elif data.check.distance is None:
+            out["error_vs_distance"] = f"{lacks}: no cube to measure distances from"
+    return out
 
 
 def cube_errors(model: FixtureModel) -> tuple[np.ndarray, np.ndarray]:
@@ -214,14 +279,13 @@ def _rounded(values: dict) -> dict:
 
 
 def summary(data: ReportData) -> dict:
-    """The report's numbers, JSON-ready (mm, mrad, %)."""
+    """The report's numbers, JSON-ready (mm, mrad, %). Sections the session cannot give (the
+    cube's calibration, coverage, the sweep) hold ``missing``: what it lacks."""
     table, model, sweep = data.table, data.model, data.sweep
-    mapping = sweep.mapping
     g = table.grid
     nodes = g.nodes()[table.valid]
     node_percent = percent_of_measured(table.values[table.valid], nodes)
-    counts, cells = data.cell_counts, data.mapped_cells
-    minus_ideal, minus_optimised = cube_errors(model)
+    cells = data.mapped_cells
     out = {
         "table": {
             "origin_mm": (1000 * g.origin).round(3).tolist(), "spacing_mm": round(1000 * g.spacing, 3),
@@ -234,37 +298,50 @@ def summary(data: ReportData) -> dict:
             "percent_of_measured_at_valid_nodes": _rounded(percentiles(node_percent)),
             "slice_heights_mm": (1000 * data.slices.z).round(2).tolist(),
         },
-        "coverage": {
+    }
+    lacks = {"missing": list(data.mapping_missing)}
+    if model is None:
+        out["cube"] = dict(lacks)
+        if data.cube_vertices is not None:
+            out["cube"].update(centre_mm=(1000 * data.cube_centre).round(3).tolist(),
+                               vertices="the ideal cube at the declared pose")
+        out["coverage"], out["sweep"] = dict(lacks), dict(lacks)
+    else:
+        mapping, counts = sweep.mapping, data.cell_counts
+        minus_ideal, minus_optimised = cube_errors(model)
+        out["cube"] = {
+            "fitted_edge_mm": round(1000 * model.cube.fit.edge, 4),
+            "nominal_edge_mm": 1000 * NOMINAL_EDGE,
+            "minus_ideal_mm": minus_ideal.round(4).tolist(),
+            "minus_optimised_mm": minus_optimised.round(4).tolist(),
+            "centre_mm": (1000 * data.cube_centre).round(3).tolist(),
+            "vertices": "calibrated",
+        }
+        out["coverage"] = {
             "thin_threshold_samples": data.thin,
             "samples_kept": int(mapping.kept),
             "samples_per_mapped_cell": _rounded(percentiles(counts[cells])),
             "thin_mapped_cells": int(np.sum(cells & (counts < data.thin))),
             "empty_mapped_cells": int(np.sum(cells & (counts == 0))),
             "sampled_cells_outside_mapped_volume": int(np.sum(~cells & (counts > 0))),
-        },
-        "cube": {
-            "fitted_edge_mm": round(1000 * model.cube.fit.edge, 4),
-            "nominal_edge_mm": 1000 * NOMINAL_EDGE,
-            "minus_ideal_mm": minus_ideal.round(4).tolist(),
-            "minus_optimised_mm": minus_optimised.round(4).tolist(),
-            "centre_mm": (1000 * data.cube_centre).round(3).tolist(),
-        },
-        "sweep": {
+        }
+        out["sweep"] = {
             "frames_solved": int(len(mapping.inside)), "frames_recorded": sweep.recorded, "stride": sweep.stride,
             "gate_residual": sweep.gates.max_residual, "gate_error_mm": 1000 * sweep.gates.max_error,
             "residual_relative": percentiles(mapping.sensor0.residual[mapping.sensor0.converged]),
             "samples": {"total": int(mapping.keep.size), "kept": mapping.kept, "dropped": mapping.dropped},
             "estimated_error_mm": _rounded(percentiles(mapping.error_estimate[mapping.keep], 1000)),
-        },
-    }
-    if sweep.errors is not None:
-        ok0 = mapping.sensor0.converged & mapping.inside
-        out["sweep"]["sensor0_position_mm"] = _rounded(percentiles(sweep.errors.position[ok0, 0], 1000))
-        out["sweep"]["sensor0_orientation_mrad"] = _rounded(percentiles(sweep.errors.angle[ok0, 0], 1000))
-        out["sweep"]["kept_samples_position_mm"] = _rounded(percentiles(sweep.errors.position[mapping.keep], 1000))
+        }
+        if sweep.errors is not None:
+            ok0 = mapping.sensor0.converged & mapping.inside
+            out["sweep"]["sensor0_position_mm"] = _rounded(percentiles(sweep.errors.position[ok0, 0], 1000))
+            out["sweep"]["sensor0_orientation_mrad"] = _rounded(percentiles(sweep.errors.angle[ok0, 0], 1000))
+            out["sweep"]["kept_samples_position_mm"] = _rounded(percentiles(sweep.errors.position[mapping.keep],
+                                                                            1000))
     if data.check is None:
         out["check"] = {"missing": data.check_missing}
     else:
-        out["check"] = {"source": data.check.source, **summarise(data.check.errors),
-                        "distance_from_cube_mm": percentiles(data.check.distance[data.check.errors.valid], 1000)}
+        out["check"] = {"source": data.check.source, **summarise(data.check.errors)}
+        if data.check.distance is not None:
+            out["check"]["distance_from_cube_mm"] = percentiles(data.check.distance[data.check.errors.valid], 1000)
     return out

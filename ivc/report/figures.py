@@ -31,8 +31,8 @@ def _panels(count: int, width: float = 3.6, height: float = 3.4) -> tuple[Figure
 
 def _cube_outline(ax, data: ReportData, z: float) -> bool:
     """The cube's footprint on the slice at height z (m), if the slice cuts the cube."""
-    vertices = data.model.placement.positions
-    if not vertices[:, 2].min() <= z <= vertices[:, 2].max():
+    vertices = data.cube_vertices
+    if vertices is None or not vertices[:, 2].min() <= z <= vertices[:, 2].max():
         return False
     corners = 1000 * vertices[:, :2]
     hull = corners[ConvexHull(corners).vertices]
@@ -192,12 +192,13 @@ def error_histograms(data: ReportData) -> Figure:
 
 
 def error_vs_distance(data: ReportData) -> Figure:
-    """Errors against distance from the cube centre: check poses (IVC and dipole) and wand samples."""
-    panels = 3 if data.check is not None else 1
+    """Errors against distance from the cube centre: check poses (IVC and dipole) and wand samples,
+    whichever the report has."""
+    with_check = data.check is not None and data.check.distance is not None
+    panels = 2 * with_check + (data.sweep is not None)
     fig = Figure(figsize=(max(4.4 * panels + 0.6, 8.0), 4.2), layout="constrained")
     axes = list(np.atleast_1d(fig.subplots(1, panels)))
-    half_diagonal = 1000 * data.model.cube.fit.edge * np.sqrt(3) / 2
-    if data.check is not None:
+    if with_check:
         e, distance = data.check.errors, 1000 * data.check.distance
         for ax, (ivc, dip, label) in zip(axes[:2], (
                 (e.ivc_position_mm, e.dipole_position_mm, "position error (mm)"),
@@ -208,24 +209,26 @@ def error_vs_distance(data: ReportData) -> Figure:
             _binned(ax, distance[e.valid], dip[e.valid], _DIPOLE, "dipole")
             ax.set_ylabel(f"check pose {label}")
             ax.set_title("check poses", fontsize=10)
-    mapping, errors = data.sweep.mapping, data.sweep.errors
-    keep = mapping.keep
-    distance = 1000 * data.sweep.distance[keep]
-    ax = axes[-1]
-    _binned(ax, distance, 1000 * mapping.error_estimate[keep], "tab:purple", "estimated (eq. 101)")
-    if errors is not None:
-        _binned(ax, distance, 1000 * errors.position[keep], "tab:gray", "true")
-    ax.set_ylabel("wand sample position error (mm)")
-    ax.set_title(f"kept wand samples ({int(keep.sum()):,})", fontsize=10)
+    if data.sweep is not None:
+        mapping, errors = data.sweep.mapping, data.sweep.errors
+        keep = mapping.keep
+        distance = 1000 * data.sweep.distance[keep]
+        ax = axes[-1]
+        _binned(ax, distance, 1000 * mapping.error_estimate[keep], "tab:purple", "estimated (eq. 101)")
+        if errors is not None:
+            _binned(ax, distance, 1000 * errors.position[keep], "tab:gray", "true")
+        ax.set_ylabel("wand sample position error (mm)")
+        ax.set_title(f"kept wand samples ({int(keep.sum()):,})", fontsize=10)
+    cube = "cube (to its half-diagonal)" if data.model is not None else "ideal cube at the declared pose"
     for ax in axes:
-        ax.axvspan(0, half_diagonal, color=_CUBE, alpha=0.12, label="cube (to its half-diagonal)")
+        ax.axvspan(0, 1000 * data.cube_half_diagonal, color=_CUBE, alpha=0.12, label=cube)
         ax.set_yscale("log")
         _plain_log_labels(ax)
         ax.set_xlim(left=0)
         ax.set_xlabel("distance from the cube centre (mm)")
         ax.grid(True, which="major", alpha=0.3)
         ax.legend(fontsize=7)
-    subject = "Error" if data.check is not None else "Wand sample error"
+    subject = "Error" if with_check else "Wand sample error"
     fig.suptitle(f"{subject} against distance from the cube (lines: median; dotted: 95th percentile)", fontsize=11)
     return fig
 
