@@ -16,7 +16,7 @@ import numpy as np
 from ivc import dipole, rotations
 from ivc.correct.evaluate import CheckErrors, check_errors, summarise
 from ivc.correct.solver import Corrector
-from ivc.fixtures.cube import CUBE_BITS, NOMINAL_EDGE
+from ivc.fixtures.cube import CUBE_BITS, NOMINAL_EDGE, declared_pose
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import FixtureModel, Gates, SweepMapping, map_sweep
 from ivc.fixtures.report import SweepErrors, declared_frame_map, percentiles, sweep_errors
@@ -202,10 +202,11 @@ def declared_cube(session: Session) -> np.ndarray | None:
     """The ideal cube's vertices (8, 3) m at the pose declared in ``cube_survey`` (eq. 87 with the
     nominal edge), for a session without the cube's calibration; None without a declared pose."""
     survey = session.steps.get("cube_survey")
-    if survey is None or not {"declared_position", "declared_quaternion"} <= survey.attrs.keys():
+    declared = None if survey is None else declared_pose(survey)
+    if declared is None:
         return None
-    T_I = rotations.to_matrix(rotations.canonical(np.asarray(survey.attrs["declared_quaternion"], float)))
-    return np.asarray(survey.attrs["declared_position"], float) + NOMINAL_EDGE * CUBE_BITS @ T_I.T
+    r_0, q_I = declared
+    return r_0 + NOMINAL_EDGE * CUBE_BITS @ rotations.to_matrix(q_I).T
 
 
 def mapping_lacks(session: Session) -> tuple[str, ...]:
