@@ -100,6 +100,11 @@ def _grid_cross_validation(samples: FieldSamples, grid: Grid, fit: Callable, fol
     return pose_equivalent_rms(samples, predicted, precision)
 
 
+def _fitting(options: FitOptions) -> str:
+    """The fit's progress label: a harmonic fit passes over every sample PASSES times."""
+    return f"fitting (harmonic, {PASSES} passes)" if options.method == "harmonic" else f"fitting ({options.method})"
+
+
 def _work(options: FitOptions, samples: FieldSamples) -> int:
     """Progress units of one fit: samples times passes (harmonic) or grid nodes (poly)."""
     return len(samples) * PASSES if options.method == "harmonic" else 0
@@ -181,7 +186,7 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
     else:
         grid = Grid.around(samples.positions, options.spacing)
     outside = int(np.sum(~grid.contains(samples.positions)))
-    values, report = tabulate(samples, grid, options, progress(f"fitting ({options.method})", _work(options, samples)))
+    values, report = tabulate(samples, grid, options, progress(_fitting(options), _work(options, samples)))
     support = node_support(grid, samples.positions)
     valid = _mapped_nodes(values, support, options.min_support)
     history = []
