@@ -144,3 +144,20 @@ def test_cli_fit_correct_evaluate(small_session, tmp_path):
     assert np.allclose(np.abs(np.sum(q0[ok] * q_corr[ok], axis=-1)), 1.0, atol=1e-12)
     assert not np.allclose(q50[ok], q_corr[ok])
     assert session_io.read(ahead).steps["check"].attrs["predicted_with"] == "mmdq2"
+
+
+def test_correct_advice_names_the_dominant_flag():
+    from ivc.cli.correct import _advice
+    from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE, Correction
+
+    def out(flags):
+        flags = np.array(flags, dtype=np.uint8)
+        n = len(flags)
+        return Correction(np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)), flags, np.full(n, 0.01), np.ones(n))
+
+    assert _advice(out([0, 0, OUTSIDE, INVALID_INPUT]), 1e-3) is None  # most valid samples trusted
+    assert "outside the table's mapped volume" in _advice(out([OUTSIDE, OUTSIDE, 0, INVALID_INPUT]), 1e-3)
+    assert "67% of the valid samples" in _advice(out([OUTSIDE, OUTSIDE, 0, INVALID_INPUT]), 1e-3)
+    assert "median residual 0.01" in _advice(out([HIGH_RESIDUAL, HIGH_RESIDUAL | OUTSIDE, HIGH_RESIDUAL]), 1e-3)
+    assert "did not converge" in _advice(out([NOT_CONVERGED, NOT_CONVERGED, 0]), 1e-3)
+    assert "invalid" in _advice(out([INVALID_INPUT, INVALID_INPUT]), 1e-3)

@@ -44,6 +44,16 @@ def test_correct_the_shipped_csv_against_its_truth(tmp_path):
     after = np.linalg.norm(corrected.position - truth.position[:frames], axis=-1)[:, 0][ok] * 1e3
     # corrected poses are in the declared cube frame, 1.25 mm from the simulator's (sample_data/README.md)
     assert np.median(after) < 2.0 < 30.0 < np.median(before)
+    assert "warning" not in result.output
+
+
+def test_correcting_a_recording_from_elsewhere_says_what_to_check(tmp_path):
+    # the head recording was made in free space: its signals do not fit the room's table
+    result = CliRunner().invoke(cli, ["correct", str(TABLE), str(HEAD_CSV), "-o", str(tmp_path / "c.csv")])
+    assert result.exit_code == 0, result.output
+    assert "0 corrected" in result.output
+    assert "warning: 100% of the valid samples do not fit the table's field" in result.output
+    assert "--max-residual 0.001" in result.output
 
 
 def test_report_on_the_shipped_table_and_check_poses(tmp_path):

@@ -12,7 +12,7 @@ from ivc.cli.paths import input_and_output
 from ivc.cli.predict import parse_horizon, predicted_quaternions
 from ivc.collect.replay import read_csv, write_csv
 from ivc.correct import Corrector, describe
-from ivc.correct.solver import MAX_RESIDUAL, Correction
+from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, MAX_RESIDUAL, NOT_CONVERGED, OUTSIDE, Correction
 from ivc.lut.build import file_digest
 from ivc.lut.grid import INTERPOLATIONS
 from ivc.predict import FILTERS
@@ -43,6 +43,34 @@ def _summary(name: str, out: Correction) -> str:
     counts = {describe(int(v)): int(n) for v, n in zip(*np.unique(flags[flags != 0], return_counts=True), strict=True)}
     text = f"{name}: {flags.size} samples, {int(np.sum(flags == 0))} corrected"
     return text + "".join(f"; {n} {k}" for k, n in counts.items())
+
+
+def _warn(advice: str | None) -> None:
+    if advice:
+        click.echo(f"warning: {advice}", err=True)
+
+
+def _advice(out: Correction, max_residual: float) -> str | None:
+    """What to check when most valid samples carry one flag; None when most are trusted."""
+    flags = out.flags.reshape(-1)
+    valid = (flags & INVALID_INPUT) == 0
+    if not valid.any():
+        return "every sample is marked invalid or is not finite in the input: nothing to correct"
+    if np.mean(flags[valid] == 0) >= 0.5:
+        return None
+    share = {bit: float(np.mean((flags[valid] & bit) != 0)) for bit in (OUTSIDE, HIGH_RESIDUAL, NOT_CONVERGED)}
+    bit = max(share, key=share.get)
+    percent = f"{100 * share[bit]:.0f}% of the valid samples"
+    if bit == OUTSIDE:
+        return (f"{percent} lie outside the table's mapped volume: sweep the wand there and fit again "
+                "(`ivc report` shows the coverage)")
+    if bit == HIGH_RESIDUAL:
+        median = float(np.median(out.residual.reshape(-1)[valid]))
+        return (f"{percent} do not fit the table's field (median residual {median:.2g}, gate --max-residual "
+                f"{max_residual:g}): was this recorded in the mapped room, with the source where it was when "
+                "the table was fitted, and in the table's hemisphere?")
+    return (f"{percent} did not converge: check the hemisphere (--hemisphere for a CSV) and that the signals "
+            "are in the tracker's units")
 
 
 @click.command()
@@ -108,6 +136,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         with session_io.atomic_path(output_path) as tmp:
             write_csv(fixed, tmp, {"flags": out.flags, "residual": out.residual})
         click.echo(_summary(input_path.name, out))
+        _warn(_advice(out, max_residual))
         click.echo(f"wrote {output_path}")
         return
     data = session_io.read(input_path)
@@ -121,6 +150,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         step = data.steps[name]
         results[name] = corrector.batch(step.signal_matrices(), step.valid_mask)
         click.echo(_summary(name, results[name]))
+        _warn(_advice(results[name], max_residual))
     fixed = {n: corrected_step(data.steps[n], results[n], lut_file) for n in names}
     if predictor:
         fixed = {n: _predicted(fixed[n], results[n], predictor, delta) for n in names}
