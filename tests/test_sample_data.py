@@ -90,3 +90,19 @@ def test_the_maker_writes_a_head_recording_and_never_replaces_one(tmp_path):
     again = subprocess.run(args, capture_output=True, text=True)
     assert again.returncode != 0 and "not replaced" in again.stderr
     assert (tmp_path / "head_aggressive_120hz.csv").read_bytes() == before
+
+
+def test_info_on_a_recording_csv_and_evaluate_refuses_one():
+    result = CliRunner().invoke(cli, ["info", str(CHECK_CSV), "--json"])
+    assert result.exit_code == 0, result.output
+    info = json.loads(result.output)
+    step = read_csv(CHECK_CSV)
+    assert info["frames"] == step.n_frames == 240 and info["sensors"] == ["check0"]
+    assert info["sample_rate_hz"] == 240.0 and info["data"] == "signal+pose"
+    text = CliRunner().invoke(cli, ["info", str(HEAD_CSV)]).output
+    assert "1200 frames x 1 sensors (head)" in text and "data: pose" in text
+    refused = CliRunner().invoke(cli, ["evaluate", str(TABLE), str(CHECK_CSV)])
+    assert refused.exit_code != 0 and "holds no true poses" in refused.output and "Traceback" not in refused.output
+    # anything else that reads a session says what a CSV is and how to make a session of it
+    refused = CliRunner().invoke(cli, ["report", str(CHECK_CSV), str(TABLE), "-o", "unused"])
+    assert refused.exit_code != 0 and "a recording CSV, not an ivc session file" in refused.output

@@ -10,7 +10,8 @@ import numpy as np
 
 from ivc import lut
 from ivc import session as session_io
-from ivc.session import STEPS, Session
+from ivc.collect.replay import read_csv
+from ivc.session import STEPS, Session, Step
 
 
 def summarise(s: Session) -> dict:
@@ -66,8 +67,8 @@ def render(path: str, summary: dict) -> str:
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 def info(file: str, as_json: bool) -> None:
-    """Summarise a session FILE (steps, frames, sensors, rates, valid fraction, what is missing) or a
-    look-up table written by `ivc fit` (grid, fit, samples, provenance)."""
+    """Summarise a session FILE (steps, frames, sensors, rates, valid fraction, what is missing), a
+    look-up table written by `ivc fit` (grid, fit, samples, provenance), or a recording .csv."""
     if _is_table(file):
         from ivc.cli.fit import render_fit
 
@@ -79,8 +80,40 @@ def info(file: str, as_json: bool) -> None:
                    f"\nmade by ivc {table.provenance.get('ivc_version')} on {table.provenance.get('created_utc')}"
                    f" from {table.provenance.get('input', 'an unnamed session')}")
         return
+    if file.lower().endswith(".csv"):
+        summary = summarise_recording(read_csv(file))
+        click.echo(json.dumps(summary, indent=2) if as_json else render_recording(file, summary))
+        return
     summary = summarise(session_io.read(file))
     click.echo(json.dumps(summary, indent=2) if as_json else render(file, summary))
+
+
+def summarise_recording(step: Step) -> dict:
+    """A JSON-ready summary of a recording CSV: frames, sensors, rate, valid fraction, columns."""
+    return {
+        "frames": step.n_frames,
+        "sensors": [str(s) for s in step.sensor_ids] if step.sensor_ids is not None else step.n_sensors,
+        "sample_rate_hz": step.sample_rate_hz,
+        "duration_s": float(step.time[-1] - step.time[0]) if step.n_frames > 1 else 0.0,
+        "valid_fraction": float(np.mean(step.valid_mask)) if step.n_frames else 0.0,
+        "data": "+".join(k for k, v in (("signal", step.signal), ("pose", step.position)) if v is not None),
+    }
+
+
+def render_recording(path: str, summary: dict) -> str:
+    sensors = summary["sensors"]
+    named = ", ".join(sensors) if isinstance(sensors, list) else str(sensors)
+    count = len(sensors) if isinstance(sensors, list) else sensors
+    uses = ("`ivc correct LUT FILE -o OUT.csv`, `ivc predict FILE ...`, or `ivc collect STEP --source replay:FILE` "
+            "for a session")
+    if summary["data"] == "pose":
+        uses = "`ivc predict FILE ...`; without signal matrices, `ivc correct` solves from the reported poses"
+    return "\n".join([
+        f"{path}: recording CSV, {summary['frames']} frames x {count} sensors ({named})",
+        f"  {summary['sample_rate_hz']:.1f} Hz, {summary['duration_s']:.2f} s, {100 * summary['valid_fraction']:.2f}% "
+        f"valid, data: {summary['data']}",
+        f"  use it with {uses}",
+    ])
 
 
 def _is_table(path: str) -> bool:

@@ -93,6 +93,9 @@ def open_ivc_file(path: str | os.PathLike, kind: str, version: int, what: str, e
     try:
         handle = h5py.File(path, "r")
     except OSError as problem:
+        if path.suffix.lower() == ".csv":
+            raise error(f"{path}: a recording CSV, not an ivc {what} (HDF5); make a session of it with `ivc collect "
+                        f"STEP --source replay:{path} -o SESSION.h5`") from None
         raise error(f"{path}: not an HDF5 file ({problem})") from None
     with handle as h5:
         attrs = {key: _decode(value) for key, value in h5.attrs.items()}
