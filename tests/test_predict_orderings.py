@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ivc.predict import make
-from ivc.predict.evaluate import HORIZONS_MS, evaluate, plot_error_vs_horizon, snr_table
+from ivc.predict.evaluate import HORIZONS_MS, error_table, evaluate, plot_error_vs_horizon, snr_table
 from ivc.predict.motion import head_motion
 
 NAMES = ("none", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf")
@@ -71,6 +71,18 @@ def test_snr_table_prints_the_evaluated_snr(results):
     lines = snr_table(chosen, (0.0, 50.0)).splitlines()
     row = next(line for line in lines if line.startswith("dqekf-cv"))
     assert row.split()[1:] == [f"{chosen[1].at(h)['snr_db']:.1f}" for h in (0.0, 50.0)]
+
+
+def test_tables_name_each_motion_in_full_over_its_columns(results):
+    chosen = [results[m, n] for m in ("moderate", "aggressive") for n in ("none", "mmdq2")]
+    for table in (error_table(chosen), snr_table(chosen, (0.0, 50.0))):
+        group, columns, first = table.splitlines()[1:4]
+        assert group.split() == ["moderate", "aggressive"]
+        assert first.startswith("none") and len(first) == len(columns)  # cells sit under their headers
+        middle = len(columns.rstrip()) // 2  # the second motion's group starts halfway along
+        assert group.index("aggressive") > middle > group.index("moderate")
+    row = next(line for line in error_table(chosen).splitlines() if line.startswith("mmdq2"))
+    assert row.split()[4] == f"{results['aggressive', 'mmdq2'].at(50.0)['mean']:.2f}"
 
 
 def test_velocity_error_is_reported_for_rate_estimators(results):

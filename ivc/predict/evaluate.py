@@ -165,17 +165,24 @@ def overshoot_table(results: list[Evaluation], horizon_ms: float = 50.0) -> str:
     return "\n".join(lines)
 
 
+def _grouped_header(motions: Sequence[str], columns: Sequence[tuple[str, int]]) -> list[str]:
+    """Two header lines: each motion's name centred over its group of (name, width) columns."""
+    total = sum(w for _, w in columns)
+    names = "".join(f"{m:^{total}}" for m in motions)
+    return [f"{'':<12}{names}".rstrip(), f"{'filter':<12}" + "".join(f"{c:>{w}}" for _ in motions for c, w in columns)]
+
+
 def error_table(results: list[Evaluation], horizon_ms: float = 50.0) -> str:
     """Table 6 layout: average error, OS avg, OS max (mrad) per motion."""
     motions = list(dict.fromkeys(r.motion for r in results))
     names = list(dict.fromkeys(r.name for r in results))
-    head = "".join(f"{m[:5] + ' avg':>11}{'OS avg':>8}{'OS max':>8}" for m in motions)
-    lines = [f"prediction error (mrad) at {horizon_ms:g} ms", f"{'filter':<12}{head}"]
+    lines = [f"prediction error (mrad) at {horizon_ms:g} ms",
+             *_grouped_header(motions, (("avg", 9), ("OS avg", 8), ("OS max", 8)))]
     for n in names:
         cells = ""
         for m in motions:
             r = next((r.at(horizon_ms) for r in results if r.name == n and r.motion == m), None)
-            cells += f"{r['mean']:>11.2f}{r['os_avg']:>8.1f}{r['os_max']:>8.1f}" if r else " " * 27
+            cells += f"{r['mean']:>9.2f}{r['os_avg']:>8.1f}{r['os_max']:>8.1f}" if r else " " * 25
         lines.append(f"{n:<12}{cells}")
     return "\n".join(lines)
 
@@ -197,13 +204,12 @@ def velocity_table(results: list[Evaluation]) -> str:
     """Table 11 layout: angular-velocity error mean / median / max (mrad/s) per motion."""
     motions = list(dict.fromkeys(r.motion for r in results))
     names = list(dict.fromkeys(r.name for r in results if r.velocity))
-    head = "".join(f"{m[:5] + ' mean':>11}{'med':>7}{'max':>7}" for m in motions)
-    lines = ["angular-velocity error (mrad/s)", f"{'filter':<12}{head}"]
+    lines = ["angular-velocity error (mrad/s)", *_grouped_header(motions, (("mean", 8), ("med", 7), ("max", 7)))]
     for n in names:
         cells = ""
         for m in motions:
             v = next((r.velocity for r in results if r.name == n and r.motion == m), None)
-            cells += f"{v['mean']:>11.1f}{v['median']:>7.1f}{v['max']:>7.0f}" if v else " " * 25
+            cells += f"{v['mean']:>8.1f}{v['median']:>7.1f}{v['max']:>7.0f}" if v else " " * 22
         lines.append(f"{n:<12}{cells}")
     return "\n".join(lines)
 
@@ -212,16 +218,12 @@ def snr_table(results: list[Evaluation], horizons_ms: Sequence[float] = (0.0, 50
     """Output SNR (dB) per filter and motion at a few horizons (the thesis's Figs. 16-17 as numbers)."""
     motions = list(dict.fromkeys(r.motion for r in results))
     names = list(dict.fromkeys(r.name for r in results))
-    widths = [11] + [7] * (len(horizons_ms) - 1)  # each motion's first column also carries its name
-    head = "".join(f"{(f'{m[:5]} ' if i == 0 else '') + f'{h:g}':>{w}}"
-                   for m in motions for i, (h, w) in enumerate(zip(horizons_ms, widths, strict=True)))
-    lines = ["output SNR (dB) at horizons (ms)", f"{'filter':<12}{head}"]
+    lines = ["output SNR (dB) at horizons (ms)", *_grouped_header(motions, [(f"{h:g}", 7) for h in horizons_ms])]
     for n in names:
         cells = ""
         for m in motions:
             r = next((r for r in results if r.name == n and r.motion == m), None)
-            cells += ("".join(f"{r.at(h)['snr_db']:>{w}.1f}" for h, w in zip(horizons_ms, widths, strict=True))
-                      if r else " " * sum(widths))
+            cells += "".join(f"{r.at(h)['snr_db']:>7.1f}" for h in horizons_ms) if r else " " * 7 * len(horizons_ms)
         lines.append(f"{n:<12}{cells}")
     return "\n".join(lines)
 
