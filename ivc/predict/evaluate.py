@@ -19,7 +19,7 @@ smoothed output) and the angular-velocity error for filters that estimate ω.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -165,26 +165,32 @@ def overshoot_table(results: list[Evaluation], horizon_ms: float = 50.0) -> str:
     return "\n".join(lines)
 
 
-def _grouped_header(motions: Sequence[str], columns: Sequence[tuple[str, int]]) -> list[str]:
-    """Two header lines: each motion's name centred over its group of (name, width) columns."""
-    total = sum(w for _, w in columns)
-    names = "".join(f"{m:^{total}}" for m in motions)
-    return [f"{'':<12}{names}".rstrip(), f"{'filter':<12}" + "".join(f"{c:>{w}}" for _ in motions for c, w in columns)]
+def _motion_table(title: str, results: list[Evaluation], columns: Sequence[tuple[str, int, str]],
+                  values: Callable[[Evaluation], Sequence[float] | None]) -> str:
+    """A table with one group of ``columns`` (header, width, format) per motion, each motion's name
+    centred over its group, and one row per filter; ``values`` gives one evaluation's numbers for
+    its group, or None (a filter with no numbers anywhere gets no row, a missing group stays blank)."""
+    motions = list(dict.fromkeys(r.motion for r in results))
+    names = list(dict.fromkeys(r.name for r in results if values(r) is not None))
+    total = sum(w for _, w, _ in columns)
+    lines = [title, f"{'':<12}" + "".join(f"{m:^{total}}" for m in motions).rstrip(),
+             f"{'filter':<12}" + "".join(f"{c:>{w}}" for _ in motions for c, w, _ in columns)]
+    for n in names:
+        cells = ""
+        for m in motions:
+            r = next((r for r in results if r.name == n and r.motion == m), None)
+            numbers = None if r is None else values(r)
+            cells += (" " * total if numbers is None
+                      else "".join(f"{x:>{w}{f}}" for x, (_, w, f) in zip(numbers, columns, strict=True)))
+        lines.append(f"{n:<12}{cells}")
+    return "\n".join(lines)
 
 
 def error_table(results: list[Evaluation], horizon_ms: float = 50.0) -> str:
     """Table 6 layout: average error, OS avg, OS max (mrad) per motion."""
-    motions = list(dict.fromkeys(r.motion for r in results))
-    names = list(dict.fromkeys(r.name for r in results))
-    lines = [f"prediction error (mrad) at {horizon_ms:g} ms",
-             *_grouped_header(motions, (("avg", 9), ("OS avg", 8), ("OS max", 8)))]
-    for n in names:
-        cells = ""
-        for m in motions:
-            r = next((r.at(horizon_ms) for r in results if r.name == n and r.motion == m), None)
-            cells += f"{r['mean']:>9.2f}{r['os_avg']:>8.1f}{r['os_max']:>8.1f}" if r else " " * 25
-        lines.append(f"{n:<12}{cells}")
-    return "\n".join(lines)
+    return _motion_table(f"prediction error (mrad) at {horizon_ms:g} ms", results,
+                         (("avg", 9, ".2f"), ("OS avg", 8, ".1f"), ("OS max", 8, ".1f")),
+                         lambda r: [r.at(horizon_ms)[k] for k in ("mean", "os_avg", "os_max")])
 
 
 def horizon_table(results: list[Evaluation], motion: str, horizons_ms: Sequence[float] = (50.0, 75.0, 100.0)) -> str:
@@ -202,30 +208,15 @@ def horizon_table(results: list[Evaluation], motion: str, horizons_ms: Sequence[
 
 def velocity_table(results: list[Evaluation]) -> str:
     """Table 11 layout: angular-velocity error mean / median / max (mrad/s) per motion."""
-    motions = list(dict.fromkeys(r.motion for r in results))
-    names = list(dict.fromkeys(r.name for r in results if r.velocity))
-    lines = ["angular-velocity error (mrad/s)", *_grouped_header(motions, (("mean", 8), ("med", 7), ("max", 7)))]
-    for n in names:
-        cells = ""
-        for m in motions:
-            v = next((r.velocity for r in results if r.name == n and r.motion == m), None)
-            cells += f"{v['mean']:>8.1f}{v['median']:>7.1f}{v['max']:>7.0f}" if v else " " * 22
-        lines.append(f"{n:<12}{cells}")
-    return "\n".join(lines)
+    return _motion_table("angular-velocity error (mrad/s)", results,
+                         (("mean", 8, ".1f"), ("med", 7, ".1f"), ("max", 7, ".0f")),
+                         lambda r: None if not r.velocity else [r.velocity[k] for k in ("mean", "median", "max")])
 
 
 def snr_table(results: list[Evaluation], horizons_ms: Sequence[float] = (0.0, 50.0, 100.0)) -> str:
     """Output SNR (dB) per filter and motion at a few horizons (the thesis's Figs. 16-17 as numbers)."""
-    motions = list(dict.fromkeys(r.motion for r in results))
-    names = list(dict.fromkeys(r.name for r in results))
-    lines = ["output SNR (dB) at horizons (ms)", *_grouped_header(motions, [(f"{h:g}", 7) for h in horizons_ms])]
-    for n in names:
-        cells = ""
-        for m in motions:
-            r = next((r for r in results if r.name == n and r.motion == m), None)
-            cells += "".join(f"{r.at(h)['snr_db']:>7.1f}" for h in horizons_ms) if r else " " * 7 * len(horizons_ms)
-        lines.append(f"{n:<12}{cells}")
-    return "\n".join(lines)
+    return _motion_table("output SNR (dB) at horizons (ms)", results, [(f"{h:g}", 7, ".1f") for h in horizons_ms],
+                         lambda r: [r.at(h)["snr_db"] for h in horizons_ms])
 
 
 #: errors below this (mrad) are exact zeros up to rounding (a filter returning the measurement at 0 ms)
