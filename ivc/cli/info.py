@@ -14,21 +14,21 @@ from ivc.collect.replay import read_csv
 from ivc.session import STEPS, Session, Step
 
 
+def summarise_step(step: Step) -> dict:
+    """A JSON-ready summary of one step or recording: frames, sensors, rate, duration, valid fraction, data."""
+    return {
+        "frames": step.n_frames,
+        "sensors": step.n_sensors,
+        "sample_rate_hz": step.sample_rate_hz,
+        "duration_s": float(step.time[-1] - step.time[0]) if step.n_frames > 1 else 0.0,
+        "valid_fraction": float(np.mean(step.valid_mask)) if step.n_frames else 0.0,
+        "data": "+".join(k for k, v in (("signal", step.signal), ("pose", step.position)) if v is not None),
+    }
+
+
 def summarise(s: Session) -> dict:
     """A JSON-ready summary of a session: per step frames, sensors, rate, valid fraction."""
-    steps = {}
-    for name, step in s.steps.items():
-        kinds = [k for k in ("signal", "position") if getattr(step, k) is not None]
-        duration = float(step.time[-1] - step.time[0]) if step.n_frames > 1 else 0.0
-        steps[name] = {
-            "frames": step.n_frames,
-            "sensors": step.n_sensors,
-            "sample_rate_hz": step.sample_rate_hz,
-            "duration_s": duration,
-            "valid_fraction": float(np.mean(step.valid_mask)) if step.n_frames else 0.0,
-            "data": "+".join("pose" if k == "position" else k for k in kinds),
-            "truth": name in s.truth,
-        }
+    steps = {name: dict(summarise_step(step), truth=name in s.truth) for name, step in s.steps.items()}
     return {
         "hemisphere": s.hemisphere,
         "steps": steps,
@@ -89,15 +89,11 @@ def info(file: str, as_json: bool) -> None:
 
 
 def summarise_recording(step: Step) -> dict:
-    """A JSON-ready summary of a recording CSV: frames, sensors, rate, valid fraction, columns."""
-    return {
-        "frames": step.n_frames,
-        "sensors": [str(s) for s in step.sensor_ids] if step.sensor_ids is not None else step.n_sensors,
-        "sample_rate_hz": step.sample_rate_hz,
-        "duration_s": float(step.time[-1] - step.time[0]) if step.n_frames > 1 else 0.0,
-        "valid_fraction": float(np.mean(step.valid_mask)) if step.n_frames else 0.0,
-        "data": "+".join(k for k, v in (("signal", step.signal), ("pose", step.position)) if v is not None),
-    }
+    """:func:`summarise_step` of a recording CSV, with its sensors by name."""
+    summary = summarise_step(step)
+    if step.sensor_ids is not None:
+        summary["sensors"] = [str(s) for s in step.sensor_ids]
+    return summary
 
 
 def render_recording(path: str, summary: dict) -> str:

@@ -212,7 +212,7 @@ def declared_cube(session: Session) -> np.ndarray | None:
 def mapping_lacks(session: Session) -> tuple[str, ...]:
     """What ``session`` lacks of the mapping: step names, and the declared cube pose, in a few words each."""
     lacks = [f"no {name} step" for name in FIT_STEPS if name not in session.steps]
-    if "cube_survey" in session.steps and declared_cube(session) is None:
+    if "cube_survey" in session.steps and declared_pose(session.steps["cube_survey"]) is None:
         lacks.append("no declared cube pose in cube_survey")
     return tuple(lacks)
 
