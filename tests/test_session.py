@@ -219,3 +219,9 @@ def test_missing_for_fit(rng):
     assert s.missing_for_fit() == []
     del s.steps["wand_sweep"]
     assert any("ivc collect wand_sweep" in m for m in s.missing_for_fit())
+    del s.steps["cube_survey"].attrs["declared_quaternion"]
+    lacks = s.lacks_for_fit()
+    assert [lack.step for lack in lacks] == ["wand_sweep", "cube_survey"]
+    assert lacks[0].short == "no wand_sweep step"
+    assert "--declared-quaternion" in lacks[1].advice
+    assert s.missing_for_fit() == [lack.advice for lack in lacks]

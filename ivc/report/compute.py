@@ -24,7 +24,7 @@ from ivc.lut.build import FitOptions
 from ivc.lut.grid import GridField
 from ivc.lut.support import MIN_SUPPORT
 from ivc.lut.table import LookupTable
-from ivc.session import FIT_STEPS, Session
+from ivc.session import Session
 
 #: horizontal slices drawn at most
 MAX_SLICES = 6
@@ -209,14 +209,6 @@ def declared_cube(session: Session) -> np.ndarray | None:
     return r_0 + NOMINAL_EDGE * CUBE_BITS @ rotations.to_matrix(q_I).T
 
 
-def mapping_lacks(session: Session) -> tuple[str, ...]:
-    """What ``session`` lacks of the mapping: step names, and the declared cube pose, in a few words each."""
-    lacks = [f"no {name} step" for name in FIT_STEPS if name not in session.steps]
-    if "cube_survey" in session.steps and declared_pose(session.steps["cube_survey"]) is None:
-        lacks.append("no declared cube pose in cube_survey")
-    return tuple(lacks)
-
-
 def lacks_sentence(lacks: tuple[str, ...]) -> str:
     """``("no a step", "no b step")`` as "the session has no a step and no b step"."""
     listed = ", ".join(lacks[:-1]) + (" and " if len(lacks) > 1 else "") + lacks[-1]
@@ -234,7 +226,7 @@ def gather(session: Session, table: LookupTable, check: Session | None = None, s
     if thin < 1:
         raise ValueError(f"thin = {thin}: the thin-cell threshold is a number of samples, at least 1")
     field = table.field()
-    lacks = mapping_lacks(session)
+    lacks = tuple(lack.short for lack in session.lacks_for_fit())
     if lacks:
         model = sweep = counts = None
         vertices = declared_cube(session)

@@ -3,10 +3,12 @@
 from ivc.session.io import add_step, atomic_path, read, write
 from ivc.session.model import (
     CUBE_SENSORS,
+    DECLARED_POSE_ATTRS,
     FIT_STEPS,
     FORMAT_VERSION,
     STEP_DESCRIPTIONS,
     STEPS,
+    Lack,
     Session,
     SessionError,
     Step,
@@ -15,8 +17,10 @@ from ivc.session.model import (
 
 __all__ = [
     "CUBE_SENSORS",
+    "DECLARED_POSE_ATTRS",
     "FIT_STEPS",
     "FORMAT_VERSION",
+    "Lack",
     "STEPS",
     "STEP_DESCRIPTIONS",
     "Session",

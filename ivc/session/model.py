@@ -34,8 +34,21 @@ STEP_DESCRIPTIONS = {
 QUATERNION_NORM_TOLERANCE = 1e-6
 
 
+#: the cube_survey attributes that declare the cube's pose (m; quaternion w, x, y, z)
+DECLARED_POSE_ATTRS = ("declared_position", "declared_quaternion")
+
+
 class SessionError(ValueError):
     """A session file, or data about to be written to one, breaks the format."""
+
+
+@dataclass(frozen=True)
+class Lack:
+    """One thing a session lacks before ``ivc fit`` can run."""
+
+    step: str  # the protocol step it concerns
+    short: str  # a few words, for a list: "no wand_sweep step"
+    advice: str  # a whole sentence: what is missing and how to record it
 
 
 @dataclass
@@ -117,17 +130,22 @@ class Session:
     truth: dict[str, Truth] = field(default_factory=dict)
     attrs: dict = field(default_factory=dict)
 
-    def missing_for_fit(self) -> list[str]:
-        """What is still missing before ``ivc fit`` can run, as sentences; empty when ready."""
-        missing = [
-            f"step {name!r} ({STEP_DESCRIPTIONS[name]}): record it with `ivc collect {name}`"
-            for name in FIT_STEPS
-            if name not in self.steps
-        ]
+    def lacks_for_fit(self) -> list[Lack]:
+        """What is still missing before ``ivc fit`` can run; empty when ready."""
+        lacks = [Lack(name, f"no {name} step",
+                      f"step {name!r} ({STEP_DESCRIPTIONS[name]}): record it with `ivc collect {name}`")
+                 for name in FIT_STEPS if name not in self.steps]
         survey = self.steps.get("cube_survey")
-        if survey is not None and not {"declared_position", "declared_quaternion"} <= survey.attrs.keys():
-            missing.append("cube_survey has no declared cube pose (declared_position, declared_quaternion)")
-        return missing
+        if survey is not None and not set(DECLARED_POSE_ATTRS) <= survey.attrs.keys():
+            lacks.append(Lack("cube_survey", "no declared cube pose in cube_survey",
+                              "cube_survey has no declared cube pose (attributes declared_position, "
+                              "declared_quaternion): record it again with `ivc collect cube_survey "
+                              "--declared-position x,y,z --declared-quaternion w,x,y,z`"))
+        return lacks
+
+    def missing_for_fit(self) -> list[str]:
+        """:meth:`lacks_for_fit` as sentences that say what to do."""
+        return [lack.advice for lack in self.lacks_for_fit()]
 
     def select_frames(self, step: str, frames: slice | NDArray) -> Session:
         """A copy in which ``step`` (and its truth) keeps only some frames."""
