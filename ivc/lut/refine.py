@@ -21,7 +21,7 @@ import numpy as np
 from ivc import dipole, rotations
 from ivc.fixtures.wand import WandCalibration
 from ivc.lut.grid import GridField
-from ivc.pose import damped_step, signal_residual
+from ivc.pose import levenberg_marquardt, signal_residual
 
 CHUNK_FRAMES = 5_000
 
@@ -71,31 +71,17 @@ def solve_rigid(S: np.ndarray, valid: np.ndarray, wand: WandCalibration, cube_fi
     F = len(S)
     active = np.all(np.isfinite(r), axis=1) & valid[:, 0]
     r[~active], T[~active] = np.nan, np.nan
-    converged = np.zeros(F, dtype=bool)
-    damping = np.full(F, 1e-3)
     idx = np.flatnonzero(active)
     e, J = np.zeros((F, S.shape[1] * 9)), np.zeros((F, S.shape[1] * 9, 6))
     e[idx], J[idx] = _residuals(S[idx], scale[idx], valid[idx], wand, cube_field, map_field, r[idx], T[idx])
-    cost = np.sum(e**2, axis=1)
-    for _ in range(max_iterations):
-        idx = np.flatnonzero(active)
-        if len(idx) == 0:
-            break
-        step = damped_step(J[idx], e[idx], damping[idx])
+
+    def trial(idx, step):
         trial_r = r[idx] + step[:, :3]
         trial_T = T[idx] @ rotations.to_matrix(rotations.from_rotvec(step[:, 3:]))
-        et, Jt = _residuals(S[idx], scale[idx], valid[idx], wand, cube_field, map_field, trial_r, trial_T)
-        trial_cost = np.sum(et**2, axis=1)
-        better = trial_cost <= cost[idx]
-        accept = idx[better]
-        r[accept], T[accept], e[accept], J[accept], cost[accept] = (trial_r[better], trial_T[better], et[better],
-                                                                    Jt[better], trial_cost[better])
-        damping[accept] = np.maximum(damping[accept] * 0.3, 1e-12)
-        damping[idx[~better]] *= 10.0
-        small = np.linalg.norm(step[:, :3], axis=1) < step_tolerance
-        done = idx[(better & small) | (~better & (damping[idx] > 1e8))]
-        converged[done] = True
-        active[done] = False
+        return (trial_r, trial_T), *_residuals(S[idx], scale[idx], valid[idx], wand, cube_field, map_field,
+                                               trial_r, trial_T)
+
+    converged, _ = levenberg_marquardt((r, T), e, J, active, trial, max_iterations, step_tolerance)
     return r, T, converged
 
 

@@ -5,9 +5,11 @@ from ivc.pose.solver import (
     PoseSolution,
     damped_step,
     dipole_plus,
+    levenberg_marquardt,
     procrustes,
     signal_residual,
     solve_pose,
 )
 
-__all__ = ["METHODS", "PoseSolution", "damped_step", "dipole_plus", "procrustes", "signal_residual", "solve_pose"]
+__all__ = ["METHODS", "PoseSolution", "damped_step", "dipole_plus", "levenberg_marquardt",
+           "procrustes", "signal_residual", "solve_pose"]

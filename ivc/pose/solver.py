@@ -96,6 +96,48 @@ def damped_step(J: np.ndarray, e: np.ndarray, damping: np.ndarray) -> np.ndarray
     return -np.linalg.solve(A, g[..., None])[..., 0]
 
 
+Trial = Callable[[np.ndarray, np.ndarray], tuple[tuple[np.ndarray, ...], np.ndarray, np.ndarray]]
+
+
+def levenberg_marquardt(unknowns: tuple[np.ndarray, ...], e: np.ndarray, J: np.ndarray, active: np.ndarray,
+                        trial: Trial, max_iterations: int, step_tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Batched Levenberg-Marquardt: every active frame steps at once, each with its own damping.
+
+    ``unknowns``: arrays with frames first, position (F, 3) m the first of them; ``e`` (F, m) and
+    ``J`` (F, m, n) the residuals and their Jacobian there; ``active`` (F,) the frames to solve.
+    ``trial(idx, step)`` returns the unknowns of frames ``idx`` moved by ``step`` (len(idx), n),
+    with their residuals and Jacobian. Accepted steps update ``unknowns``, ``e`` and ``J`` in
+    place. A frame has converged when an accepted step moves its position by less than
+    ``step_tolerance`` m, or when no step decreases its cost (it sits at the numerical minimum).
+    Returns per-frame convergence and iteration counts.
+    """
+    active = active.copy()
+    cost = np.sum(e**2, axis=1)
+    converged = np.zeros(len(e), dtype=bool)
+    iterations = np.zeros(len(e), dtype=int)
+    damping = np.full(len(e), 1e-3)
+    for _ in range(max_iterations):
+        idx = np.flatnonzero(active)
+        if len(idx) == 0:
+            break
+        step = damped_step(J[idx], e[idx], damping[idx])
+        moved, et, Jt = trial(idx, step)
+        trial_cost = np.sum(et**2, axis=1)
+        better = trial_cost <= cost[idx]
+        accept = idx[better]
+        for value, new in zip(unknowns, moved, strict=True):
+            value[accept] = new[better]
+        e[accept], J[accept], cost[accept] = et[better], Jt[better], trial_cost[better]
+        damping[accept] = np.maximum(damping[accept] * 0.3, 1e-12)
+        damping[idx[~better]] *= 10.0
+        iterations[idx] += 1
+        small = np.linalg.norm(step[:, :3], axis=1) < step_tolerance
+        done = idx[(better & small) | (~better & (damping[idx] > 1e8))]
+        converged[done] = True
+        active[done] = False
+    return converged, iterations
+
+
 def solve_pose(
     S: np.ndarray,
     model: FieldModel,
@@ -120,41 +162,21 @@ def solve_pose(
     F = len(S)
     finite = np.all(np.isfinite(S.reshape(F, -1)), axis=1) & np.all(np.isfinite(r), axis=1)
     S = np.where(finite[:, None, None], S, np.eye(3))  # placeholders, never reported
-    active = finite.copy()
-    converged = np.zeros(F, dtype=bool)
-    iterations = np.zeros(F, dtype=int)
-    damping = np.full(F, 1e-3)
-    cost = np.full(F, np.inf)
     M, dM = model(np.where(finite[:, None], r, 1.0))
     T = procrustes(M, S)
     e, J = residual_fn(S, M, dM, T)
-    cost[finite] = np.sum(e[finite] ** 2, axis=1)
-    unknowns = J.shape[-1]
-    for _ in range(max_iterations):
-        idx = np.flatnonzero(active)
-        if len(idx) == 0:
-            break
-        step = damped_step(J[idx], e[idx], damping[idx])
+    six = J.shape[-1] == 6
+
+    def trial(idx, step):
         trial_r = r[idx] + step[:, :3]
         Mt, dMt = model(trial_r)
-        if unknowns == 6:
+        if six:
             trial_T = T[idx] @ rotations.to_matrix(rotations.from_rotvec(step[:, 3:]))
-        else:
+        else:  # the two-stage method steps position only; orientation follows from Procrustes
             trial_T = procrustes(Mt, S[idx])
-        et, Jt = residual_fn(S[idx], Mt, dMt, trial_T)
-        trial_cost = np.sum(et**2, axis=1)
-        better = trial_cost <= cost[idx]
-        accept = idx[better]
-        r[accept], T[accept] = trial_r[better], trial_T[better]
-        e[accept], J[accept], cost[accept] = et[better], Jt[better], trial_cost[better]
-        damping[accept] = np.maximum(damping[accept] * 0.3, 1e-12)
-        damping[idx[~better]] *= 10.0
-        iterations[idx] += 1
-        small = np.linalg.norm(step[:, :3], axis=1) < step_tolerance
-        stuck = ~better & (damping[idx] > 1e8)  # no step decreases the cost: at the numerical minimum
-        done = idx[(better & small) | stuck]
-        converged[done] = True
-        active[done] = False
+        return (trial_r, trial_T), *residual_fn(S[idx], Mt, dMt, trial_T)
+
+    converged, iterations = levenberg_marquardt((r, T), e, J, finite, trial, max_iterations, step_tolerance)
     M, dM = model(np.where(finite[:, None], r, 1.0))
     T = procrustes(M, S)
     position_sigma, angle_sigma = _standard_errors(S, M, dM, T)
