@@ -98,6 +98,10 @@ class Stream(ABC):
 
     n_sensors: int
 
+    def __init__(self, predictor: Predictor | None, n_sensors: int):
+        self.predictor, self.n_sensors = predictor, int(n_sensors)
+        self.last = np.full((self.n_sensors, 4), np.nan)  # the latest frame fed
+
     @abstractmethod
     def update(self, q: ArrayLike, valid: ArrayLike | None = None) -> None:
         """Feed one frame: q (sensors, 4); valid (sensors,) marks the samples to use."""

@@ -157,9 +157,8 @@ class DQStream(Stream):
     """Streaming DQ predictor: one compiled step per sensor per frame."""
 
     def __init__(self, predictor: DQPredictor, n_sensors: int):
-        self.predictor, self.n_sensors = predictor, int(n_sensors)
+        super().__init__(predictor, n_sensors)
         self.state = predictor._state(self.n_sensors)
-        self.last = np.full((self.n_sensors, 4), np.nan)
         self.ready = np.zeros(self.n_sensors, bool)
         self._all = np.ones(self.n_sensors, bool)
 

@@ -95,7 +95,7 @@ class LastSample(Stream):
     """The live baseline: the latest valid measurement of each sensor, NaN where the last one was invalid."""
 
     def __init__(self, n_sensors: int):
-        self.n_sensors, self.last = int(n_sensors), np.full((n_sensors, 4), np.nan)
+        super().__init__(None, n_sensors)
 
     def update(self, q, valid=None):
         qs, ok = self._check_frame(q, valid)

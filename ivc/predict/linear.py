@@ -92,10 +92,9 @@ class LinearPredictor(Predictor):
 
 class LinearStream(Stream):
     def __init__(self, predictor: LinearPredictor, n_sensors: int):
-        self.predictor, self.n_sensors = predictor, int(n_sensors)
+        super().__init__(predictor, n_sensors)
         self.X = np.zeros((n_sensors, predictor.K.size, 3))
         self.theta = np.zeros((n_sensors, 3))
-        self.last = np.full((n_sensors, 4), np.nan)
         self.started = np.zeros(n_sensors, bool)
         self.ok = np.zeros(n_sensors, bool)
 

@@ -277,9 +277,8 @@ class MMAE(Predictor):
 
 class MMAEStream(Stream):
     def __init__(self, predictor: MMAE, n_sensors: int):
-        self.predictor, self.n_sensors = predictor, int(n_sensors)
+        super().__init__(predictor, n_sensors)
         self.state = predictor._state(self.n_sensors)
-        self.last = np.full((self.n_sensors, 4), np.nan)
         self.ok = np.zeros(self.n_sensors, bool)
         self._rows: dict[float, FloatArray] = {}
         self._now = predictor.position_rows(np.zeros(1))  # the kernel's own (unused) output horizon

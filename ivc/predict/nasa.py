@@ -230,7 +230,7 @@ class NasaEKF(Predictor):
 
 class NasaStream(Stream):
     def __init__(self, predictor: NasaEKF, n_sensors: int):
-        self.predictor, self.n_sensors = predictor, int(n_sensors)
+        super().__init__(predictor, n_sensors)
         self.x, self.P = np.zeros((n_sensors, N)), np.zeros((n_sensors, N, N))
         self.status = np.zeros((n_sensors, 2), np.int64)
         self.work = _work()

@@ -190,11 +190,10 @@ class QEKF(Predictor):
 
 class QStream(Stream):
     def __init__(self, predictor: QEKF, n_sensors: int):
-        self.predictor, self.n_sensors = predictor, int(n_sensors)
+        super().__init__(predictor, n_sensors)
         self.x, self.P = np.zeros((n_sensors, 7)), np.zeros((n_sensors, 7, 7))
         self.status = np.zeros((n_sensors, 2), np.int64)
         self.work = _work()
-        self.last = np.full((n_sensors, 4), np.nan)
         self.ready = np.zeros(n_sensors, bool)
 
     def update(self, q, valid=None):
