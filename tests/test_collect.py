@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ivc import session
+from ivc import rotations, session
 from ivc.cli import cli
 from ivc.collect import CsvError, check_step, read_csv, write_csv
 
@@ -169,3 +169,52 @@ def test_unknown_source_is_explained(tmp_path):
     assert result.exit_code == 2 and "replay:FILE" in result.output
     result = run("collect", "check", "--source", "sim:nowhere", "-o", tmp_path / "x.h5")
     assert result.exit_code == 1 and "built-in scenes are" in result.output
+
+
+def test_csv_in_tracker_units_reads_as_metres_and_quaternions(tmp_path):
+    """A Polhemus-style recording (ms, inches, az/el/roll degrees) reads as the same poses in s, m and quaternions."""
+    rng = np.random.default_rng(5)
+    F, names = 6, ["a", "b"]
+    time = np.arange(F) / 240.0
+    position = rng.uniform(0.2, 0.6, (F, 2, 3))
+    angles = np.column_stack([rng.uniform(-180, 180, 2 * F), rng.uniform(-89, 89, 2 * F),
+                              rng.uniform(-180, 180, 2 * F)])
+    lines = ["time_ms,sensor,x_in,y_in,z_in,az,el,roll,valid"]
+    for k in range(F):
+        for s, name in enumerate(names):
+            xyz = position[k, s] / 0.0254
+            numbers = [time[k] * 1e3, *xyz, *angles[2 * k + s]]
+            lines.append(",".join([repr(float(numbers[0])), name, *(repr(float(v)) for v in numbers[1:]), "1"]))
+    path = tmp_path / "polhemus.csv"
+    path.write_text("\n".join(lines) + "\n")
+    step = read_csv(path)
+    assert step.sample_rate_hz == 240.0
+    np.testing.assert_allclose(step.time, time, atol=1e-15)
+    np.testing.assert_allclose(step.position, position, atol=1e-14)
+    # Polhemus's direction cosines: the sensor's x axis is (cos az cos el, sin az cos el, −sin el) in the source
+    # frame, its y axis (cos az sin el sin roll − sin az cos roll, sin az sin el sin roll + cos az cos roll,
+    # cos el sin roll)
+    a, e, r = np.radians(angles).T
+    x_axis = np.column_stack([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), -np.sin(e)])
+    y_axis = np.column_stack([np.cos(a) * np.sin(e) * np.sin(r) - np.sin(a) * np.cos(r),
+                              np.sin(a) * np.sin(e) * np.sin(r) + np.cos(a) * np.cos(r), np.cos(e) * np.sin(r)])
+    T = rotations.to_matrix(step.quaternion).reshape(-1, 3, 3)
+    np.testing.assert_allclose(T[:, :, 0], x_axis, atol=1e-12)
+    np.testing.assert_allclose(T[:, :, 1], y_axis, atol=1e-12)
+
+
+def test_csv_header_and_unit_errors(tmp_path):
+    path = tmp_path / "x.csv"
+    path.write_text("time,time_ms,sensor,x,y,z,qw,qx,qy,qz\n0,0,a,.5,0,0,1,0,0,0\n")
+    with pytest.raises(CsvError, match="one time column"):
+        read_csv(path)
+    path.write_text("time,sensor,x,y,z,qw,qx,qy,qz,az,el,roll\n0,a,.5,0,0,1,0,0,0,0,0,0\n")
+    with pytest.raises(CsvError, match="not both"):
+        read_csv(path)
+    # a Polhemus reports inches: 20 inches read as metres is far beyond an AC tracker's reach
+    path.write_text("time,sensor,x,y,z,qw,qx,qy,qz\n0,a,20,3,-4,1,0,0,0\n0.01,a,21,3,-4,1,0,0,0\n")
+    with pytest.raises(CsvError, match="median distance from the source is 21.1 m.*x_in"):
+        read_csv(path)
+    out = tmp_path / "out.h5"
+    result = run("collect", "check", "--source", f"replay:{path}", "-o", out)
+    assert result.exit_code == 1 and "x_in" in result.output and not out.exists()

@@ -11,6 +11,12 @@ quaternions ``[w, x, y, z]``; ``sij`` the signal matrix entry for sensor coil i 
 source coil j; ``valid`` 1/0 (optional, default 1). Every frame (a distinct time, in
 order) must list every sensor once. Bad rows are reported with their line numbers
 and nothing is imported.
+
+A tracker's own units are read as the header names them: ``time_ms`` (milliseconds),
+``x_mm,y_mm,z_mm``, ``x_cm,…`` or ``x_in,…`` (a Polhemus reports inches by default), and
+``az,el,roll`` in degrees instead of the quaternion: Polhemus's Euler angles, the sensor's
+axes in the source frame being the columns of ``Rz(az) Ry(el) Rx(roll)``. They are
+converted to seconds, metres and quaternions on reading.
 """
 
 from __future__ import annotations
@@ -19,12 +25,22 @@ import csv
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
+from ivc import rotations
 from ivc.session import SessionError, Step, Truth
 from ivc.session import read as read_session
+from ivc.units import LENGTH_UNITS
 
 POSE_COLUMNS = ["x", "y", "z", "qw", "qx", "qy", "qz"]
 SIGNAL_COLUMNS = [f"s{i}{j}" for i in range(3) for j in range(3)]
+QUATERNION_COLUMNS = POSE_COLUMNS[3:]
+#: Polhemus Euler angles (degrees): the sensor's axes are the columns of Rz(az) Ry(el) Rx(roll)
+EULER_COLUMNS = ["az", "el", "roll"]
+#: time columns and seconds per unit
+TIME_COLUMNS = {"time": 1.0, "time_ms": 1e-3}
+#: a median sensor range beyond this (m) means the positions are not in metres: AC trackers reach a few metres
+MAX_MEDIAN_RANGE = 10.0
 REPLAY_DESCRIPTION = "replayed tracker recording"
 _MAX_REPORTED = 10
 
@@ -73,14 +89,8 @@ def read_csv(path: str | Path, sample_rate_hz: float | None = None) -> Step:
             header = [h.strip() for h in next(reader)]
         except StopIteration:
             raise CsvError(f"{path}: empty file") from None
-        has_pose = all(c in header for c in POSE_COLUMNS)
-        has_signal = all(c in header for c in SIGNAL_COLUMNS)
-        if "time" not in header or "sensor" not in header or not (has_pose or has_signal):
-            raise CsvError(
-                f"{path}: line 1: the header needs time, sensor and either {','.join(POSE_COLUMNS)} "
-                f"or {','.join(SIGNAL_COLUMNS)}; got {','.join(header)}"
-            )
-        wanted = ["time"] + (POSE_COLUMNS if has_pose else []) + (SIGNAL_COLUMNS if has_signal else [])
+        layout = _layout(path, header)
+        wanted = layout.columns
         index = [header.index(c) for c in wanted]
         sensor_col = header.index("sensor")
         valid_col = header.index("valid") if "valid" in header else None
@@ -117,7 +127,85 @@ def read_csv(path: str | Path, sample_rate_hz: float | None = None) -> Step:
         raise CsvError(f"{path}: malformed rows, nothing imported{more}:\n  " + "\n  ".join(errors[:_MAX_REPORTED]))
     if not numbers:
         raise CsvError(f"{path}: no data rows")
-    return _assemble(path, np.array(numbers), sensors, np.array(valid), has_pose, has_signal, sample_rate_hz)
+    step = _assemble(path, layout.standard(np.array(numbers)), sensors, np.array(valid), layout.has_pose,
+                     layout.has_signal, sample_rate_hz)
+    _check_range(path, step, layout)
+    return step
+
+
+class _Layout:
+    """Which columns of a recording CSV hold what, and how to bring them to seconds, metres and quaternions."""
+
+    def __init__(self, time: str, position: list[str], unit: str, orientation: list[str], signal: bool):
+        self.time, self.position, self.unit, self.orientation = time, position, unit, orientation
+        self.has_pose, self.has_signal = bool(position), signal
+        self.columns = [time, *position, *orientation, *(SIGNAL_COLUMNS if signal else [])]
+
+    def standard(self, numbers: np.ndarray) -> np.ndarray:
+        """Rows of :attr:`columns` as ``time, x, y, z, qw, qx, qy, qz, s00..s22`` (s, m, unit quaternion)."""
+        time = numbers[:, :1] * TIME_COLUMNS[self.time]
+        parts, k = [time], 1
+        if self.has_pose:
+            parts.append(numbers[:, 1:4] * LENGTH_UNITS[self.unit])
+            k = 4 + len(self.orientation)
+            angles = numbers[:, 4:k]
+            if self.orientation == EULER_COLUMNS:
+                quaternion = np.full((len(numbers), 4), np.nan)
+                finite = np.all(np.isfinite(angles), axis=1)
+                if np.any(finite):
+                    quaternion[finite] = rotations.from_scipy(Rotation.from_euler("ZYX", angles[finite], degrees=True))
+                angles = quaternion
+            parts.append(angles)
+        parts.append(numbers[:, k:])
+        return np.concatenate(parts, axis=1)
+
+    def describe(self) -> str:
+        """The pose columns, as read."""
+        return f"{','.join(self.position)} ({self.unit})" if self.has_pose else "no positions"
+
+
+def _layout(path: Path, header: list[str]) -> _Layout:
+    """The columns of ``header`` to read, or a CsvError saying what the header lacks."""
+    times = [c for c in TIME_COLUMNS if c in header]
+    units = [u for u in LENGTH_UNITS if all(c in header for c in _position_columns(u))]
+    orientations = [c for c in (QUATERNION_COLUMNS, EULER_COLUMNS) if all(n in header for n in c)]
+    has_signal = all(c in header for c in SIGNAL_COLUMNS)
+    problems = []
+    if len(times) != 1:
+        problems.append("one time column: time (s) or time_ms" + (" (not both)" if times else ""))
+    if "sensor" not in header:
+        problems.append("a sensor column")
+    if len(units) > 1:
+        problems.append("one set of position columns, not " + " and ".join(",".join(_position_columns(u))
+                                                                            for u in units))
+    if len(orientations) > 1:
+        problems.append("one orientation: qw,qx,qy,qz or az,el,roll, not both")
+    if bool(units) != bool(orientations):
+        problems.append("orientation columns (qw,qx,qy,qz, or az,el,roll in degrees) with the positions"
+                        if units else "position columns (x,y,z in m, or x_mm / x_cm / x_in) with the orientation")
+    elif not units and not has_signal:
+        problems.append(f"either poses ({','.join(POSE_COLUMNS)}) or the signal matrix ({','.join(SIGNAL_COLUMNS)})")
+    if problems:
+        raise CsvError(f"{path}: line 1: the header needs " + "; ".join(problems) + f"; got {','.join(header)}")
+    unit = units[0] if units else "m"
+    return _Layout(times[0], _position_columns(unit) if units else [], unit,
+                   orientations[0] if orientations else [], has_signal)
+
+
+def _position_columns(unit: str) -> list[str]:
+    return [f"{axis}{'' if unit == 'm' else '_' + unit}" for axis in "xyz"]
+
+
+def _check_range(path: Path, step: Step, layout: _Layout) -> None:
+    """Refuse positions whose median range says they are not in the header's unit."""
+    if step.position is None:
+        return
+    ranges = np.linalg.norm(step.position[step.valid_mask], axis=-1)
+    if len(ranges) and np.median(ranges) > MAX_MEDIAN_RANGE:
+        raise CsvError(
+            f"{path}: the sensors' median distance from the source is {np.median(ranges):.3g} m with positions in "
+            f"{layout.describe()}; AC trackers reach a few metres. If the tracker reports another unit, name it in "
+            "the header: x_mm,y_mm,z_mm, x_cm,... or x_in,... (a Polhemus reports inches by default)")
 
 
 def _is_float(text: str) -> bool:
