@@ -233,6 +233,9 @@ def test_synthetic_motion_matches_the_thesis_statistics():
     assert s["benign"]["omega_mean"] < 0.01 and s["benign"]["alpha_max"] < 1.5
     assert 0.25 < s["moderate"]["omega_mean"] < 0.40 and s["moderate"]["omega_max"] < 0.8
     assert 0.8 < s["aggressive"]["omega_mean"] < 1.3 and 10 < s["aggressive"]["alpha_max"] < 25
+    # full range (notes §13.2): α mean 1.0-1.2 rad/s²; its regimes last seconds, so it needs a long record
+    full = statistics(head_motion("full", 100_000, seed=1).omega, 120.0)
+    assert 1.0 < full["alpha_mean"] < 1.2 and full["alpha_std"] > full["alpha_mean"]
     clean = head_motion("moderate", 500, seed=1, noise_rad=None, dynamic_error=0.0)
     assert np.array_equal(clean.measured, clean.truth)
     # the recorded rate reproduces the orientation: q(k+1) = Δq(ω_k, τ) ⊗ q(k)
