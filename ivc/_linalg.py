@@ -98,22 +98,18 @@ def factored_update(L, PHt, nu, xp, Pp, n, m, U, w, x, P):
 
 
 @numba.njit(inline="always")
-def congruence(A, P, n, T, out, ncols):
-    """out = A P Aᵀ (n x n, symmetric by construction); T is n x n scratch.
-
-    A's columns from ``ncols`` on must be those of I (pass n for a general A); they are not read,
-    and the products skip them: the terms skipped are exact zeros, so the result is the same to the bit.
-    """
+def congruence(A, P, n, T, out):
+    """out = A P Aᵀ (n x n, symmetric by construction); T is n x n scratch."""
     for a in range(n):
         for b in range(n):
             acc = 0.0
-            for c in range(ncols):
+            for c in range(n):
                 acc += A[a, c] * P[c, b]
-            T[a, b] = acc + P[a, b] if a >= ncols else acc
+            T[a, b] = acc
     for a in range(n):
         for b in range(a + 1):
             acc = 0.0
-            for c in range(ncols):
+            for c in range(n):
                 acc += T[a, c] * A[b, c]
-            out[a, b] = acc + T[a, b] if b >= ncols else acc
-            out[b, a] = out[a, b]
+            out[a, b] = acc
+            out[b, a] = acc

@@ -146,7 +146,7 @@ def _step(z_in, ok, x, P, status, W, V, h, p0, work):
     for i in range(3):
         xp[4 + i] = x[4 + i] + h * x[7 + i]
         xp[7 + i] = x[7 + i]
-    congruence(Phi, P, N, tmp, Pp, N)
+    congruence(Phi, P, N, tmp, Pp)
     for a in range(N):
         Pp[a, a] += W[a]
     if not quaternion_update(z, xp, Pp, V, N, x, P, S, L, nu, U):

@@ -82,7 +82,7 @@ def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
         A[4 + i, 4 + i] = 1.0
         for c in range(3):
             W[4 + i, c] = tau if i == c else 0.0
-    congruence(A, P, 7, T, Pp, 7)
+    congruence(A, P, 7, T, Pp)
     for a in range(7):
         for b in range(a + 1):
             acc = Pp[a, b]
