@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ivc import dipole, rotations
+from ivc import dipole
 from ivc.correct.evaluate import CheckErrors, check_errors, summarise
 from ivc.correct.solver import Corrector
-from ivc.fixtures.cube import CUBE_BITS, NOMINAL_EDGE, declared_pose
+from ivc.fixtures.cube import CUBE_BITS, NOMINAL_EDGE, declared_pose, placed_vertices
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import FixtureModel, Gates, SweepMapping, map_sweep
 from ivc.fixtures.report import SweepErrors, declared_frame_map, percentiles, sweep_errors
@@ -203,10 +203,7 @@ def declared_cube(session: Session) -> np.ndarray | None:
     nominal edge), for a session without the cube's calibration; None without a declared pose."""
     survey = session.steps.get("cube_survey")
     declared = None if survey is None else declared_pose(survey)
-    if declared is None:
-        return None
-    r_0, q_I = declared
-    return r_0 + NOMINAL_EDGE * CUBE_BITS @ rotations.to_matrix(q_I).T
+    return None if declared is None else placed_vertices(NOMINAL_EDGE * CUBE_BITS, declared)
 
 
 def lacks_sentence(lacks: tuple[str, ...]) -> str:
