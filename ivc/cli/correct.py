@@ -123,8 +123,8 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     input_path, output_path = input_and_output(input_file, output, force)
     delta = parse_horizon(horizon) if predictor else None
     table = lut.read(lut_file)
-    if input_path.suffix.lower() == ".csv":
-        if output_path.suffix.lower() != ".csv":
+    if session_io.is_recording_csv(input_path):
+        if not session_io.is_recording_csv(output_path):
             raise click.UsageError("a CSV input is corrected into a CSV output (-o FILE.csv)")
         step = read_csv(input_path)
         corrector = Corrector(table, hemisphere or table.hemisphere, interpolation, max_residual)

@@ -51,7 +51,7 @@ def render_table(report: dict) -> str:
 @click.option("--json", "as_json", is_flag=True, help="Print the table as JSON.")
 def evaluate(lut_file, check_file, step, interpolation, max_residual, as_json):
     """Correct the check poses of CHECK_FILE with LUT_FILE and compare with their truth (seed Table 24)."""
-    if str(check_file).lower().endswith(".csv"):
+    if session_io.is_recording_csv(check_file):
         raise click.UsageError(f"{check_file}: a recording CSV holds no true poses; evaluate a session .h5 with "
                                "/truth/check (a simulation or a precision rig), or correct the CSV with `ivc correct`")
     table = lut.read(lut_file)

@@ -80,7 +80,7 @@ def info(file: str, as_json: bool) -> None:
                    f"\nmade by ivc {table.provenance.get('ivc_version')} on {table.provenance.get('created_utc')}"
                    f" from {table.provenance.get('input', 'an unnamed session')}")
         return
-    if file.lower().endswith(".csv"):
+    if session_io.is_recording_csv(file):
         summary = summarise_recording(read_csv(file))
         click.echo(json.dumps(summary, indent=2) if as_json else render_recording(file, summary))
         return

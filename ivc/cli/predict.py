@@ -179,8 +179,8 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
     name = filters[0] if filters else "mmdq2"
     delta = parse_horizon(horizon)
     input_path, output_path = input_and_output(input_file, output, force)
-    if input_path.suffix.lower() == ".csv":
-        if output_path.suffix.lower() != ".csv":
+    if session_io.is_recording_csv(input_path):
+        if not session_io.is_recording_csv(output_path):
             raise click.UsageError("a CSV input is predicted into a CSV output (-o FILE.csv)")
         step = read_csv(input_path, rate)
         out = predicted_step(step, name, delta, tune)

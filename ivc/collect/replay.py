@@ -28,7 +28,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ivc import rotations
-from ivc.session import SessionError, Step, Truth
+from ivc.session import SessionError, Step, Truth, is_recording_csv
 from ivc.session import read as read_session
 from ivc.units import LENGTH_UNITS
 
@@ -160,8 +160,8 @@ class _Layout:
         return np.concatenate(parts, axis=1)
 
     def describe(self) -> str:
-        """The pose columns, as read."""
-        return f"{','.join(self.position)} ({self.unit})" if self.has_pose else "no positions"
+        """The position columns, as read, with their unit."""
+        return f"{','.join(self.position)} ({self.unit})"
 
 
 def _layout(path: Path, header: list[str]) -> _Layout:
@@ -265,7 +265,7 @@ def replay(path: str | Path, step_name: str, sample_rate_hz: float | None = None
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such recording")
-    if path.suffix.lower() == ".csv":
+    if is_recording_csv(path):
         return read_csv(path, sample_rate_hz), None
     source = read_session(path)
     if step_name not in source.steps:

@@ -1,6 +1,6 @@
 """The HDF5 session file every command reads and writes (docs/session-format.md)."""
 
-from ivc.session.io import add_step, atomic_path, read, write
+from ivc.session.io import add_step, atomic_path, is_recording_csv, read, write
 from ivc.session.model import (
     CUBE_SENSORS,
     DECLARED_POSE_ATTRS,
@@ -29,6 +29,7 @@ __all__ = [
     "Truth",
     "add_step",
     "atomic_path",
+    "is_recording_csv",
     "read",
     "write",
 ]

@@ -79,6 +79,11 @@ def _read_dataset(group: h5py.Group, name: str, required: bool = False):
 
 
 @contextlib.contextmanager
+def is_recording_csv(path: str | os.PathLike) -> bool:
+    """Whether ``path`` names a recording CSV (docs/session-format.md, "Recording CSV") rather than an HDF5 file."""
+    return Path(path).suffix.lower() == ".csv"
+
+
 def open_ivc_file(path: str | os.PathLike, kind: str, version: int, what: str, error: type[SessionError] = SessionError,
                   hint: str = "") -> Iterator[tuple[h5py.File, dict]]:
     """Open an ivc HDF5 file for reading: yield the open file and its decoded root attributes.
@@ -93,7 +98,7 @@ def open_ivc_file(path: str | os.PathLike, kind: str, version: int, what: str, e
     try:
         handle = h5py.File(path, "r")
     except OSError as problem:
-        if path.suffix.lower() == ".csv":
+        if is_recording_csv(path):
             raise error(f"{path}: a recording CSV, not an ivc {what} (HDF5); make a session of it with `ivc collect "
                         f"STEP --source replay:{path} -o SESSION.h5`") from None
         raise error(f"{path}: not an HDF5 file ({problem})") from None
