@@ -78,12 +78,12 @@ def _read_dataset(group: h5py.Group, name: str, required: bool = False):
     return item[()]
 
 
-@contextlib.contextmanager
 def is_recording_csv(path: str | os.PathLike) -> bool:
     """Whether ``path`` names a recording CSV (docs/session-format.md, "Recording CSV") rather than an HDF5 file."""
     return Path(path).suffix.lower() == ".csv"
 
 
+@contextlib.contextmanager
 def open_ivc_file(path: str | os.PathLike, kind: str, version: int, what: str, error: type[SessionError] = SessionError,
                   hint: str = "") -> Iterator[tuple[h5py.File, dict]]:
     """Open an ivc HDF5 file for reading: yield the open file and its decoded root attributes.
