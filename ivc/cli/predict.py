@@ -45,8 +45,8 @@ def parse_horizon(text: str) -> float:
 def predicted_quaternions(step: Step, name: str, horizon: float, valid: np.ndarray | None = None,
                           tune: bool = False) -> np.ndarray:
     """The step's orientations predicted ``horizon`` s ahead; samples without a prediction (the filter's first
-    frames, invalid samples) keep the measured orientation. ``tune``: the filter's measurement noise is
-    estimated from the step itself (:mod:`ivc.predict.tuning`)."""
+    frames, invalid samples) keep the measured orientation. ``tune``: the filter's measurement and process noise
+    are estimated from the step itself (:mod:`ivc.predict.tuning`)."""
     if step.quaternion is None:
         raise click.UsageError("this input has no orientations (signals only): run `ivc correct` first")
     if not step.sample_rate_hz:
@@ -112,8 +112,8 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
                                 "rows": r.rows, "velocity": r.velocity} for r in results], indent=1))
     else:
         click.echo(f"synthetic head motion, {frames} frames at {rate:g} Hz, seed {seed}; errors against the "
-                   f"{'noiseless truth' if reference == 'truth' else 'time-shifted measurements'}; measurement "
-                   f"noise {'tuned on the set above' if tune else 'of the thesis (Table 3, eq. 67)'}\n")
+                   f"{'noiseless truth' if reference == 'truth' else 'time-shifted measurements'}; seed-001 filters "
+                   f"{'tuned on the set above' if tune else 'with the thesis values (Table 3, eq. 67, Table 10)'}\n")
         click.echo(overshoot_table(results) + "\n")
         click.echo(error_table(results) + "\n")
         for m in motions:
@@ -144,8 +144,9 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
               help="Benchmark reference: time-shifted measurements (the thesis) or the noiseless truth.")
 @click.option("--plot", type=click.Path(dir_okay=False), help="Benchmark: write the error-vs-horizon PNG here.")
 @click.option("--json", "as_json", is_flag=True, help="Benchmark: print the figures as JSON.")
-@click.option("--tune", is_flag=True, help="Estimate the measurement noise of the seed-001 filters (q-ekf, "
-              "dqekf-*, mmdq*) from the data instead of using the thesis's tracker values: from each input step "
+@click.option("--tune", is_flag=True, help="Tune the seed-001 filters (q-ekf, dqekf-*, mmdq*) by the thesis's "
+              "procedure: measurement noise from the data, process noise at each model's λ, instead of the "
+              "thesis's values: from each input step "
               "itself, or with --benchmark from a separate synthetic tuning set. Prints the estimates.")
 @click.option("--compensators", is_flag=True, help="Seed 003: optimise the 10-state EKF's process noise by Powell's "
               "method for the twist and hybrid costs on synthetic yaw records, and print Table 1.")

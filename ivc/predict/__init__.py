@@ -38,18 +38,17 @@ FILTERS: dict[str, Callable[[float], Predictor]] = {
 }
 
 
-#: the predictors whose measurement noise :func:`ivc.predict.tuning.estimate` re-derives (seed 001's),
-#: each with the :class:`Tuning` attribute that holds it (passed as the predictor's ``sigma_v``)
-TUNABLE = {"q-ekf": "sigma_q", "dqekf-cv": "sigma_dq", "dqekf-ca": "sigma_dq", "mmdq2": "sigma_dq",
-           "mmdq3": "sigma_dq"}
+#: the predictors :func:`ivc.predict.tuning.estimate` tunes (seed 001's): measurement noise, and process noise
+#: at the λ each model is defined by (the Q-EKF uses the CV model's, λ = 0.5, as with the thesis's values)
+TUNABLE = ("q-ekf", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3")
 
 
 def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Predictor:
     """The predictor called ``name`` (see :data:`FILTERS`) for a stream at ``rate_hz``.
 
-    With ``tuning``, the filters of :data:`TUNABLE` take their measurement noise from it instead
-    of the thesis's tracker (Table 3, eq. 67); the other filters have no such noise model and
-    are made as without it.
+    With ``tuning``, the filters of :data:`TUNABLE` take their measurement and process noise from it
+    instead of the thesis's tracker and head (Table 3, eq. 67, Table 10); the other filters have no
+    such noise model and are made as without it.
     """
     if name not in FILTERS:
         raise PredictorError(f"unknown filter {name!r}; choose one of {', '.join(FILTERS)}")
@@ -58,7 +57,9 @@ def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Pre
     if not np.isclose(tuning.rate_hz, rate_hz, rtol=1e-9):
         raise PredictorError(f"the tuning is for {tuning.rate_hz:g} Hz, the stream is at {rate_hz:g} Hz: "
                              "tune from a recording at the stream's rate")
-    return FILTERS[name](rate_hz, sigma_v=tuple(getattr(tuning, TUNABLE[name])))
+    if name == "q-ekf":
+        return QEKF(rate_hz, sigma_w=tuple(tuning.sigma_w("cv", 0.5)), sigma_v=tuple(tuning.sigma_q))
+    return FILTERS[name](rate_hz, sigma_w=tuning.sigma_w, sigma_v=tuple(tuning.sigma_v_dq))
 
 
 __all__ = ["DQPredictor", "ExtendedKalmanFilter", "FILTERS", "KalmanFilter", "LinearPredictor", "MMAE",

@@ -15,7 +15,7 @@ Switches for the thesis's variants the notes flag, with the defaults used here:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,6 +41,9 @@ SIGMA_CV2 = (2.96, 1.26, 1.44)  # notes §8.1: CV at λ = 1.0, 2 x CV1 [DERIVED]
 SIGMA_CA = (176.0, 76.0, 86.0)
 SIGMA_CA1 = (353.0, 152.0, 175.0)
 SIGMA_CA2 = (708.0, 304.0, 350.0)
+#: Table 10 by (model kind, manoeuvring index λ it was tuned at, notes §9.3)
+TABLE_10 = {("cv", 0.5): SIGMA_CV1, ("cv", 1.0): SIGMA_CV2, ("ca", 0.5): SIGMA_CA, ("ca", 1.0): SIGMA_CA1,
+            ("ca", 2.0): SIGMA_CA2}
 #: eq. 67 measurement noise of Δq: standard deviations of its 4 components
 SIGMA_DQ = (2.09e-06, 2.2e-04, 8.22e-05, 7.92e-05)
 #: initial transition matrices (rows = from, columns = to), eq. 66 and 65
@@ -188,27 +191,44 @@ class DQStream(Stream):
         return self.state[6][:, :3].copy()
 
 
-def dqekf_cv(rate_hz: float = 120.0, **options) -> DQPredictor:
-    """DQ-EKF, constant velocity, 3 states (Table 10, λ = 0.5)."""
-    return DQPredictor([Model("cv", SIGMA_CV1)], rate_hz, name="dqekf-cv", **options)
+#: process noise per axis of a model of ``kind`` tuned at ``λ``: Table 10, or a Tuning's ``sigma_w``
+ProcessNoise = Callable[[str, float], Sequence[float]]
 
 
-def dqekf_ca(rate_hz: float = 120.0, **options) -> DQPredictor:
-    """DQ-EKF, constant acceleration, 6 states (Table 10)."""
-    return DQPredictor([Model("ca", SIGMA_CA)], rate_hz, name="dqekf-ca", **options)
+def table_10(kind: str, lam: float) -> tuple[float, float, float]:
+    """The thesis's process-noise std per axis (rad/s² for "cv", rad/s³ for "ca") of a model tuned at ``lam``."""
+    try:
+        return TABLE_10[kind, lam]
+    except KeyError:
+        raise PredictorError(f"Table 10 has no {kind} model at λ = {lam}; it has {sorted(TABLE_10)}") from None
 
 
-def mmdq2(rate_hz: float = 120.0, **options) -> DQPredictor:
-    """MMDQ2: IMM of CV1 and CA1 (Table 10, eq. 66)."""
-    return DQPredictor([Model("cv", SIGMA_CV1), Model("ca", SIGMA_CA1)], rate_hz, PI_MMDQ2, name="mmdq2", **options)
+def _models(spec: Sequence[tuple[str, float]], sigma_w: ProcessNoise) -> list[Model]:
+    return [Model(kind, tuple(float(v) for v in sigma_w(kind, lam))) for kind, lam in spec]
 
 
-def mmdq3(rate_hz: float = 120.0, mmdq3_models: str = "cv-ca-ca", **options) -> DQPredictor:
-    """MMDQ3: IMM of CV1, CA1, CA2 (Table 10, eq. 65); ``mmdq3_models="cv-cv-ca"`` for CV1, CV2, CA."""
+def dqekf_cv(rate_hz: float = 120.0, sigma_w: ProcessNoise = table_10, **options) -> DQPredictor:
+    """DQ-EKF, constant velocity, 3 states (tuned at λ = 0.5)."""
+    return DQPredictor(_models([("cv", 0.5)], sigma_w), rate_hz, name="dqekf-cv", **options)
+
+
+def dqekf_ca(rate_hz: float = 120.0, sigma_w: ProcessNoise = table_10, **options) -> DQPredictor:
+    """DQ-EKF, constant acceleration, 6 states (tuned at λ = 0.5)."""
+    return DQPredictor(_models([("ca", 0.5)], sigma_w), rate_hz, name="dqekf-ca", **options)
+
+
+def mmdq2(rate_hz: float = 120.0, sigma_w: ProcessNoise = table_10, **options) -> DQPredictor:
+    """MMDQ2: IMM of CV1 (λ = 0.5) and CA1 (λ = 1.0), Π₀ of eq. 66."""
+    return DQPredictor(_models([("cv", 0.5), ("ca", 1.0)], sigma_w), rate_hz, PI_MMDQ2, name="mmdq2", **options)
+
+
+def mmdq3(rate_hz: float = 120.0, mmdq3_models: str = "cv-ca-ca", sigma_w: ProcessNoise = table_10,
+          **options) -> DQPredictor:
+    """MMDQ3: IMM of CV1, CA1, CA2 (λ = 0.5, 1.0, 2.0), Π₀ of eq. 65; ``mmdq3_models="cv-cv-ca"`` for CV1, CV2, CA1."""
     if mmdq3_models == "cv-ca-ca":
-        models = [Model("cv", SIGMA_CV1), Model("ca", SIGMA_CA1), Model("ca", SIGMA_CA2)]
+        spec = [("cv", 0.5), ("ca", 1.0), ("ca", 2.0)]
     elif mmdq3_models == "cv-cv-ca":
-        models = [Model("cv", SIGMA_CV1), Model("cv", SIGMA_CV2), Model("ca", SIGMA_CA1)]
+        spec = [("cv", 0.5), ("cv", 1.0), ("ca", 1.0)]
     else:
         raise PredictorError(f"mmdq3_models is 'cv-ca-ca' or 'cv-cv-ca', got {mmdq3_models!r}")
-    return DQPredictor(models, rate_hz, PI_MMDQ3, name="mmdq3", **options)
+    return DQPredictor(_models(spec, sigma_w), rate_hz, PI_MMDQ3, name="mmdq3", **options)

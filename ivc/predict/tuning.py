@@ -10,13 +10,24 @@ re-derives them from data, and this module does the same:
   noise its residual keeps (0.86 for q, 0.98 for Δq at the default width), so white noise is
   estimated without bias. What else the residual holds (dynamic error, the smoothing's bend
   of fast turns) counts as noise, as in the thesis.
+* **The scalar part of Δq** is not an independent measurement: a unit Δq has
+  z0 = √(1 − |z_v|²), so z0's noise is the vector part's, projected on the rotation
+  (δz0 ≈ −z_v·δz_v / z0; on synthetic aggressive motion the two correlate at 0.9997 and z0's
+  own part is 2.5 % of its std). Its estimated std, pooled over mostly slow frames where z_v ≈ 0,
+  is tiny, and a diagonal R then counts the vector noise a second time, with a weight that
+  grows with speed. The DQ filters are therefore given z0's std equal to the vector part's
+  largest: an upper bound on its noise (|δz0| ≤ |z_v||δz_v|) that leaves z0 a weight of at
+  most (|ω|τ/2)² against the vector part (below 10⁻³ up to 7 rad/s at 120 Hz), so that the
+  filters take the information once, from the vector part (:attr:`Tuning.sigma_v_dq`).
 * **Manoeuvring index** λ (§9.3): per sample, the root mean square of the smoothed angular
   velocity's frame-to-frame change over a 12-sample window centred on the sample (about zero:
   process noise has zero mean), over the std of the measured angular velocity around the
   smoothed one. Both are 3-vectors; λ uses their root-sum-square over the axes (the thesis
   does not say per axis or on norms).
-* **Process noise by λ** (§9.3, the scaling that reproduces Table 10): σ_w,CV = λ σ_Δq / τ²
-  (rad/s²) and σ_w,CA = λ σ_Δq / τ³ (rad/s³), σ_Δq the vector part of the DQ noise.
+* **Process noise** (§9.3, the scaling that reproduces Table 10): a model is defined by the λ it
+  is tuned at (CV1 0.5, CA1 1.0, CA2 2.0, ...), and σ_w,CV = λ σ_Δq / τ² (rad/s²),
+  σ_w,CA = λ σ_Δq / τ³ (rad/s³), σ_Δq the vector part of the DQ noise. Re-deriving σ_w with
+  σ_v keeps each filter's gain, which depends on their ratio only, at the thesis's.
 * **Initial transition matrix** Π₀ (§9.3): transitions between λ labels, counted frame to frame.
 
 The Gaussian kernel's width is not in the thesis; the default, σ = 2 frames at 120 Hz (17 ms),
@@ -65,6 +76,11 @@ class Tuning:
         return 1.0 / self.rate_hz
 
     @property
+    def sigma_v_dq(self) -> FloatArray:
+        """(4,) the DQ filters' measurement noise: the vector part as estimated, z0 its largest std (see above)."""
+        return np.concatenate([[self.sigma_dq[1:].max()], self.sigma_dq[1:]])
+
+    @property
     def lam(self) -> FloatArray:
         """Every sample's λ (dimensionless)."""
         return np.concatenate(self.lam_runs) if self.lam_runs else np.zeros(0)
@@ -81,6 +97,12 @@ class Tuning:
     def sigma_w_ca(self, lam: float = 0.5) -> FloatArray:
         """Process noise std of a CA model tuned at ``lam`` (rad/s³, per axis)."""
         return lam * self.sigma_dq[1:] / self.tau**3
+
+    def sigma_w(self, kind: str, lam: float) -> FloatArray:
+        """Process noise std of a model of ``kind`` ("cv" or "ca") tuned at ``lam``: the DQ factories' ``sigma_w``."""
+        if kind not in ("cv", "ca"):
+            raise PredictorError(f"a model kind is 'cv' or 'ca', got {kind!r}")
+        return self.sigma_w_cv(lam) if kind == "cv" else self.sigma_w_ca(lam)
 
     def transition(self, edges: Sequence[float] = EDGES_MMDQ2) -> FloatArray:
         """Π₀ (rows = from, columns = to) from the frame-to-frame changes of λ's label.
@@ -108,6 +130,7 @@ class Tuning:
             f"tuning from {self.frames} frames at {self.rate_hz:g} Hz (Gaussian σ {self.smooth_s * 1e3:.3g} ms)",
             f"  Q-EKF sigma_v (quaternion) {row(self.sigma_q)}   thesis Table 3 {row(np.sqrt(R_QUATERNION))}",
             f"  DQ    sigma_v (Δq)         {row(self.sigma_dq)}   thesis eq. 67  {row(SIGMA_DQ)}",
+            f"        used by the filters  {row(self.sigma_v_dq)}   (z0 repeats the vector part's noise)",
             f"  λ quartiles {pct['q1']:.2f} / {pct['median']:.2f} / {pct['q3']:.2f}, 98th percentile "
             f"{pct['p98']:.2f}   (thesis Table 8, full range: 0.16 / 0.26 / 0.48, 1.07)",
             f"  σ_w at λ = 0.5: CV {row(self.sigma_w_cv())} rad/s², CA {row(self.sigma_w_ca())} rad/s³   "
