@@ -145,6 +145,16 @@ def test_cli_fit_correct_evaluate(small_session, tmp_path):
     assert not np.allclose(q50[ok], q_corr[ok])
     assert session_io.read(ahead).steps["check"].attrs["predicted_with"] == "mmdq2"
 
+    # --tune tunes to the trusted samples only: here 20 % of them, in stretches too short, so it is refused
+    tuned = tmp_path / "tuned.h5"
+    refused = runner.invoke(cli, ["correct", str(table_file), str(session_file), "-o", str(tuned), "--step", "check",
+                                  "--predict", "q-ekf", "--tune"])
+    assert refused.exit_code != 0 and "no gap-free stretch" in refused.output and not tuned.exists()
+    for args, message in ((["--tune"], "give --predict NAME"),
+                          (["--tune", "--predict", "mmdq2", "--live", "igtl://127.0.0.1:1"], "live stream")):
+        refused = runner.invoke(cli, ["correct", str(table_file), *args])
+        assert refused.exit_code != 0 and message in refused.output
+
 
 def test_correct_advice_names_the_dominant_flag():
     from ivc.cli.correct import _advice

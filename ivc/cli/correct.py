@@ -15,7 +15,7 @@ from ivc.correct import Corrector, describe
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, MAX_RESIDUAL, NOT_CONVERGED, OUTSIDE, Correction
 from ivc.lut.build import file_digest
 from ivc.lut.grid import INTERPOLATIONS
-from ivc.predict import FILTERS
+from ivc.predict import FILTERS, TUNABLE
 from ivc.session import Session, Step
 from ivc.units import LENGTH_UNITS
 
@@ -30,10 +30,13 @@ def corrected_step(step: Step, out: Correction, lut_file: str) -> Step:
                 step.sensor_ids, f"{step.description} (corrected by ivc)".strip(), attrs)
 
 
-def _predicted(step: Step, out: Correction, name: str, horizon: float) -> Step:
-    """Corrected orientations predicted ``horizon`` s ahead from the trusted (unflagged) samples."""
-    quaternion = predicted_quaternions(step, name, horizon, out.ok)
-    attrs = dict(step.attrs, predicted_with=name, prediction_horizon_s=horizon)
+def _predicted(step: Step, out: Correction, name: str, horizon: float, tune: bool) -> Step:
+    """Corrected orientations predicted ``horizon`` s ahead from the trusted (unflagged) samples.
+
+    ``tune``: the seed-001 filters are tuned to the corrected step itself (its trusted samples)."""
+    quaternion = predicted_quaternions(step, name, horizon, out.ok, tune=tune)
+    attrs = dict(step.attrs, predicted_with=name, prediction_horizon_s=horizon,
+                 tuned_from_input=bool(tune and name in TUNABLE))
     return Step(step.time, step.signal, step.position, quaternion, step.valid_mask, step.sample_rate_hz,
                 step.sensor_ids, step.description, attrs)
 
@@ -88,6 +91,8 @@ def _advice(out: Correction, max_residual: float) -> str | None:
 @click.option("--predict", "predictor", type=click.Choice(list(FILTERS)),
               help="Then predict each sensor's corrected orientation ahead with this filter (see `ivc predict`).")
 @click.option("--horizon", default="50ms", show_default=True, help="Prediction horizon with --predict.")
+@click.option("--tune", is_flag=True, help="With --predict: tune the seed-001 filters (q-ekf, dqekf-*, mmdq*) to each "
+              "corrected step's trusted samples (see `ivc predict --tune`). Not with --live.")
 @click.option("--live", "live_url", metavar="igtl://HOST:PORT",
               help="Correct a live OpenIGTLink stream from this tracking server instead of INPUT_FILE.")
 @click.option("--publish", default="127.0.0.1:18945", show_default=True, metavar="HOST:PORT",
@@ -100,7 +105,7 @@ def _advice(out: Correction, max_residual: float) -> str | None:
               help="With --live --predict: the stream's sample rate.")
 @click.option("--duration", type=float, help="With --live: stop after this many seconds (default: until Ctrl-C).")
 def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, force, predictor, horizon,
-            live_url, publish, length_unit, sensors, rate_hz, duration):
+            tune, live_url, publish, length_unit, sensors, rate_hz, duration):
     """Correct the poses in INPUT_FILE (session .h5 or recording .csv) with LUT_FILE.
 
     Every output sample carries flags: 0 = trusted; 1 outside the mapped volume, 2 not
@@ -112,9 +117,14 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     With --live igtl://HOST:PORT, poses (TRANSFORM) or signal matrices (NDARRAY 3x3) streamed
     by a tracking server are corrected as they arrive and served on --publish (docs/live.md).
     """
+    if tune and not predictor:
+        raise click.UsageError("--tune tunes a prediction filter: give --predict NAME too")
     if live_url:
         if input_file or output:
             raise click.UsageError("--live reads from the network: give no INPUT_FILE or --output")
+        if tune:
+            raise click.UsageError("--tune needs the whole recording and cannot run on a live stream; predict live "
+                                   "with the thesis's values, or correct a recording with --predict NAME --tune")
         _live(lut_file, live_url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor,
               horizon, rate_hz, duration)
         return
@@ -132,7 +142,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         fixed = corrected_step(step, out, lut_file)
         fixed.signal = None
         if predictor:
-            fixed = _predicted(fixed, out, predictor, delta)
+            fixed = _predicted(fixed, out, predictor, delta, tune)
         with session_io.atomic_path(output_path) as tmp:
             write_csv(fixed, tmp, {"flags": out.flags, "residual": out.residual})
         click.echo(_summary(input_path.name, out))
@@ -153,7 +163,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         _warn(_advice(results[name], max_residual))
     fixed = {n: corrected_step(data.steps[n], results[n], lut_file) for n in names}
     if predictor:
-        fixed = {n: _predicted(fixed[n], results[n], predictor, delta) for n in names}
+        fixed = {n: _predicted(fixed[n], results[n], predictor, delta, tune) for n in names}
     corrected = Session(data.hemisphere, fixed,
                         {n: data.truth[n] for n in names if n in data.truth},
                         dict(data.attrs, corrected_with=str(lut_file), lut_sha256=file_digest(lut_file)))
