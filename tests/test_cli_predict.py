@@ -117,3 +117,58 @@ def test_correct_predict_tune_tunes_to_the_trusted_samples():
     assert got.attrs["tuned_from_input"] and got.attrs["predicted_with"] == "mmdq2"
     plain = _predicted(step, out, "mmdq2", 0.05, tune=False)
     assert not plain.attrs["tuned_from_input"] and not np.allclose(plain.quaternion[usable], got.quaternion[usable])
+
+
+def test_predict_tune_from_another_recording(tmp_path):
+    """--tune-from: the thesis's separate tuning set; a session's orientation steps are pooled."""
+    from ivc.predict.tuning import estimate
+
+    step, other = motion_step(frames=900), motion_step(frames=1500, sensors=1)
+    other.quaternion = np.stack([head_motion("aggressive", 1500, seed=9).measured], axis=1)
+    csv_in, csv_tune, out = tmp_path / "head.csv", tmp_path / "tune.csv", tmp_path / "ahead.csv"
+    write_csv(step, csv_in)
+    write_csv(other, csv_tune)
+    runner = CliRunner()
+    result = runner.invoke(cli, ["predict", str(csv_in), "--filter", "mmdq2", "--tune-from", str(csv_tune),
+                                 "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert f"tuned from {csv_tune}" in result.output
+    tuning = estimate([read_csv(csv_tune).quaternion], 120.0)
+    expected = make("mmdq2", 120.0, tuning).predict(step.quaternion, 0.05)[0]
+    assert np.allclose(read_csv(out).quaternion[5:], expected[5:], atol=1e-12)
+
+    session_file = tmp_path / "tune.h5"
+    session_io.write(Session("+x", {"check": read_csv(csv_tune), "wand_sweep": read_csv(csv_in)}), session_file)
+    out_h5 = tmp_path / "ahead.h5"
+    h5_in = tmp_path / "head.h5"
+    session_io.write(Session("+x", {"check": read_csv(csv_in)}), h5_in)
+    result = runner.invoke(cli, ["predict", str(h5_in), "--tune-from", str(session_file), "-o", str(out_h5)])
+    assert result.exit_code == 0, result.output
+    pooled = estimate([read_csv(csv_tune).quaternion, read_csv(csv_in).quaternion], 120.0)
+    got = session_io.read(out_h5).steps["check"]
+    assert np.allclose(got.quaternion[5:], make("mmdq2", 120.0, pooled).predict(step.quaternion, 0.05)[0][5:],
+                       atol=1e-12)
+    assert got.attrs["tuned_from"] == str(session_file) and not got.attrs["tuned_from_input"]
+
+    slow = tmp_path / "slow.csv"
+    write_csv(motion_step(frames=900), slow)
+    text = slow.read_text().splitlines()
+    rows = [line.split(",") for line in text[1:]]
+    slow.write_text("\n".join([text[0]] + [",".join([f"{float(r[0]) * 2:.9f}"] + r[1:]) for r in rows]) + "\n")
+    for args, message in ((["--tune-from", str(slow)], "recording at 60 Hz"),
+                          (["--tune", "--tune-from", str(csv_tune)], "not both")):
+        refused = runner.invoke(cli, ["predict", str(csv_in), *args, "-o", str(tmp_path / "x.csv")])
+        assert refused.exit_code != 0 and message in refused.output, refused.output
+    refused = runner.invoke(cli, ["predict", "--benchmark", "--tune-from", str(csv_tune)])
+    assert refused.exit_code != 0 and "synthetic" in refused.output
+
+
+def test_correct_tune_from_needs_a_filter_and_the_stream_rate(tmp_path):
+    rec = tmp_path / "rec.csv"
+    write_csv(motion_step(frames=900), rec)
+    runner = CliRunner()
+    refused = runner.invoke(cli, ["correct", str(rec), "--tune-from", str(rec), "--live", "igtl://127.0.0.1:1"])
+    assert refused.exit_code != 0 and "give --predict NAME" in refused.output
+    refused = runner.invoke(cli, ["correct", str(rec), "--predict", "mmdq2", "--tune-from", str(rec),
+                                  "--live", "igtl://127.0.0.1:1", "--rate-hz", "240"])
+    assert refused.exit_code != 0 and "recording at 120 Hz" in refused.output and "--rate-hz" in refused.output

@@ -258,3 +258,24 @@ def test_live_prediction_matches_offline_correct_then_predict(exact_table, rng):
     # the prediction really looks ahead: 50 ms of rotation, not the measured orientation
     ahead = rotations.angle_between(expected[-1], corrected.quaternion[-1])
     assert np.allclose(ahead, np.linalg.norm(omega, axis=1) * horizon, rtol=0.05)
+
+
+def test_live_prediction_takes_the_tuning(exact_table):  # noqa: F811
+    """--tune-from reaches each sensor's filter; a tuning made at another rate is refused before any socket opens."""
+    from ivc.predict import PredictorError, Tuning, make
+
+    tuning = Tuning(240.0, 1 / 120, 0, np.full(4, 1e-4), np.array([1e-7, 1e-4, 5e-5, 5e-5]), ())
+    listener = socket.create_server(("127.0.0.1", 0))
+    live = LiveCorrector(Corrector(exact_table), listener.getsockname(), ("127.0.0.1", 0), predictor="mmdq2",
+                         rate_hz=240.0, tuning=tuning)
+    try:
+        live._predicted("S0", np.array([1.0, 0.0, 0.0, 0.0]), True)
+        got, want = live._streams["S0"].predictor._config, make("mmdq2", 240.0, tuning)._config
+        assert all(np.allclose(a, b) for a, b in zip(got, want, strict=True))
+        assert not np.allclose(got[2], make("mmdq2", 240.0)._config[2])
+        with pytest.raises(PredictorError, match="tuning is for 240 Hz"):
+            LiveCorrector(Corrector(exact_table), listener.getsockname(), ("127.0.0.1", 0), predictor="mmdq2",
+                          rate_hz=120.0, tuning=tuning)
+    finally:
+        live.close()
+        listener.close()

@@ -9,13 +9,13 @@ import numpy as np
 from ivc import lut
 from ivc import session as session_io
 from ivc.cli.paths import input_and_output
-from ivc.cli.predict import parse_horizon, predicted_quaternions
+from ivc.cli.predict import check_tuning_rate, parse_horizon, predicted_quaternions, tuning_attrs, tuning_from
 from ivc.collect.replay import read_csv, write_csv
 from ivc.correct import Corrector, describe
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, MAX_RESIDUAL, NOT_CONVERGED, OUTSIDE, Correction
 from ivc.lut.build import file_digest
 from ivc.lut.grid import INTERPOLATIONS
-from ivc.predict import FILTERS, TUNABLE
+from ivc.predict import FILTERS, TUNABLE, Tuning
 from ivc.session import Session, Step
 from ivc.units import LENGTH_UNITS
 
@@ -30,13 +30,15 @@ def corrected_step(step: Step, out: Correction, lut_file: str) -> Step:
                 step.sensor_ids, f"{step.description} (corrected by ivc)".strip(), attrs)
 
 
-def _predicted(step: Step, out: Correction, name: str, horizon: float, tune: bool) -> Step:
+def _predicted(step: Step, out: Correction, name: str, horizon: float, tune: bool, tuning: Tuning | None = None,
+               tuning_file: str | None = None) -> Step:
     """Corrected orientations predicted ``horizon`` s ahead from the trusted (unflagged) samples.
 
-    ``tune``: the seed-001 filters are tuned to the corrected step itself (its trusted samples)."""
-    quaternion = predicted_quaternions(step, name, horizon, out.ok, tune=tune)
+    ``tune``: the seed-001 filters are tuned to the corrected step itself (its trusted samples);
+    or ``tuning`` (from ``tuning_file``) gives their noise."""
+    quaternion = predicted_quaternions(step, name, horizon, out.ok, tune=tune, tuning=tuning)
     attrs = dict(step.attrs, predicted_with=name, prediction_horizon_s=horizon,
-                 tuned_from_input=bool(tune and name in TUNABLE))
+                 **tuning_attrs(name, tune, tuning_file))
     return Step(step.time, step.signal, step.position, quaternion, step.valid_mask, step.sample_rate_hz,
                 step.sensor_ids, step.description, attrs)
 
@@ -93,6 +95,9 @@ def _advice(out: Correction, max_residual: float) -> str | None:
 @click.option("--horizon", default="50ms", show_default=True, help="Prediction horizon with --predict.")
 @click.option("--tune", is_flag=True, help="With --predict: tune the seed-001 filters (q-ekf, dqekf-*, mmdq*) to each "
               "corrected step's trusted samples (see `ivc predict --tune`). Not with --live.")
+@click.option("--tune-from", "tune_from", type=click.Path(exists=True, dir_okay=False),
+              help="With --predict: tune the filter from this recording (.csv) or session (.h5) instead, "
+              "at the stream's rate; works with --live.")
 @click.option("--live", "live_url", metavar="igtl://HOST:PORT",
               help="Correct a live OpenIGTLink stream from this tracking server instead of INPUT_FILE.")
 @click.option("--publish", default="127.0.0.1:18945", show_default=True, metavar="HOST:PORT",
@@ -105,7 +110,7 @@ def _advice(out: Correction, max_residual: float) -> str | None:
               help="With --live --predict: the stream's sample rate.")
 @click.option("--duration", type=float, help="With --live: stop after this many seconds (default: until Ctrl-C).")
 def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, force, predictor, horizon,
-            tune, live_url, publish, length_unit, sensors, rate_hz, duration):
+            tune, tune_from, live_url, publish, length_unit, sensors, rate_hz, duration):
     """Correct the poses in INPUT_FILE (session .h5 or recording .csv) with LUT_FILE.
 
     Every output sample carries flags: 0 = trusted; 1 outside the mapped volume, 2 not
@@ -117,21 +122,27 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     With --live igtl://HOST:PORT, poses (TRANSFORM) or signal matrices (NDARRAY 3x3) streamed
     by a tracking server are corrected as they arrive and served on --publish (docs/live.md).
     """
-    if tune and not predictor:
-        raise click.UsageError("--tune tunes a prediction filter: give --predict NAME too")
+    if (tune or tune_from) and not predictor:
+        raise click.UsageError("--tune and --tune-from tune a prediction filter: give --predict NAME too")
+    if tune and tune_from:
+        raise click.UsageError("give --tune (from the input) or --tune-from FILE, not both")
     if live_url:
         if input_file or output:
             raise click.UsageError("--live reads from the network: give no INPUT_FILE or --output")
         if tune:
-            raise click.UsageError("--tune needs the whole recording and cannot run on a live stream; predict live "
-                                   "with the thesis's values, or correct a recording with --predict NAME --tune")
+            raise click.UsageError("--tune needs the whole recording and cannot run on a live stream: tune from "
+                                   "an earlier recording with --tune-from FILE")
+        tuning = tuning_from(tune_from) if tune_from and predictor in TUNABLE else None
+        if tuning is not None:
+            check_tuning_rate(tuning, rate_hz, "the live stream (--rate-hz)")
         _live(lut_file, live_url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor,
-              horizon, rate_hz, duration)
+              horizon, rate_hz, duration, tuning)
         return
     if not input_file or not output:
         raise click.UsageError("give INPUT_FILE and -o OUTPUT (or --live igtl://HOST:PORT)")
     input_path, output_path = input_and_output(input_file, output, force)
     delta = parse_horizon(horizon) if predictor else None
+    tuning = tuning_from(tune_from) if tune_from and predictor in TUNABLE else None
     table = lut.read(lut_file)
     if session_io.is_recording_csv(input_path):
         if not session_io.is_recording_csv(output_path):
@@ -142,7 +153,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         fixed = corrected_step(step, out, lut_file)
         fixed.signal = None
         if predictor:
-            fixed = _predicted(fixed, out, predictor, delta, tune)
+            fixed = _predicted(fixed, out, predictor, delta, tune, tuning, tune_from)
         with session_io.atomic_path(output_path) as tmp:
             write_csv(fixed, tmp, {"flags": out.flags, "residual": out.residual})
         click.echo(_summary(input_path.name, out))
@@ -163,7 +174,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         _warn(_advice(results[name], max_residual))
     fixed = {n: corrected_step(data.steps[n], results[n], lut_file) for n in names}
     if predictor:
-        fixed = {n: _predicted(fixed[n], results[n], predictor, delta, tune) for n in names}
+        fixed = {n: _predicted(fixed[n], results[n], predictor, delta, tune, tuning, tune_from) for n in names}
     corrected = Session(data.hemisphere, fixed,
                         {n: data.truth[n] for n in names if n in data.truth},
                         dict(data.attrs, corrected_with=str(lut_file), lut_sha256=file_digest(lut_file)))
@@ -179,7 +190,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
 
 
 def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor, horizon,
-          rate_hz, duration) -> None:
+          rate_hz, duration, tuning=None) -> None:
     import logging
 
     from ivc.live import LiveCorrector, parse_url
@@ -193,6 +204,7 @@ def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_resid
         raise click.UsageError(f"--publish wants HOST:PORT, got {publish!r}")
     live = LiveCorrector(corrector, source, (host, int(port)), length_unit=LENGTH_UNITS[length_unit],
                          predictor=predictor, horizon=parse_horizon(horizon) if predictor else 0.0, rate_hz=rate_hz,
+                         tuning=tuning,
                          sensors=list(sensors) or None)
     click.echo(f"correcting {url} -> serving on {live.publish_address[0]}:{live.publish_address[1]}", err=True)
     try:

@@ -23,7 +23,7 @@ from ivc.predict.evaluate import (
     velocity_table,
 )
 from ivc.predict.motion import MOTIONS, head_motion
-from ivc.predict.tuning import estimate, synthetic
+from ivc.predict.tuning import Tuning, estimate, synthetic
 from ivc.session import Session, Step
 
 #: the benchmark's default filters: the thesis's, Kyger's and the linear ones
@@ -42,28 +42,62 @@ def parse_horizon(text: str) -> float:
     return value
 
 
+def tuning_from(path: str) -> Tuning:
+    """A tuning (:mod:`ivc.predict.tuning`) from every orientation step of a recording .csv or session .h5.
+
+    The steps are pooled as the thesis's composite set; they must share one sample rate.
+    """
+    steps = [read_csv(path)] if session_io.is_recording_csv(path) else list(session_io.read(path).steps.values())
+    usable = [s for s in steps if s.quaternion is not None and s.sample_rate_hz]
+    if not usable:
+        raise click.UsageError(f"{path} has no step with orientations and a sample rate to tune from")
+    rates = sorted({float(s.sample_rate_hz) for s in usable})
+    if len(rates) > 1:
+        raise click.UsageError(f"{path} has steps at {', '.join(f'{r:g}' for r in rates)} Hz: tune from recordings "
+                               "at one rate, the rate of the stream to predict")
+    tuning = estimate([s.quaternion for s in usable], rates[0], valid=[s.valid_mask for s in usable])
+    click.echo(f"tuned from {path}: " + tuning.summary())
+    return tuning
+
+
+def check_tuning_rate(tuning: Tuning, rate_hz: float, what: str) -> None:
+    """Refuse a tuning made at another rate than the stream's (the noise and σ_w depend on the frame time)."""
+    if not np.isclose(tuning.rate_hz, rate_hz, rtol=1e-9):
+        raise click.UsageError(f"--tune-from is a recording at {tuning.rate_hz:g} Hz, {what} is at {rate_hz:g} Hz: "
+                               "tune from a recording at the stream's rate")
+
+
 def predicted_quaternions(step: Step, name: str, horizon: float, valid: np.ndarray | None = None,
-                          tune: bool = False) -> np.ndarray:
+                          tune: bool = False, tuning: Tuning | None = None) -> np.ndarray:
     """The step's orientations predicted ``horizon`` s ahead; samples without a prediction (the filter's first
     frames, invalid samples) keep the measured orientation. ``tune``: the filter's measurement and process noise
-    are estimated from the step itself (:mod:`ivc.predict.tuning`)."""
+    are estimated from the step itself (:mod:`ivc.predict.tuning`); or ``tuning`` gives them."""
     if step.quaternion is None:
         raise click.UsageError("this input has no orientations (signals only): run `ivc correct` first")
     if not step.sample_rate_hz:
         raise click.UsageError("the input does not give its sample rate; pass --rate HZ")
     ok = step.valid_mask if valid is None else valid & step.valid_mask
-    tuning = None
     if tune and name in TUNABLE:
         tuning = estimate(step.quaternion, step.sample_rate_hz, valid=ok)
         click.echo(tuning.summary())
+    elif tuning is not None:
+        check_tuning_rate(tuning, step.sample_rate_hz, "the input")
     predicted = make(name, step.sample_rate_hz, tuning).predict(step.quaternion, horizon, ok)[0]
     return np.where(np.all(np.isfinite(predicted), axis=-1, keepdims=True), predicted, step.quaternion)
 
 
-def predicted_step(step: Step, name: str, horizon: float, tune: bool = False) -> Step:
-    attrs = dict(step.attrs, predicted_with=name, prediction_horizon_s=horizon,
-                 tuned_from_input=bool(tune and name in TUNABLE))
-    quaternion = predicted_quaternions(step, name, horizon, tune=tune)
+def tuning_attrs(name: str, tune: bool, tuning_file: str | None) -> dict:
+    """Step attributes recording how a prediction was tuned."""
+    attrs = {"tuned_from_input": bool(tune and name in TUNABLE)}
+    if tuning_file and name in TUNABLE:
+        attrs["tuned_from"] = str(tuning_file)
+    return attrs
+
+
+def predicted_step(step: Step, name: str, horizon: float, tune: bool = False, tuning: Tuning | None = None,
+                   tuning_file: str | None = None) -> Step:
+    attrs = dict(step.attrs, predicted_with=name, prediction_horizon_s=horizon, **tuning_attrs(name, tune, tuning_file))
+    quaternion = predicted_quaternions(step, name, horizon, tune=tune, tuning=tuning)
     return Step(step.time, None, step.position, quaternion, step.valid_mask, step.sample_rate_hz, step.sensor_ids,
                 f"{step.description} (orientation predicted by ivc)".strip(), attrs)
 
@@ -148,12 +182,15 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
               "procedure: measurement noise from the data, process noise at each model's λ, instead of the "
               "thesis's values: from each input step "
               "itself, or with --benchmark from a separate synthetic tuning set. Prints the estimates.")
+@click.option("--tune-from", "tune_from", type=click.Path(exists=True, dir_okay=False),
+              help="As --tune, from another recording (.csv) or session (.h5, every step with orientations), "
+              "at the input's sample rate: the thesis's separate tuning set.")
 @click.option("--compensators", is_flag=True, help="Seed 003: optimise the 10-state EKF's process noise by Powell's "
               "method for the twist and hybrid costs on synthetic yaw records, and print Table 1.")
 @click.option("--evaluations", type=int, default=1500, show_default=True,
               help="With --compensators: cost evaluations per design at most.")
 def predict(input_file, filters, horizon, output, steps, rate, force, benchmark, motions, frames, bench_rate, seed,
-            reference, plot, as_json, tune, compensators, evaluations):
+            reference, plot, as_json, tune, tune_from, compensators, evaluations):
     """Predict the orientations in INPUT_FILE (session .h5 or recording .csv) a horizon ahead.
 
     The output holds, at each frame's time stamp, the orientation predicted for time +
@@ -162,6 +199,11 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
     orientation. `ivc predict --benchmark` instead evaluates the predictors on synthetic head
     motion and prints the thesis's tables (Tables 5-6, 11, 12-15 layouts, and the SNR of Figs. 16-17).
     """
+    if tune and tune_from:
+        raise click.UsageError("give --tune (from the input) or --tune-from FILE, not both")
+    if tune_from and (benchmark or compensators):
+        raise click.UsageError("--tune-from tunes the prediction of an INPUT_FILE; --benchmark --tune tunes on "
+                               "synthetic data")
     if compensators:
         if evaluations < 1:
             raise click.BadParameter("must be at least 1", param_hint="--evaluations")
@@ -180,11 +222,12 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
     name = filters[0] if filters else "mmdq2"
     delta = parse_horizon(horizon)
     input_path, output_path = input_and_output(input_file, output, force)
+    tuning = tuning_from(tune_from) if tune_from and name in TUNABLE else None
     if session_io.is_recording_csv(input_path):
         if not session_io.is_recording_csv(output_path):
             raise click.UsageError("a CSV input is predicted into a CSV output (-o FILE.csv)")
         step = read_csv(input_path, rate)
-        out = predicted_step(step, name, delta, tune)
+        out = predicted_step(step, name, delta, tune, tuning, tune_from)
         with session_io.atomic_path(output_path) as tmp:
             write_csv(out, tmp)
         click.echo(f"{input_path.name}: {step.n_frames} frames x {step.n_sensors} sensors predicted "
@@ -201,7 +244,7 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
         step = data.steps[n]
         if rate and not step.sample_rate_hz:
             step.sample_rate_hz = rate
-        out_steps[n] = predicted_step(step, name, delta, tune)
+        out_steps[n] = predicted_step(step, name, delta, tune, tuning, tune_from)
         click.echo(f"{n}: {step.n_frames} frames x {step.n_sensors} sensors predicted {delta * 1e3:g} ms ahead")
     predicted = Session(data.hemisphere, out_steps, {n: data.truth[n] for n in names if n in data.truth},
                         dict(data.attrs, predicted_with=name, prediction_horizon_s=delta))

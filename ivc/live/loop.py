@@ -30,6 +30,7 @@ import numpy as np
 from ivc import dipole, rotations
 from ivc.correct import Corrector
 from ivc.live.igtl import Framer, TrackingDataMessage, encode_transforms
+from ivc.predict import Tuning
 from ivc.predict import make as make_predictor
 
 log = logging.getLogger("ivc.live")
@@ -74,16 +75,20 @@ class LiveCorrector:
 
     ``source``: (host, port) of the tracking server. ``publish``: (host, port) to serve results
     on (port 0 picks a free one; :attr:`publish_address` tells which). ``predictor``: a filter
-    name of ``ivc predict`` with ``horizon`` s and the stream's ``rate_hz``.
+    name of ``ivc predict`` with ``horizon`` s and the stream's ``rate_hz``, tuned by ``tuning``
+    (:mod:`ivc.predict.tuning`, made at ``rate_hz``) if given.
     """
 
     def __init__(self, corrector: Corrector, source: tuple[str, int], publish: tuple[str, int] = ("127.0.0.1", 18945),
                  *, length_unit: float = 1e-3, predictor: str | None = None, horizon: float = 0.0,
                  rate_hz: float = 240.0, suffix: str = "_ivc", sensors: list[str] | None = None,
-                 retry_s: float = 0.5):
+                 retry_s: float = 0.5, tuning: Tuning | None = None):
+        if predictor:
+            make_predictor(predictor, rate_hz, tuning)  # an unknown filter or a tuning at another rate: refuse now
         self.corrector, self.source = corrector, source
         self.length_unit, self.suffix = float(length_unit), suffix
         self.predictor, self.horizon, self.rate_hz = predictor, float(horizon), float(rate_hz)
+        self.tuning = tuning
         self.sensors = set(sensors) if sensors else None
         self.retry_s = retry_s
         self.stats = LiveStats()
@@ -231,7 +236,7 @@ class LiveCorrector:
     def _predicted(self, name: str, quaternion: np.ndarray, ok: bool) -> np.ndarray | None:
         stream = self._streams.get(name)
         if stream is None:
-            stream = self._streams[name] = make_predictor(self.predictor, self.rate_hz).stream(1)
+            stream = self._streams[name] = make_predictor(self.predictor, self.rate_hz, self.tuning).stream(1)
         stream.update(np.where(ok, quaternion, np.nan)[None], np.array([ok]))
         q = stream.predict(self.horizon)[0]
         return q if np.all(np.isfinite(q)) else None
