@@ -161,6 +161,11 @@ def test_predict_tune_from_another_recording(tmp_path):
         assert refused.exit_code != 0 and message in refused.output, refused.output
     refused = runner.invoke(cli, ["predict", "--benchmark", "--tune-from", str(csv_tune)])
     assert refused.exit_code != 0 and "synthetic" in refused.output
+    untuned = runner.invoke(cli, ["predict", str(csv_in), "--filter", "poly2", "--tune-from", str(csv_tune),
+                                  "-o", str(tmp_path / "poly.csv")])
+    assert untuned.exit_code == 0 and "poly2 has no noise model to tune" in untuned.output
+    assert np.allclose(read_csv(tmp_path / "poly.csv").quaternion[20:],
+                       make("poly2").predict(step.quaternion, 0.05)[0][20:], atol=1e-12)
 
 
 def test_correct_tune_from_needs_a_filter_and_the_stream_rate(tmp_path):

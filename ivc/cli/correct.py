@@ -9,13 +9,13 @@ import numpy as np
 from ivc import lut
 from ivc import session as session_io
 from ivc.cli.paths import input_and_output
-from ivc.cli.predict import check_tuning_rate, parse_horizon, predicted_quaternions, tuning_attrs, tuning_from
+from ivc.cli.predict import check_tuning_rate, parse_horizon, predicted_quaternions, requested_tuning, tuning_attrs
 from ivc.collect.replay import read_csv, write_csv
 from ivc.correct import Corrector, describe
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, MAX_RESIDUAL, NOT_CONVERGED, OUTSIDE, Correction
 from ivc.lut.build import file_digest
 from ivc.lut.grid import INTERPOLATIONS
-from ivc.predict import FILTERS, TUNABLE, Tuning
+from ivc.predict import FILTERS, Tuning
 from ivc.session import Session, Step
 from ivc.units import LENGTH_UNITS
 
@@ -124,15 +124,13 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     """
     if (tune or tune_from) and not predictor:
         raise click.UsageError("--tune and --tune-from tune a prediction filter: give --predict NAME too")
-    if tune and tune_from:
-        raise click.UsageError("give --tune (from the input) or --tune-from FILE, not both")
     if live_url:
         if input_file or output:
             raise click.UsageError("--live reads from the network: give no INPUT_FILE or --output")
         if tune:
             raise click.UsageError("--tune needs the whole recording and cannot run on a live stream: tune from "
                                    "an earlier recording with --tune-from FILE")
-        tuning = tuning_from(tune_from) if tune_from and predictor in TUNABLE else None
+        tuning = requested_tuning(predictor, tune, tune_from)
         if tuning is not None:
             check_tuning_rate(tuning, rate_hz, "the live stream (--rate-hz)")
         _live(lut_file, live_url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor,
@@ -142,7 +140,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         raise click.UsageError("give INPUT_FILE and -o OUTPUT (or --live igtl://HOST:PORT)")
     input_path, output_path = input_and_output(input_file, output, force)
     delta = parse_horizon(horizon) if predictor else None
-    tuning = tuning_from(tune_from) if tune_from and predictor in TUNABLE else None
+    tuning = requested_tuning(predictor, tune, tune_from) if predictor else None
     table = lut.read(lut_file)
     if session_io.is_recording_csv(input_path):
         if not session_io.is_recording_csv(output_path):

@@ -60,6 +60,20 @@ def tuning_from(path: str) -> Tuning:
     return tuning
 
 
+def requested_tuning(name: str, tune: bool, tune_from: str | None) -> Tuning | None:
+    """The tuning of ``--tune-from`` (``--tune`` tunes later, per step), after checking the two options.
+
+    Filters without a noise model to tune are predicted as they are, with a note that says so.
+    """
+    if tune and tune_from:
+        raise click.UsageError("give --tune (from the input) or --tune-from FILE, not both")
+    if (tune or tune_from) and name not in TUNABLE:
+        click.echo(f"note: {name} has no noise model to tune (only {', '.join(TUNABLE)} have): predicting without "
+                   "tuning", err=True)
+        return None
+    return tuning_from(tune_from) if tune_from else None
+
+
 def check_tuning_rate(tuning: Tuning, rate_hz: float, what: str) -> None:
     """Refuse a tuning made at another rate than the stream's (the noise and σ_w depend on the frame time)."""
     if not np.isclose(tuning.rate_hz, rate_hz, rtol=1e-9):
@@ -199,8 +213,6 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
     orientation. `ivc predict --benchmark` instead evaluates the predictors on synthetic head
     motion and prints the thesis's tables (Tables 5-6, 11, 12-15 layouts, and the SNR of Figs. 16-17).
     """
-    if tune and tune_from:
-        raise click.UsageError("give --tune (from the input) or --tune-from FILE, not both")
     if tune_from and (benchmark or compensators):
         raise click.UsageError("--tune-from tunes the prediction of an INPUT_FILE; --benchmark --tune tunes on "
                                "synthetic data")
@@ -222,7 +234,7 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
     name = filters[0] if filters else "mmdq2"
     delta = parse_horizon(horizon)
     input_path, output_path = input_and_output(input_file, output, force)
-    tuning = tuning_from(tune_from) if tune_from and name in TUNABLE else None
+    tuning = requested_tuning(name, tune, tune_from)
     if session_io.is_recording_csv(input_path):
         if not session_io.is_recording_csv(output_path):
             raise click.UsageError("a CSV input is predicted into a CSV output (-o FILE.csv)")
