@@ -132,7 +132,7 @@ def test_predict_tune_from_another_recording(tmp_path):
     result = runner.invoke(cli, ["predict", str(csv_in), "--filter", "mmdq2", "--tune-from", str(csv_tune),
                                  "-o", str(out)])
     assert result.exit_code == 0, result.output
-    assert f"tuned from {csv_tune}" in result.output
+    assert f"--tune-from {csv_tune}:\ntuning from " in result.output
     tuning = estimate([read_csv(csv_tune).quaternion], 120.0)
     expected = make("mmdq2", 120.0, tuning).predict(step.quaternion, 0.05)[0]
     assert np.allclose(read_csv(out).quaternion[5:], expected[5:], atol=1e-12)

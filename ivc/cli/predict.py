@@ -56,7 +56,7 @@ def tuning_from(path: str) -> Tuning:
         raise click.UsageError(f"{path} has steps at {', '.join(f'{r:g}' for r in rates)} Hz: tune from recordings "
                                "at one rate, the rate of the stream to predict")
     tuning = estimate([s.quaternion for s in usable], rates[0], valid=[s.valid_mask for s in usable])
-    click.echo(f"tuned from {path}: " + tuning.summary())
+    click.echo(f"--tune-from {path}:\n" + tuning.summary())
     return tuning
 
 
@@ -193,9 +193,9 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
 @click.option("--plot", type=click.Path(dir_okay=False), help="Benchmark: write the error-vs-horizon PNG here.")
 @click.option("--json", "as_json", is_flag=True, help="Benchmark: print the figures as JSON.")
 @click.option("--tune", is_flag=True, help="Tune the seed-001 filters (q-ekf, dqekf-*, mmdq*) by the thesis's "
-              "procedure: measurement noise from the data, process noise at each model's λ, instead of the "
-              "thesis's values: from each input step "
-              "itself, or with --benchmark from a separate synthetic tuning set. Prints the estimates.")
+              "procedure (measurement noise from the data, process noise at each model's λ) instead of using the "
+              "thesis's values: from each input step itself, or with --benchmark from a separate synthetic "
+              "tuning set. Prints the estimates.")
 @click.option("--tune-from", "tune_from", type=click.Path(exists=True, dir_okay=False),
               help="As --tune, from another recording (.csv) or session (.h5, every step with orientations), "
               "at the input's sample rate: the thesis's separate tuning set.")
