@@ -9,7 +9,7 @@ import numpy as np
 from ivc import lut
 from ivc import session as session_io
 from ivc.cli.paths import input_and_output
-from ivc.cli.predict import check_tuning_rate, parse_horizon, predicted_quaternions, requested_tuning, tuning_attrs
+from ivc.cli.predict import check_tuning_rate, parse_horizon, predicted_quaternions, prediction_attrs, requested_tuning
 from ivc.collect.replay import read_csv, write_csv
 from ivc.correct import Corrector, describe
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, MAX_RESIDUAL, NOT_CONVERGED, OUTSIDE, Correction
@@ -37,10 +37,8 @@ def _predicted(step: Step, out: Correction, name: str, horizon: float, tune: boo
     ``tune``: the seed-001 filters are tuned to the corrected step itself (its trusted samples);
     or ``tuning`` (from ``tuning_file``) gives their noise."""
     quaternion = predicted_quaternions(step, name, horizon, out.ok, tune=tune, tuning=tuning)
-    attrs = dict(step.attrs, predicted_with=name, prediction_horizon_s=horizon,
-                 **tuning_attrs(name, tune, tuning_file))
     return Step(step.time, step.signal, step.position, quaternion, step.valid_mask, step.sample_rate_hz,
-                step.sensor_ids, step.description, attrs)
+                step.sensor_ids, step.description, prediction_attrs(step, name, horizon, tune, tuning_file))
 
 
 def _summary(name: str, out: Correction) -> str:
@@ -140,7 +138,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         raise click.UsageError("give INPUT_FILE and -o OUTPUT (or --live igtl://HOST:PORT)")
     input_path, output_path = input_and_output(input_file, output, force)
     delta = parse_horizon(horizon) if predictor else None
-    tuning = requested_tuning(predictor, tune, tune_from) if predictor else None
+    tuning = requested_tuning(predictor, tune, tune_from)
     table = lut.read(lut_file)
     if session_io.is_recording_csv(input_path):
         if not session_io.is_recording_csv(output_path):

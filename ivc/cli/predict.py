@@ -75,8 +75,8 @@ def requested_tuning(name: str, tune: bool, tune_from: str | None) -> Tuning | N
 
 
 def check_tuning_rate(tuning: Tuning, rate_hz: float, what: str) -> None:
-    """Refuse a tuning made at another rate than the stream's (the noise and σ_w depend on the frame time)."""
-    if not np.isclose(tuning.rate_hz, rate_hz, rtol=1e-9):
+    """Refuse a tuning made at another rate than the stream's, in the words of the CLI's options."""
+    if not tuning.matches_rate(rate_hz):
         raise click.UsageError(f"--tune-from is a recording at {tuning.rate_hz:g} Hz, {what} is at {rate_hz:g} Hz: "
                                "tune from a recording at the stream's rate")
 
@@ -100,9 +100,10 @@ def predicted_quaternions(step: Step, name: str, horizon: float, valid: np.ndarr
     return np.where(np.all(np.isfinite(predicted), axis=-1, keepdims=True), predicted, step.quaternion)
 
 
-def tuning_attrs(name: str, tune: bool, tuning_file: str | None) -> dict:
-    """Step attributes recording how a prediction was tuned."""
-    attrs = {"tuned_from_input": bool(tune and name in TUNABLE)}
+def prediction_attrs(step: Step, name: str, horizon: float, tune: bool, tuning_file: str | None) -> dict:
+    """``step``'s attributes with the prediction's: the filter, the horizon (s) and how it was tuned."""
+    attrs = dict(step.attrs, predicted_with=name, prediction_horizon_s=horizon,
+                 tuned_from_input=bool(tune and name in TUNABLE))
     if tuning_file and name in TUNABLE:
         attrs["tuned_from"] = str(tuning_file)
     return attrs
@@ -110,7 +111,7 @@ def tuning_attrs(name: str, tune: bool, tuning_file: str | None) -> dict:
 
 def predicted_step(step: Step, name: str, horizon: float, tune: bool = False, tuning: Tuning | None = None,
                    tuning_file: str | None = None) -> Step:
-    attrs = dict(step.attrs, predicted_with=name, prediction_horizon_s=horizon, **tuning_attrs(name, tune, tuning_file))
+    attrs = prediction_attrs(step, name, horizon, tune, tuning_file)
     quaternion = predicted_quaternions(step, name, horizon, tune=tune, tuning=tuning)
     return Step(step.time, None, step.position, quaternion, step.valid_mask, step.sample_rate_hz, step.sensor_ids,
                 f"{step.description} (orientation predicted by ivc)".strip(), attrs)

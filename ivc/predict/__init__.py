@@ -9,8 +9,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import numpy as np
-
 from ivc.predict.base import Predictor, PredictorError, Stream
 from ivc.predict.dq import DQPredictor, dqekf_ca, dqekf_cv, mmdq2, mmdq3
 from ivc.predict.evaluate import NoPrediction
@@ -54,7 +52,7 @@ def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Pre
         raise PredictorError(f"unknown filter {name!r}; choose one of {', '.join(FILTERS)}")
     if tuning is None or name not in TUNABLE:
         return FILTERS[name](rate_hz)
-    if not np.isclose(tuning.rate_hz, rate_hz, rtol=1e-9):
+    if not tuning.matches_rate(rate_hz):
         raise PredictorError(f"the tuning is for {tuning.rate_hz:g} Hz, the stream is at {rate_hz:g} Hz: "
                              "tune from a recording at the stream's rate")
     if name == "q-ekf":

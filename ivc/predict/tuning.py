@@ -75,6 +75,10 @@ class Tuning:
     def tau(self) -> float:
         return 1.0 / self.rate_hz
 
+    def matches_rate(self, rate_hz: float) -> bool:
+        """Whether a stream at ``rate_hz`` may use this tuning (its noise and σ_w depend on the frame time)."""
+        return bool(np.isclose(self.rate_hz, rate_hz, rtol=1e-9))
+
     @property
     def sigma_v_dq(self) -> FloatArray:
         """(4,) the DQ filters' measurement noise: the vector part as estimated, z0 its largest std (see above)."""
