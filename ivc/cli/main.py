@@ -5,22 +5,38 @@ from __future__ import annotations
 import click
 
 from ivc import __version__
-from ivc.session import SessionError  # LutError and CsvError are SessionErrors
+from ivc.errors import IvcError
 
 
 class IvcGroup(click.Group):
-    """A click group that turns the library's data errors into one-line CLI errors."""
+    """A click group that turns the library's deliberate errors into one-line CLI errors.
+
+    ``IvcError`` (bad input, a malformed file, a missing step) and ``OSError`` (a file
+    that cannot be opened or written) are the user's to fix and print as one line.
+    Anything else is a bug in ivc and keeps its traceback; ``--debug`` shows the
+    traceback of the one-line errors too.
+    """
 
     def invoke(self, ctx: click.Context):
         try:
             return super().invoke(ctx)
-        except (SessionError, FileNotFoundError, FileExistsError, ValueError) as error:
-            raise click.ClickException(str(error)) from None
+        except (IvcError, OSError) as error:
+            if ctx.meta.get("ivc.debug"):
+                raise
+            raise click.ClickException(_one_line(error)) from None
+
+
+def _one_line(error: BaseException) -> str:
+    if isinstance(error, OSError) and error.filename is not None and error.strerror:
+        return f"{error.filename}: {error.strerror}"
+    return str(error)
 
 
 @click.group(cls=IvcGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="ivc")
-def cli() -> None:
+@click.option("--debug", is_flag=True, help="Show the traceback of every error, not only of internal ones.")
+@click.pass_context
+def cli(ctx: click.Context, debug: bool) -> None:
     """Correct AC electromagnetic tracker poses near metal (interpolation-volume calibration).
 
     The pipeline: `ivc collect` records the protocol into a session file (from the
@@ -33,6 +49,7 @@ def cli() -> None:
     orientations ahead to hide display lag. `ivc demo` runs it all on a
     simulated room.
     """
+    ctx.meta["ivc.debug"] = debug
 
 
 def _register() -> None:

@@ -28,6 +28,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ivc import rotations
+from ivc.errors import CsvError
 from ivc.session import SessionError, Step, Truth, is_recording_csv
 from ivc.session import read as read_session
 from ivc.units import LENGTH_UNITS
@@ -43,10 +44,6 @@ TIME_COLUMNS = {"time": 1.0, "time_ms": 1e-3}
 MAX_MEDIAN_RANGE = 10.0
 REPLAY_DESCRIPTION = "replayed tracker recording"
 _MAX_REPORTED = 10
-
-
-class CsvError(SessionError):
-    """A recording CSV is malformed; the message lists the bad lines."""
 
 
 def write_csv(step: Step, path: str | Path, extra: dict[str, np.ndarray] | None = None) -> None:

@@ -19,6 +19,7 @@ import numpy as np
 from ivc import dipole
 from ivc.correct import _kernels
 from ivc.dipole.pose import hemisphere_vector
+from ivc.errors import InputError
 from ivc.lut.grid import GridField
 from ivc.lut.table import LookupTable
 
@@ -93,7 +94,7 @@ class Corrector:
         positions (..., 3) m). Samples with ``valid`` False are flagged INVALID_INPUT."""
         S = np.asarray(S, float)
         if S.shape[-2:] != (3, 3):
-            raise ValueError(f"signal matrices must have shape (..., 3, 3), got {S.shape}")
+            raise InputError(f"signal matrices must have shape (..., 3, 3), got {S.shape}")
         lead = S.shape[:-2]
         flat = np.ascontiguousarray(S.reshape(-1, 3, 3))
         if valid is not None:

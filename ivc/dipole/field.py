@@ -12,6 +12,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ivc import rotations
 from ivc.dipole import _kernels
+from ivc.errors import InputError
 
 FloatArray = NDArray[np.float64]
 
@@ -20,7 +21,7 @@ def _flat(a: ArrayLike, tail: tuple[int, ...], name: str) -> tuple[FloatArray, t
     """C-contiguous float64 view of ``a`` flattened to ``(M, *tail)``, and its leading shape."""
     a = np.asarray(a, dtype=np.float64)
     if a.shape[a.ndim - len(tail) :] != tail or a.ndim < len(tail):
-        raise ValueError(f"{name} must have shape (..., {', '.join(map(str, tail))}), got {a.shape}")
+        raise InputError(f"{name} must have shape (..., {', '.join(map(str, tail))}), got {a.shape}")
     lead = a.shape[: a.ndim - len(tail)]
     return np.ascontiguousarray(a.reshape((-1, *tail))), lead
 
@@ -64,7 +65,7 @@ def field_jacobian(r: ArrayLike) -> FloatArray:
     """
     r = np.asarray(r, dtype=float)
     if r.shape[-1:] != (3,):
-        raise ValueError(f"r must have shape (..., 3), got {r.shape}")
+        raise InputError(f"r must have shape (..., 3), got {r.shape}")
     rho2 = np.einsum("...i,...i->...", r, r)[..., None, None, None]
     eye = np.eye(3)
     sym = (

@@ -11,6 +11,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ivc.dipole import _kernels
 from ivc.dipole.field import _flat
+from ivc.errors import InputError
 
 FloatArray = NDArray[np.float64]
 
@@ -20,7 +21,7 @@ HEMISPHERES = ("+x", "-x", "+y", "-y", "+z", "-z")
 def hemisphere_vector(hemisphere: str) -> FloatArray:
     """Unit vector of a declared hemisphere such as ``"+x"`` (the side the sensors are on)."""
     if hemisphere not in HEMISPHERES:
-        raise ValueError(f"hemisphere must be one of {', '.join(HEMISPHERES)}; got {hemisphere!r}")
+        raise InputError(f"hemisphere must be one of {', '.join(HEMISPHERES)}; got {hemisphere!r}")
     axis = "xyz".index(hemisphere[1])
     v = np.zeros(3)
     v[axis] = 1.0 if hemisphere[0] == "+" else -1.0

@@ -24,17 +24,14 @@ from pathlib import Path
 import numpy as np
 
 from ivc import __version__, dipole
+from ivc.errors import ExportError
 from ivc.export import distortion
-from ivc.lut.table import COMPONENTS, LookupTable, LutError
+from ivc.lut.table import COMPONENTS, LookupTable
 from ivc.lut.table import write as write_hdf5
 from ivc.session import atomic_path
 from ivc.units import LENGTH_UNITS
 
 FIELD_UNIT = "normalised dipole units (f_D of MATH.md §2)"
-
-
-class ExportError(LutError):
-    """The table cannot be written in the asked format (or to the asked place)."""
 
 
 def _hdf5(table: LookupTable, path: Path, unit: str) -> None:

@@ -18,6 +18,8 @@ from urllib.parse import urlparse
 import numpy as np
 from pyigtl.messages import CRC64, MessageBase, message_type_to_class_constructor
 
+from ivc.errors import InputError
+
 HEADER = struct.Struct("> H 12s 20s II Q Q")
 HEADER_SIZE = HEADER.size  # 58
 #: larger bodies are taken as garbage: a tracking message is a few hundred bytes
@@ -29,7 +31,7 @@ def parse_url(url: str) -> tuple[str, int]:
     """``igtl://HOST:PORT`` (or ``HOST:PORT``) → (host, port)."""
     parsed = urlparse(url if "://" in url else f"igtl://{url}")
     if parsed.scheme != "igtl" or not parsed.hostname:
-        raise ValueError(f"expected igtl://HOST:PORT, got {url!r}")
+        raise InputError(f"expected igtl://HOST:PORT, got {url!r}")
     return parsed.hostname, parsed.port or DEFAULT_PORT
 
 
@@ -67,12 +69,12 @@ def decode_transform(content: bytes) -> np.ndarray:
 def decode_ndarray(content: bytes) -> np.ndarray:
     scalar, ndim = struct.unpack_from("> B B", content)
     if scalar not in NDArrayMessage.TYPES:
-        raise ValueError(f"NDARRAY scalar type {scalar} is not supported")
+        raise InputError(f"NDARRAY scalar type {scalar} is not supported")
     shape = struct.unpack_from(f"> {ndim}H", content, 2)
     dtype = np.dtype(NDArrayMessage.TYPES[scalar])
     data = content[2 + 2 * ndim:]
     if len(data) != dtype.itemsize * math.prod(shape):
-        raise ValueError("NDARRAY size does not match its shape")
+        raise InputError("NDARRAY size does not match its shape")
     return np.frombuffer(data, dtype).reshape(shape).astype(float)
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ivc import __version__, dipole
+from ivc.errors import InputError
 from ivc.fixtures.mapping import DROP_REASONS, FixtureModel, Gates, map_sweep
 from ivc.lut.fit_harmonic import PASSES, fit_harmonic
 from ivc.lut.fit_poly import fit_poly
@@ -76,9 +77,9 @@ class FitOptions:
 
     def __post_init__(self):
         if self.method not in METHODS:
-            raise ValueError(f"unknown fit method {self.method!r}; use one of {', '.join(METHODS)}")
+            raise InputError(f"unknown fit method {self.method!r}; use one of {', '.join(METHODS)}")
         if (self.origin is None) != (self.shape is None):
-            raise ValueError("a user grid needs both an origin and a shape")
+            raise InputError("a user grid needs both an origin and a shape")
 
 
 def _noop(desc: str, total: int) -> Callable[[int], None]:

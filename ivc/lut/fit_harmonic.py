@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ivc.errors import InputError
 from ivc.lut import harmonics
 from ivc.lut.samples import ERROR_FLOOR, FieldSamples
 
@@ -128,7 +129,7 @@ def fit_harmonic(samples: FieldSamples, degree: int | None = None, max_degree: i
     samples down-weighted as outliers.
     """
     if len(samples) < 3 * harmonics.count(2):
-        raise ValueError(f"{len(samples)} samples are too few for a harmonic fit")
+        raise InputError(f"{len(samples)} samples are too few for a harmonic fit")
     top = max_degree if degree is None else degree
     centre = 0.5 * (samples.positions.min(axis=0) + samples.positions.max(axis=0))
     scale = float(np.max(np.linalg.norm(samples.positions - centre, axis=1)))

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ivc.errors import InputError
 from ivc.lut import _kernels
 
 #: the seed's grid spacing (1.5 inch), metres
@@ -30,18 +31,18 @@ class Grid:
         object.__setattr__(self, "origin", np.asarray(self.origin, float).reshape(3))
         object.__setattr__(self, "shape", tuple(int(n) for n in self.shape))
         if not self.spacing > 0 or not np.isfinite(self.spacing):
-            raise ValueError(f"grid spacing must be positive, got {self.spacing}")
+            raise InputError(f"grid spacing must be positive, got {self.spacing}")
         if len(self.shape) != 3 or min(self.shape) < 2:
-            raise ValueError(f"a grid needs at least 2 nodes per axis, got shape {self.shape}")
+            raise InputError(f"a grid needs at least 2 nodes per axis, got shape {self.shape}")
         if not np.all(np.isfinite(self.origin)):
-            raise ValueError(f"grid origin must be finite, got {self.origin}")
+            raise InputError(f"grid origin must be finite, got {self.origin}")
 
     @classmethod
     def around(cls, points: np.ndarray, spacing: float = DEFAULT_SPACING, margin: int = 1) -> Grid:
         """The grid covering a cloud of points (N, 3), centred on it, grown by ``margin`` cells on every face."""
         points = np.asarray(points, float)
         if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
-            raise ValueError(f"need a non-empty (N, 3) point cloud to place a grid, got shape {points.shape}")
+            raise InputError(f"need a non-empty (N, 3) point cloud to place a grid, got shape {points.shape}")
         low, high = points.min(axis=0), points.max(axis=0)
         cells = np.maximum(np.ceil((high - low) / spacing - 1e-9).astype(int), 1)
         slack = cells * spacing - (high - low)
@@ -81,7 +82,7 @@ def fill_invalid(values: np.ndarray, valid: np.ndarray, pad: int = 1) -> np.ndar
     out[inner] = np.where(valid[..., None], values, 0.0)
     known[inner] = valid
     if not known.any():
-        raise ValueError("the table has no valid node to fill from")
+        raise InputError("the table has no valid node to fill from")
     while not known.all():
         total = np.zeros_like(out)
         count = np.zeros(known.shape)
@@ -126,11 +127,11 @@ class GridField:
 
     def __init__(self, grid: Grid, values: np.ndarray, valid: np.ndarray, interpolation: str = "cubic"):
         if interpolation not in INTERPOLATIONS:
-            raise ValueError(f"unknown interpolation {interpolation!r}; use one of {', '.join(INTERPOLATIONS)}")
+            raise InputError(f"unknown interpolation {interpolation!r}; use one of {', '.join(INTERPOLATIONS)}")
         values = np.asarray(values, float)
         valid = np.asarray(valid, bool) & np.all(np.isfinite(values.reshape(*grid.shape, -1)), axis=-1)
         if values.shape[:3] != grid.shape or valid.shape != grid.shape:
-            raise ValueError(f"table shape {values.shape[:3]} / validity {valid.shape} do not match grid {grid.shape}")
+            raise InputError(f"table shape {values.shape[:3]} / validity {valid.shape} do not match grid {grid.shape}")
         self.grid, self.interpolation = grid, interpolation
         self.channel_shape = values.shape[3:]
         self._padded = np.ascontiguousarray(fill_invalid(values.reshape(*grid.shape, -1), valid))

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ivc import dipole
+from ivc.errors import InputError
 
 #: error floor added to eq. 101's estimate (m), so no sample dominates the fit
 ERROR_FLOOR = 1e-4
@@ -39,9 +40,9 @@ class FieldSamples:
         n = len(self.positions)
         if (self.positions.shape != (n, 3) or self.fields.shape != (n, 3, 3) or self.error.shape != (n,)
                 or self.frame.shape != (n,) or self.sensor.shape != (n,)):
-            raise ValueError("field samples: inconsistent array shapes")
+            raise InputError("field samples: inconsistent array shapes")
         if not (np.all(np.isfinite(self.positions)) and np.all(np.isfinite(self.fields))):
-            raise ValueError("field samples must be finite; drop the gated-out samples first")
+            raise InputError("field samples must be finite; drop the gated-out samples first")
 
     def __len__(self) -> int:
         return len(self.positions)

@@ -16,17 +16,14 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from ivc.errors import LutError
 from ivc.lut.grid import Grid, GridField
-from ivc.session import SessionError, atomic_path
+from ivc.session import atomic_path
 from ivc.session.io import open_ivc_file
 
 FORMAT_NAME = "lut"
 FORMAT_VERSION = 1
 COMPONENTS = ("Gxx", "Gxy", "Gxz", "Gyx", "Gyy", "Gyz", "Gzx", "Gzy", "Gzz")
-
-
-class LutError(SessionError):
-    """A look-up table file is missing, malformed, or unusable for what was asked."""
 
 
 @dataclass

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ivc import dipole, rotations
+from ivc.errors import InputError
 
 FieldModel = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 METHODS = ("joint", "two-stage")
@@ -155,7 +156,7 @@ def solve_pose(
     returned as NaN, not converged.
     """
     if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; use one of {', '.join(METHODS)}")
+        raise InputError(f"unknown method {method!r}; use one of {', '.join(METHODS)}")
     residual_fn = signal_residual if method == "joint" else _residual_two_stage
     S = np.asarray(S, float)
     r = np.array(initial_position, dtype=float)

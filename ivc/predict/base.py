@@ -15,14 +15,12 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ivc.errors import PredictorError
+
 FloatArray = NDArray[np.float64]
 
 #: the longest horizon accepted (s); the thesis evaluates up to 117 ms, displays lag 50-100 ms
 MAX_HORIZON = 1.0
-
-
-class PredictorError(ValueError):
-    """Bad input to a predictor: wrong shape, non-unit quaternions, bad horizon."""
 
 
 @numba.njit(cache=True)

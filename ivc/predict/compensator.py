@@ -28,6 +28,7 @@ import numpy as np
 from scipy import optimize, signal
 
 from ivc import rotations
+from ivc.errors import InputError
 from ivc.predict.nasa import DEFAULT_W, NasaEKF
 
 #: the target: 0.8 m in front of the HMD (x forward, y horizontal, z vertical)
@@ -163,7 +164,7 @@ def design_cost(design: str, records: YawRecords, default: Scores, horizon: floa
                 ) -> Callable[[np.ndarray], float]:
     """The cost of log10 W_r for ``design``: ``twist`` (eq. 23) or ``hybrid`` (eq. 27, a = b = 1, β = γ, α = 0)."""
     if design not in ("twist", "hybrid"):
-        raise ValueError(f"design is 'twist' or 'hybrid', got {design!r}")
+        raise InputError(f"design is 'twist' or 'hybrid', got {design!r}")
     tracking0 = np.hypot(*default.tracking)
     noise0 = np.hypot(*default.noise)
 

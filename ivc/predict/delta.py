@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ivc import rotations
+from ivc.errors import InputError
 from ivc.predict._quat import SMALL_ANGLE
 
 FloatArray = NDArray[np.float64]
@@ -72,7 +73,7 @@ def extrapolate(q: ArrayLike, omega: ArrayLike, alpha: ArrayLike | None, delta: 
     q = np.asarray(q, dtype=float)
     omega = np.asarray(omega, dtype=float)
     if delta < 0.0:
-        raise ValueError(f"the prediction horizon must be >= 0 s, got {delta}")
+        raise InputError(f"the prediction horizon must be >= 0 s, got {delta}")
     if alpha is None or not np.any(alpha):
         return rotations.multiply(delta_q(omega, delta), q)
     alpha = np.asarray(alpha, dtype=float)

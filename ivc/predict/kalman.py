@@ -16,6 +16,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ivc.errors import InputError
+
 
 class KalmanFilter:
     """Linear KF: ``x_k = F x_{k−1} + B u_k + w``, ``z_k = H x_k + v``, ``w ~ N(0, Q)``, ``v ~ N(0, R)``.
@@ -27,7 +29,7 @@ class KalmanFilter:
 
     def __init__(self, dim_x: int, dim_z: int, dim_u: int = 0, joseph: bool = True):
         if dim_x < 1 or dim_z < 1 or dim_u < 0:
-            raise ValueError(f"need dim_x >= 1, dim_z >= 1, dim_u >= 0; got {dim_x}, {dim_z}, {dim_u}")
+            raise InputError(f"need dim_x >= 1, dim_z >= 1, dim_u >= 0; got {dim_x}, {dim_z}, {dim_u}")
         self.dim_x, self.dim_z, self.dim_u = dim_x, dim_z, dim_u
         self.x = np.zeros(dim_x)
         self.P = np.eye(dim_x)
@@ -48,7 +50,7 @@ class KalmanFilter:
         self.x = self.F @ self.x
         if u is not None:
             if self.B is None:
-                raise ValueError("a control input needs dim_u > 0 and B")
+                raise InputError("a control input needs dim_u > 0 and B")
             self.x = self.x + self.B @ np.asarray(u, float)
         self.P = self.F @ self.P @ self.F.T + self.Q
         self.x_prior, self.P_prior = self.x.copy(), self.P.copy()
@@ -59,7 +61,7 @@ class KalmanFilter:
 
     def _correct(self, innovation: np.ndarray, H: np.ndarray, R: np.ndarray) -> None:
         if not np.all(np.isfinite(innovation)):
-            raise ValueError(f"non-finite measurement or prediction: innovation {innovation}")
+            raise InputError(f"non-finite measurement or prediction: innovation {innovation}")
         PHt = self.P @ H.T
         S = H @ PHt + R
         K = np.linalg.solve(S.T, PHt.T).T  # K = P Hᵀ S⁻¹ (S symmetric)

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from scipy.signal import lfilter
 
 from ivc import rotations
+from ivc.errors import InputError
 from ivc.predict._quat import delta_q, normalise, qmul
 
 FloatArray = NDArray[np.float64]
@@ -172,9 +173,9 @@ def head_motion(motion: str = "moderate", n_frames: int = 12_000, rate_hz: float
     ``noise_rad=None`` and ``dynamic_error=0`` give a noiseless recording (measured = truth).
     """
     if motion not in MOTIONS:
-        raise ValueError(f"motion is one of {', '.join(MOTIONS)}, got {motion!r}")
+        raise InputError(f"motion is one of {', '.join(MOTIONS)}, got {motion!r}")
     if n_frames < 2 or rate_hz <= 0:
-        raise ValueError(f"need n_frames >= 2 and rate_hz > 0, got {n_frames}, {rate_hz}")
+        raise InputError(f"need n_frames >= 2 and rate_hz > 0, got {n_frames}, {rate_hz}")
     rng = np.random.default_rng(seed)
     tau = 1.0 / rate_hz
     if motion == "full":

@@ -16,6 +16,7 @@ import numpy as np
 from ivc import dipole
 from ivc.correct.evaluate import CheckErrors, check_errors, summarise
 from ivc.correct.solver import Corrector
+from ivc.errors import InputError
 from ivc.fixtures.cube import CUBE_BITS, NOMINAL_EDGE, declared_pose, placed_vertices
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import FixtureModel, Gates, SweepMapping, map_sweep
@@ -166,7 +167,7 @@ def solve_sweep(session: Session, model: FixtureModel, table: LookupTable, cube_
     if max_frames is None:
         max_frames = int(parameters.get("max_frames") or FitOptions.max_frames)
     if max_frames < 1:
-        raise ValueError(f"max_frames = {max_frames}: solve at least one sweep frame")
+        raise InputError(f"max_frames = {max_frames}: solve at least one sweep frame")
     gates = Gates(max_residual=float(parameters.get("max_residual", Gates.max_residual)),
                   max_error=float(parameters.get("max_error", Gates.max_error)))
     recorded = session.steps["wand_sweep"].n_frames
@@ -221,7 +222,7 @@ def gather(session: Session, table: LookupTable, check: Session | None = None, s
     check poses only; ``mapping_missing`` says what it lacks.
     """
     if thin < 1:
-        raise ValueError(f"thin = {thin}: the thin-cell threshold is a number of samples, at least 1")
+        raise InputError(f"thin = {thin}: the thin-cell threshold is a number of samples, at least 1")
     field = table.field()
     lacks = tuple(lack.short for lack in session.lacks_for_fit())
     if lacks:

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from ivc import rotations
 from ivc.dipole import HEMISPHERES, closed_form_pose, signal_from_pose
+from ivc.errors import SessionError
 
 FORMAT_NAME = "session"
 FORMAT_VERSION = 1
@@ -36,10 +37,6 @@ QUATERNION_NORM_TOLERANCE = 1e-6
 
 #: the cube_survey attributes that declare the cube's pose (m; quaternion w, x, y, z)
 DECLARED_POSE_ATTRS = ("declared_position", "declared_quaternion")
-
-
-class SessionError(ValueError):
-    """A session file, or data about to be written to one, breaks the format."""
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from ivc.errors import InputError
+
 SHAPES = ("plate", "box", "panel", "desk", "cabinet", "mesh")
 
 
@@ -111,7 +113,7 @@ def from_file(path: str | Path, resolution: float | None = None, scale: float = 
     """Load a mesh file (metres after ``scale``), subdivided to ``resolution`` if given."""
     mesh = trimesh.load(path, force="mesh")
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ValueError(f"{path}: no triangle mesh in this file")
+        raise InputError(f"{path}: no triangle mesh in this file")
     mesh.apply_scale(scale)
     if resolution is not None:
         vertices, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=resolution)
@@ -124,11 +126,11 @@ def build(shape: str, size: Sequence[float] | None, resolution: float, path: str
     """Mesh of a named built-in shape, or of a mesh file when ``shape == "mesh"``."""
     if shape == "mesh":
         if path is None:
-            raise ValueError("a 'mesh' conductor needs a file path")
+            raise InputError("a 'mesh' conductor needs a file path")
         return from_file(path, resolution, scale)
     builders = {"plate": plate, "box": box, "panel": panel, "desk": desk, "cabinet": cabinet}
     if shape not in builders:
-        raise ValueError(f"unknown conductor shape {shape!r}; the shapes are {', '.join(SHAPES)}")
+        raise InputError(f"unknown conductor shape {shape!r}; the shapes are {', '.join(SHAPES)}")
     if size is None:
-        raise ValueError(f"a {shape!r} conductor needs a size")
+        raise InputError(f"a {shape!r} conductor needs a size")
     return builders[shape](size, resolution)

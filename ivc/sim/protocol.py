@@ -13,6 +13,7 @@ from functools import cached_property
 import numpy as np
 
 from ivc import rotations
+from ivc.errors import InputError
 from ivc.fixtures import fixture_frame
 from ivc.session import STEP_DESCRIPTIONS, Step, Truth
 from ivc.sim import rig, tracker
@@ -70,10 +71,10 @@ class Simulator:
     def step(self, name: str, frames: int | None = None) -> tuple[Step, Truth]:
         """Simulate one protocol step; returns the recorded step and its truth."""
         if name not in DEFAULT_FRAMES:
-            raise ValueError(f"unknown step {name!r}; the steps are {', '.join(DEFAULT_FRAMES)}")
+            raise InputError(f"unknown step {name!r}; the steps are {', '.join(DEFAULT_FRAMES)}")
         frames = DEFAULT_FRAMES[name] if frames is None else int(frames)
         if frames < 1:
-            raise ValueError(f"{name}: frames must be at least 1, got {frames}")
+            raise InputError(f"{name}: frames must be at least 1, got {frames}")
         rng = self._rng(name)
         scene = self.scene
         attrs = {}

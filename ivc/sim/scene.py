@@ -18,15 +18,12 @@ from scipy.spatial.transform import Rotation
 
 from ivc import rotations
 from ivc.dipole import HEMISPHERES
+from ivc.errors import SceneError
 from ivc.sim import eddy, meshes
 from ivc.sim.field import FerrousSphere, SecondaryField
 
 #: conductivities in S/m of the named materials (``perfect`` has no resistance)
 MATERIALS = {"aluminium": 3.5e7, "aluminum": 3.5e7, "copper": 5.8e7, "steel": 1.4e6, "brass": 1.5e7, "perfect": None}
-
-
-class SceneError(ValueError):
-    """A scene file is malformed; the message names the entry."""
 
 
 def _vector(table: dict, key: str, where: str, default=None, size: int = 3) -> np.ndarray:

@@ -1,0 +1,58 @@
+"""Every error ivc raises on purpose, under one root.
+
+``IvcError`` means "the input or the request is wrong, and the message says how": the
+command line prints it as one line. Anything else that escapes the library is a bug
+and keeps its traceback. Each class also derives from ``ValueError`` so that code
+written against earlier versions (``except ValueError``) still catches it.
+
+    IvcError
+    ├── InputError        bad arguments to a library function: shape, range, NaN, units
+    ├── SessionError      a session file, or data about to be written to one, breaks the format
+    │   └── CsvError      a recording CSV is malformed
+    ├── LutError          a look-up table file is missing, malformed or unusable
+    │   └── ExportError   the table cannot be written in the asked format
+    ├── SceneError        a simulator scene file is malformed
+    ├── PredictorError    bad input to a head-motion predictor
+    └── LiveError         a live stream cannot be set up
+"""
+
+from __future__ import annotations
+
+__all__ = ["IvcError", "InputError", "SessionError", "CsvError", "LutError", "ExportError", "SceneError",
+           "PredictorError", "LiveError"]
+
+
+class IvcError(Exception):
+    """Root of every error ivc raises on purpose; the message says what is wrong and what to do."""
+
+
+class InputError(IvcError, ValueError):
+    """Bad arguments to a library function: wrong shape, out of range, NaN, wrong unit."""
+
+
+class SessionError(IvcError, ValueError):
+    """A session file, or data about to be written to one, breaks the format."""
+
+
+class CsvError(SessionError):
+    """A recording CSV is malformed; the message lists the bad lines."""
+
+
+class LutError(IvcError, ValueError):
+    """A look-up table file is missing, malformed, or unusable for what was asked."""
+
+
+class ExportError(LutError):
+    """The table cannot be written in the asked format (or to the asked place)."""
+
+
+class SceneError(IvcError, ValueError):
+    """A scene file is malformed; the message names the entry."""
+
+
+class PredictorError(IvcError, ValueError):
+    """Bad input to a predictor: wrong shape, non-unit quaternions, bad horizon."""
+
+
+class LiveError(IvcError, ValueError):
+    """A live stream cannot be set up: bad address, unreachable server, bad message layout."""
