@@ -13,13 +13,14 @@ written against earlier versions (``except ValueError``) still catches it.
     │   └── ExportError   the table cannot be written in the asked format
     ├── SceneError        a simulator scene file is malformed
     ├── PredictorError    bad input to a head-motion predictor
-    └── LiveError         a live stream cannot be set up
+    ├── LiveError         a live stream cannot be set up
+    └── TrackerError      a tracker model file is malformed, or a tracker calibration cannot run
 """
 
 from __future__ import annotations
 
 __all__ = ["IvcError", "InputError", "SessionError", "CsvError", "LutError", "ExportError", "SceneError",
-           "PredictorError", "LiveError"]
+           "PredictorError", "LiveError", "TrackerError"]
 
 
 class IvcError(Exception):
@@ -56,3 +57,7 @@ class PredictorError(IvcError, ValueError):
 
 class LiveError(IvcError, ValueError):
     """A live stream cannot be set up: bad address, unreachable server, bad message layout."""
+
+
+class TrackerError(IvcError, ValueError):
+    """A tracker model file is malformed, or a tracker calibration cannot run on the data given."""
