@@ -46,17 +46,18 @@ def cli(ctx: click.Context, debug: bool) -> None:
     `ivc evaluate` compares corrected with true poses; `ivc report` draws the
     figures and one HTML page; `ivc export` writes the
     table for firmware, 3D Slicer, ParaView and Vrui; `ivc predict` predicts
-    orientations ahead to hide display lag. `ivc demo` runs it all on a
+    orientations ahead to hide display lag. `ivc tracker` calibrates a
+    research tracker's own coil model. `ivc demo` runs it all on a
     simulated room.
     """
     ctx.meta["ivc.debug"] = debug
 
 
 def _register() -> None:
-    from ivc.cli import collect, correct, demo, evaluate, export, fit, fixtures, info, predict, report
+    from ivc.cli import collect, correct, demo, evaluate, export, fit, fixtures, info, predict, report, tracker
 
     for command in (collect.collect, correct.correct, demo.demo, evaluate.evaluate, export.export, fit.fit,
-                    fixtures.fixtures, info.info, predict.predict, report.report):
+                    fixtures.fixtures, info.info, predict.predict, report.report, tracker.tracker):
         cli.add_command(command)
 
 

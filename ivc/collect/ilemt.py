@@ -27,7 +27,7 @@ import numpy as np
 from ivc.errors import CsvError, InputError
 
 __all__ = ["FIXTURES", "SOURCE_SIGN_FIXES", "IlemtRecording", "compensate_stage", "fixture_rotation",
-           "read_ilemt", "real_coupling", "stage_transforms"]
+           "read_ilemt", "real_coupling", "stack", "stage_transforms"]
 
 #: fixture code -> the mover axes that lie along fixture +Y ("out") and fixture +Z ("up")
 FIXTURES = {
@@ -247,3 +247,14 @@ def read_ilemt(path: str | Path, *, carrier: str = "high", sign_fixes=SOURCE_SIG
         signal=np.ascontiguousarray(np.swapaxes(real_coupling(C), 1, 2)), source_signs=signs,
         J_so=J_so, J_st=stage_transforms(compensated, m["sensor"]), home=np.all(stage == 0.0, axis=1),
     )
+
+
+def stack(recordings: list[IlemtRecording]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """All points of several recordings: ``S`` (N, 3, 3), ``J_so`` (N, 4, 4), ``J_st`` (N, 4, 4), file index (N,)."""
+    if not recordings:
+        raise InputError("no ILEMT recordings given")
+    S = np.concatenate([r.signal for r in recordings])
+    J_so = np.concatenate([np.broadcast_to(r.J_so, (r.n_points, 4, 4)) for r in recordings])
+    J_st = np.concatenate([r.J_st for r in recordings])
+    index = np.concatenate([np.full(r.n_points, k) for k, r in enumerate(recordings)])
+    return S, J_so, J_st, index

@@ -13,6 +13,7 @@ from functools import cached_property
 import numpy as np
 
 from ivc import rotations
+from ivc.dipole.tracker import Tracker
 from ivc.errors import InputError
 from ivc.fixtures import fixture_frame
 from ivc.session import STEP_DESCRIPTIONS, Step, Truth
@@ -34,11 +35,12 @@ _STREAMS = {
 
 
 class Simulator:
-    """A simulated tracker, fixtures and room for one scene and seed."""
+    """A simulated tracker, fixtures and room for one scene and seed; ``tracker``: an imperfect device."""
 
-    def __init__(self, scene: Scene, seed: int = 0):
+    def __init__(self, scene: Scene, seed: int = 0, tracker: Tracker | None = None):
         self.scene = scene
         self.seed = int(seed)
+        self.tracker = tracker  # the device's own coil model (None: ideal)
         self.cube = rig.make_cube(scene.cube, self._rng("cube"))
         self.wand = rig.make_wand(scene.wand, self._rng("wand"))
 
@@ -102,6 +104,7 @@ class Simulator:
             rng=rng,
             description=f"simulated: {STEP_DESCRIPTIONS[name]} (scene {scene.name!r}, seed {self.seed})",
             sensor_prefix="cube" if name.startswith("cube") else ("wand" if name.startswith("wand") else "check"),
+            tracker=self.tracker,
         )
         step.attrs.update(attrs)
         return step, Truth(positions, quaternions)

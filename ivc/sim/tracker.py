@@ -4,6 +4,12 @@ For each sample it forms ``S = Tᵀ (f_D(r) + G(r))`` (zero G in free space), ap
 the scene's noise model (gain drift, white noise, dropouts, saturation close to the
 source) and, like a commercial unit, also reports the pose of its own closed-form
 dipole solver (MATH.md §3), which is distorted wherever G is not zero.
+
+With an imperfect ``tracker`` (:class:`ivc.dipole.tracker.Tracker`: coil gains,
+cross-talk, coil offsets) the free-space part is the tracker's own model and the
+secondary field is driven by its source moments, ``Bᵀ Tᵀ G A``; the reported pose is
+then the closed form on the raw signal (a solver that assumes an ideal device). The
+ideal tracker (the default) takes exactly the code path it always took.
 """
 
 from __future__ import annotations
@@ -11,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ivc import dipole, rotations
+from ivc.dipole.tracker import Tracker
 from ivc.session import Step
 from ivc.sim.field import SecondaryField
 from ivc.sim.scene import NoiseSpec
@@ -32,12 +39,18 @@ def measure(
     rng: np.random.Generator,
     description: str = "",
     sensor_prefix: str = "sensor",
+    tracker: Tracker | None = None,
 ) -> Step:
     """Simulate a tracker recording of true sensor poses ``positions`` (F, N, 3), ``quaternions`` (F, N, 4)."""
     frames, sensors = positions.shape[:2]
     T = rotations.to_matrix(quaternions)
     G = secondary(positions) if secondary is not None else None
-    S = dipole.signal(positions, T, G)
+    if tracker is None or tracker.is_ideal:
+        S = dipole.signal(positions, T, G)
+    else:
+        S = tracker.signal(positions, T)
+        if G is not None:
+            S += tracker.sensor_moments.T @ np.swapaxes(T, -1, -2) @ G @ tracker.source_moments
     if noise.drift_relative_per_sqrt_s > 0:
         steps = noise.drift_relative_per_sqrt_s / np.sqrt(rate_hz) * rng.standard_normal((frames, 3))
         S *= 1.0 + np.cumsum(steps, axis=0)[:, None, None, :]  # slow gain drift of each source coil

@@ -1,0 +1,129 @@
+"""``ivc tracker calibrate`` and ``ivc tracker check``: the tracker's own coil model (docs/tracker.md)."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import click
+from tqdm import tqdm
+
+from ivc.collect.ilemt import read_ilemt, stack
+from ivc.dipole.calibrate import calibrate as fit_tracker
+from ivc.dipole.tracker import load_tracker, save_tracker
+from ivc.dipole.tracker_check import check_tracker, fixtures_of
+
+
+def _load(paths, carrier: str, compensate: bool):
+    recordings = [read_ilemt(p, carrier=carrier, compensate=compensate) for p in paths]
+    S, J_so, J_st, _ = stack(recordings)
+    return recordings, S, J_so, J_st
+
+
+def render(title: str, report: dict) -> str:
+    lines = [f"{title}: {report['points']} points; residue ‖C − C_pred‖_F / ‖C‖₂ "
+             f"rms {report['residue_rms_percent']:.3f} %, max {report['residue_max_percent']:.3f} %"]
+    for row in report["residue_by_range"]:
+        lo, hi = row["range_mm"]
+        lines.append(f"  range {lo:6.1f}-{hi:6.1f} mm  {row['points']:5d} points  residue rms "
+                     f"{row['residue_rms_percent']:.3f} %")
+    for key, label in (("pose", "pose error"), ("pose_uncorrected", "pose error without output correction")):
+        if key in report:
+            p = report[key]
+            lines.append(f"  {label}: position rms {p['position_rms_mm']:.3f} mm (max {p['position_max_mm']:.3f}), "
+                         f"orientation rms {p['angle_rms_deg']:.3f} deg (max {p['angle_max_deg']:.3f}); "
+                         f"converged {100 * p['converged_fraction']:.1f} %")
+    return "\n".join(lines)
+
+
+@click.group()
+def tracker() -> None:
+    """Calibrate and check the tracker's own source and sensor model (gains, cross-talk, coil offsets).
+
+    A research or custom tracker's signals are off the ideal dipole model by percent;
+    the tracker file written here says how (docs/tracker.md).
+    """
+
+
+_carrier = click.option("--carrier", type=click.Choice(["high", "low"]), default="high", show_default=True,
+                        help="Which ILEMT carrier's couplings to use.")
+_compensation = click.option("--no-stage-compensation", is_flag=True,
+                             help="Use the commanded stage poses as they are (without the stage's measured errors).")
+
+
+@tracker.command()
+@click.argument("recordings", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Tracker file to write (JSON).")
+@click.option("--one-centre", is_flag=True, help="All coils at one centre each (no per-coil position offsets).")
+@click.option("--bias", is_flag=True, help="Also fit a constant added signal (electronic pick-up).")
+@click.option("--no-output-correction", is_flag=True,
+              help="Do not fit the affine output correction of solved poses.")
+@click.option("--test", "tests", multiple=True, type=click.Path(exists=True, dir_okay=False),
+              help="A held-out recording to score with the fitted model and fixtures (repeatable).")
+@_carrier
+@_compensation
+@click.option("--force", is_flag=True, help="Replace OUTPUT if it exists.")
+@click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+def calibrate(recordings, output, one_centre, bias, no_output_correction, tests, carrier, no_stage_compensation,
+              force, as_json):
+    """Fit the tracker model to RECORDINGS (ILEMT .dat files at known stage poses) and write it to OUTPUT.
+
+    The unknown source, stage and sensor fixture transforms are fitted with the magnetics
+    and stored in the tracker file, so that `ivc tracker check` can score other recordings
+    made on the same rig.
+    """
+    output_path = Path(output)
+    if any(output_path.resolve() == Path(p).resolve() for p in (*recordings, *tests)):
+        raise click.UsageError("OUTPUT must not be one of the recordings: raw recordings are never overwritten")
+    if output_path.exists() and not force:
+        raise FileExistsError(f"{output_path} exists; pass --force to replace it")
+    compensate = not no_stage_compensation
+    _, S, J_so, J_st = _load(recordings, carrier, compensate)
+    start = time.perf_counter()
+    with tqdm(desc="calibrating", unit="iteration", leave=False, disable=as_json) as bar:
+        result = fit_tracker(S, J_so, J_st, offsets=not one_centre, bias=bias,
+                             output_correction=not no_output_correction,
+                             progress=lambda iteration, cost: bar.update(1))
+    seconds = time.perf_counter() - start
+    report = {"calibration": check_tracker(result.tracker, result.fixtures, S, J_so, J_st),
+              "seconds": seconds, "iterations": result.iterations, "converged": result.converged}
+    if tests:
+        _, S_t, J_so_t, J_st_t = _load(tests, carrier, compensate)
+        report["test"] = check_tracker(result.tracker, result.fixtures, S_t, J_so_t, J_st_t)
+    result.tracker.calibration = {
+        "model": "one centre" if one_centre else "per-coil offsets",
+        "bias": bias,
+        "output_correction": not no_output_correction,
+        "carrier": carrier,
+        "stage_compensation": compensate,
+        "recordings": [Path(p).name for p in recordings],
+        "test_recordings": [Path(p).name for p in tests],
+        "fixtures": result.fixtures.to_dict(),
+        "parameter_sigma": result.parameter_sigma,
+        "report": report,
+    }
+    save_tracker(result.tracker, output_path)
+    if as_json:
+        click.echo(json.dumps(report, indent=2))
+        return
+    click.echo(f"Fitted {'one-centre' if one_centre else 'per-coil-offset'} tracker model in {seconds:.1f} s "
+               f"({result.iterations} iterations{'' if result.converged else ', NOT converged'}); wrote {output_path}")
+    click.echo(render("Calibration points", report["calibration"]))
+    if tests:
+        click.echo(render("Held-out points", report["test"]))
+
+
+@tracker.command()
+@click.argument("tracker_file", type=click.Path(exists=True, dir_okay=False))
+@click.argument("recordings", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
+@_carrier
+@_compensation
+@click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+def check(tracker_file, recordings, carrier, no_stage_compensation, as_json):
+    """Score TRACKER_FILE on RECORDINGS made on the rig it was calibrated on: residue and pose error."""
+    model = load_tracker(tracker_file)
+    fixtures = fixtures_of(model)
+    _, S, J_so, J_st = _load(recordings, carrier, not no_stage_compensation)
+    report = check_tracker(model, fixtures, S, J_so, J_st)
+    click.echo(json.dumps(report, indent=2) if as_json else render("Points", report))
