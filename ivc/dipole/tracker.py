@@ -80,7 +80,7 @@ class Tracker:
                 raise TrackerError(f"{name} must be a finite 3x4 matrix, got shape {value.shape}")
             setattr(self, name, value)
         for name in ("source_moments", "sensor_moments"):
-            if abs(np.linalg.det(getattr(self, name))) < 1e-12 * np.abs(getattr(self, name)).max() ** 3:
+            if not np.linalg.cond(getattr(self, name)) < 1e10:
                 raise TrackerError(f"{name} is singular: three coils must span three directions")
 
     @classmethod

@@ -1,0 +1,175 @@
+"""The ILEMT reader and ``ivc tracker`` on ILEMT's recordings (skipped without ../shared/data) and on a
+synthetic recording written in the same format."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ivc.cli import cli
+from ivc.collect.ilemt import compensate_stage, fixture_rotation, read_ilemt, stack
+from ivc.dipole.calibrate import Fixtures, _transform, calibrate
+from ivc.dipole.tracker import Tracker, load_tracker
+from ivc.errors import CsvError, InputError
+from ivc.sim.stage import stage_recording
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "ilemt" / "cal_9_15_premo_cmu"
+needs_data = pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data/ilemt is not here")
+
+
+def _file(name):
+    return DATA / name
+
+
+@needs_data
+def test_frame_counts_and_home_rows():
+    md = read_ilemt(_file("soYoutZup_seYoutZup_md.dat"))
+    ld = read_ilemt(_file("soYoutZup_seYoutZup_ld.dat"))
+    # md: 3x3x3 grid x 5 turns (plus a few extra points) = 142 rows; ld: 5x5x5 x 5 = 625 + 7 = 632
+    assert (md.n_points, ld.n_points) == (142, 632)
+    assert sorted(np.unique(md.stage[:, 5])) == [-90.0, -45.0, 0.0, 45.0, 90.0]
+    assert np.all(md.stage[:, 3:5] == 0) and np.all(ld.stage[:, 3:5] == 0)  # only Rz moves
+    for rec in (md, ld):
+        assert rec.home[0] and rec.home[-1]  # first and last rows are home: the drift check
+        assert 1e-5 < rec.drift < 1e-3  # README: drift 1e-4 to 1e-3 relative
+        np.testing.assert_array_equal(rec.J_st[0], np.eye(4))  # home, home sensor fixture
+        np.testing.assert_array_equal(rec.stage_compensated[rec.home], rec.stage[rec.home])
+    assert np.abs(ld.stage_compensated - ld.stage).max() < 0.5  # stage errors are tenths of a mm
+
+
+@needs_data
+def test_complex_to_real_convention():
+    path = _file("soYoutZup_seYoutZup_md.dat")
+    first = path.read_text().splitlines()[0].split("\t")
+    raw = [complex(v.replace("i", "j")) for v in first[6:15]]
+    rec = read_ilemt(path)
+    # value k of the row is C[k % 3, k // 3] = C(source, sensor); the signal is Cᵀ (row = sensor coil)
+    for k, value in enumerate(raw):
+        assert rec.coupling[0, k % 3, k // 3] == value
+        assert rec.signal[0, k // 3, k % 3] == pytest.approx(np.sign(value.real) * abs(value), rel=1e-15)
+    # README: median |Im C| / |C| about 5e-3 on the high carrier and 1e-3 on the low one
+    high = np.median(np.abs(rec.coupling.imag) / np.abs(rec.coupling))
+    low_rec = read_ilemt(path, carrier="low")
+    low = np.median(np.abs(low_rec.coupling.imag) / np.abs(low_rec.coupling))
+    assert 2e-3 < high < 1e-2 and 2e-4 < low < 4e-3
+    # README: the low band reads about 30x weaker
+    ratio = np.median(np.linalg.norm(rec.signal, axis=(1, 2)) / np.linalg.norm(low_rec.signal, axis=(1, 2)))
+    assert 25 < ratio < 40
+
+
+@needs_data
+def test_source_sign_fixes():
+    path = _file("soZoutYup_seYoutZup_md.dat")
+    raw = complex(path.read_text().split("\t")[6].replace("i", "j"))
+    fixed = read_ilemt(path)
+    np.testing.assert_array_equal(fixed.source_signs, [-1, -1, 1])
+    assert fixed.coupling[0, 0, 0] == -raw
+    plain = read_ilemt(path, sign_fixes=())
+    np.testing.assert_array_equal(plain.coupling[:, :2], -fixed.coupling[:, :2])
+    np.testing.assert_array_equal(plain.coupling[:, 2], fixed.coupling[:, 2])
+    assert np.all(read_ilemt(_file("soZoutYup_seYoutZup_source.dat")).source_signs == 1)
+
+
+@needs_data
+def test_calibration_on_md_matches_the_authors_residue():
+    recs = [read_ilemt(_file(f"soYoutZup_se{se}_md.dat")) for se in ("YoutZup", "ZinYup", "ZinXdown")]
+    S, J_so, J_st, index = stack(recs)
+    assert len(S) == 426 and np.array_equal(np.bincount(index), [142, 142, 142])
+    one = calibrate(S, J_so, J_st, offsets=False, output_correction=False)
+    offsets = calibrate(S, J_so, J_st, offsets=True, output_correction=False)
+    # README: about 0.7 % with one centre, about 0.5 % with per-coil offsets
+    assert 0.6e-2 < np.sqrt(np.mean(one.residue**2)) < 0.8e-2
+    assert 0.4e-2 < np.sqrt(np.mean(offsets.residue**2)) < 0.55e-2
+
+
+def test_fixture_codes():
+    for code in ("YoutZup", "ZinYup", "ZinXdown", "XoutZup", "ZoutYup", "XinYup"):
+        R = fixture_rotation(code)
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-15)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+    # test_plans.txt's example: ZoutYup takes fixture x, y, z to mover -x, +z, +y
+    np.testing.assert_array_equal(fixture_rotation("ZoutYup"), [[-1, 0, 0], [0, 0, 1], [0, 1, 0]])
+    np.testing.assert_array_equal(fixture_rotation("YoutZup"), np.eye(3))
+    with pytest.raises(InputError, match="unknown ILEMT fixture"):
+        fixture_rotation("QoutZup")
+
+
+def test_stage_compensation_is_zero_at_home_and_turns_with_rz():
+    stage = np.array([[0, 0, 0, 0, 0, 0], [50, 0, 0, 0, 0, 0], [50, 0, 0, 0, 0, 90.0]])
+    out = compensate_stage(stage)
+    np.testing.assert_array_equal(out[0], stage[0])
+    dx = out[1, 0] - 50
+    assert dx == pytest.approx(-0.040)  # the X table: 0.040 mm error at 0, none at +50
+    assert out[2, 0] - 50 == pytest.approx(0.0, abs=1e-15) and out[2, 1] == pytest.approx(dx)
+
+
+def _write_dat(path, stage, S):
+    """An ILEMT-format file: stage poses, then C = Sᵀ column-major, small quadrature parts, low = high / 30."""
+    C = np.swapaxes(S, 1, 2)
+    with open(path, "w") as out:
+        for row, c in zip(stage, C, strict=True):
+            values = c.T.reshape(-1)  # column-major: value k is C[k % 3, k // 3]
+            high = [f"{v:+.9f}{1e-3 * v:+.9f}i" for v in values]
+            low = [f"{v / 30:+.9f}{1e-4 * v:+.9f}i" for v in values]
+            out.write("\t".join([f"{x:.5f}" for x in row] + high + low) + "\n")
+
+
+def _synthetic_recordings(tmp_path, rng):
+    truth = Tracker(np.diag([-0.9, 0.5, -0.6]) + 0.02 * rng.standard_normal((3, 3)),
+                    np.eye(3) + 0.02 * rng.standard_normal((3, 3)), 1e-3 * rng.standard_normal((3, 3)),
+                    5e-4 * rng.standard_normal((3, 3)))
+    fixtures = Fixtures(stage=_transform(t=np.array([0.002, 0.24, 0.003])))
+    grid = [-40.0, 0.0, 40.0]
+    stage = np.array([(0, 0, 0, 0, 0, 0)] + [(x, y, z, 0, 0, rz) for rz in (-90, 0, 90) for z in grid
+                                              for y in grid for x in grid] + [(0, 0, 0, 0, 0, 0)], dtype=float)
+    paths = []
+    for code in ("YoutZup", "ZinYup", "ZinXdown"):
+        path = tmp_path / f"soYoutZup_se{code}_md.dat"
+        from ivc.collect.ilemt import stage_transforms
+
+        J_st = stage_transforms(compensate_stage(stage), code)
+        S = stage_recording(truth, fixtures, np.eye(4), J_st, noise_relative=1e-5, rng=rng)
+        _write_dat(path, stage, S)
+        paths.append(path)
+    return paths
+
+
+def test_reader_and_cli_on_a_synthetic_recording(tmp_path, rng):
+    paths = _synthetic_recordings(tmp_path, rng)
+    rec = read_ilemt(paths[0])
+    assert rec.n_points == 83 and rec.home[0] and rec.home[-1] and rec.home.sum() == 3
+    out = tmp_path / "tracker.json"
+    runner = CliRunner()
+    result = runner.invoke(cli, ["tracker", "calibrate", *map(str, paths), "-o", str(out), "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output)
+    assert report["calibration"]["residue_rms_percent"] < 0.01  # the noise: 3e-5
+    assert report["calibration"]["pose"]["position_rms_mm"] < 0.05
+    tracker = load_tracker(out)
+    assert tracker.calibration["model"] == "per-coil offsets" and "fixtures" in tracker.calibration
+    result = runner.invoke(cli, ["tracker", "check", str(out), str(paths[1])])
+    assert result.exit_code == 0, result.output
+    assert "pose error" in result.output and "range" in result.output
+    # refuses to overwrite without --force, and never a recording
+    result = runner.invoke(cli, ["tracker", "calibrate", str(paths[0]), "-o", str(out)])
+    assert result.exit_code != 0 and "exists" in result.output
+    result = runner.invoke(cli, ["tracker", "calibrate", str(paths[0]), "-o", str(paths[0]), "--force"])
+    assert result.exit_code != 0 and "never overwritten" in result.output
+
+
+def test_reader_errors(tmp_path):
+    bad = tmp_path / "soYoutZup_seYoutZup_md.dat"
+    bad.write_text("0\t0\t0\t0\t0\t0\t+1+2i\n")
+    with pytest.raises(CsvError, match="line 1: 7 fields"):
+        read_ilemt(bad)
+    bad.write_text("\t".join(["0"] * 6 + ["+1+2j"] * 18) + "\n")
+    with pytest.raises(CsvError, match="not a complex value"):
+        read_ilemt(bad)
+    other = tmp_path / "recording.dat"
+    other.write_text("")
+    with pytest.raises(InputError, match="so<fixture>_se<fixture>"):
+        read_ilemt(other)
+    result = CliRunner().invoke(cli, ["tracker", "check", str(bad), str(bad)])
+    assert result.exit_code == 1 and "Traceback" not in result.output
