@@ -10,6 +10,7 @@ from tqdm import tqdm
 
 from ivc import rotations
 from ivc import session as session_io
+from ivc.cli.tracker import tracker_option
 from ivc.collect import check_step, replay
 from ivc.session import STEPS, Session, SessionError, Step, Truth
 from ivc.sim import Simulator, load_scene
@@ -43,9 +44,9 @@ def _parse_source(source: str) -> tuple[str, str | None]:
 class _SimulatorProgress:
     """Builds the simulator once and shows what the slow parts are doing."""
 
-    def __init__(self, scene_name: str | None, seed: int):
+    def __init__(self, scene_name: str | None, seed: int, tracker=None):
         self.scene = load_scene(scene_name)
-        self.simulator = Simulator(self.scene, seed)
+        self.simulator = Simulator(self.scene, seed, tracker)
         self.prepared = False
 
     def prepare(self, distorted: bool) -> None:
@@ -75,7 +76,17 @@ def _summary(name: str, step: Step, truth: Truth | None) -> str:
     return text
 
 
-def _record(name, sim, kind, argument, frames, rate, declared_position, declared_quaternion):
+def _record(name, sim, kind, argument, frames, rate, declared_position, declared_quaternion, device=None,
+            hemisphere="+x"):
+    step, truth = _record_raw(name, sim, kind, argument, frames, rate, declared_position, declared_quaternion)
+    if device is not None:
+        from ivc.collect.tracker_units import apply_tracker
+
+        step = apply_tracker(step, device[0], hemisphere, device[1], name)
+    return step, truth
+
+
+def _record_raw(name, sim, kind, argument, frames, rate, declared_position, declared_quaternion):
     if kind == "sim":
         sim.prepare(name in ("cube_survey", "wand_sweep", "check"))
         step, truth = sim.simulator.step(name, frames)
@@ -112,16 +123,24 @@ def _record(name, sim, kind, argument, frames, rate, declared_position, declared
 @click.option("--declared-position", callback=_floats(3), help="cube_survey: declared cube position x,y,z in m.")
 @click.option("--declared-quaternion", callback=_floats(4), help="cube_survey: declared cube orientation w,x,y,z.")
 @click.option("--force", is_flag=True, help="Replace a step that is already in the session file.")
+@tracker_option
 def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemisphere, rate, declared_position,
-            declared_quaternion, force):
+            declared_quaternion, force, tracker_file):
     """Record protocol STEP (or the whole `protocol`) into the session file OUTPUT.
 
     The protocol (seed 001 ch. 4.4.3): cube_calibration (free space), cube_survey (cube at
     its declared pose in the distorted room), wand_calibration (free space), wand_sweep
     (wand sensor 0 inside the cube, far end sweeping), check (independent poses).
+    With --tracker the signals are stored in ideal-dipole units (a simulated device
+    records with that coil model first).
     """
     kind, argument = _parse_source(source)
-    sim = _SimulatorProgress(argument, seed) if kind == "sim" else None
+    device = None
+    if tracker_file is not None:
+        from ivc.collect.tracker_units import load_labelled_tracker
+
+        device = load_labelled_tracker(tracker_file)
+    sim = _SimulatorProgress(argument, seed, device[0] if device else None) if kind == "sim" else None
     hemisphere = hemisphere or (sim.scene.hemisphere if sim else "+x")
     output = Path(output)
     if step == "protocol":
@@ -133,7 +152,7 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
         collected = Session(hemisphere=hemisphere, attrs={"scene": sim.scene.name, "seed": seed})
         for name in tqdm(STEPS, desc="protocol", unit="step"):
             new, truth = _record(name, sim, kind, argument, counts.get(name, frames), rate, declared_position,
-                                 declared_quaternion)
+                                 declared_quaternion, device, hemisphere)
             for warning in check_step(name, new, collected, hemisphere):
                 click.echo(f"warning: {warning}", err=True)
             collected.steps[name] = new
@@ -147,7 +166,8 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
     existing = session_io.read(output) if output.exists() else None
     if existing is not None and step in existing.steps and not force:
         raise FileExistsError(f"{output}: step {step!r} is already recorded; pass --force to replace it")
-    new, truth = _record(step, sim, kind, argument, frames, rate, declared_position, declared_quaternion)
+    new, truth = _record(step, sim, kind, argument, frames, rate, declared_position, declared_quaternion, device,
+                         hemisphere)
     for warning in check_step(step, new, existing or Session(hemisphere=hemisphere), hemisphere):
         click.echo(f"warning: {warning}", err=True)
     try:

@@ -10,6 +10,7 @@ from ivc import lut
 from ivc import session as session_io
 from ivc.cli.paths import input_and_output
 from ivc.cli.predict import check_tuning_rate, parse_horizon, predicted_quaternions, prediction_attrs, requested_tuning
+from ivc.cli.tracker import tracker_option, with_tracker
 from ivc.collect.replay import read_csv, write_csv
 from ivc.correct import Corrector, describe
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, MAX_RESIDUAL, NOT_CONVERGED, OUTSIDE, Correction
@@ -107,8 +108,9 @@ def _advice(out: Correction, max_residual: float) -> str | None:
 @click.option("--rate-hz", type=float, default=240.0, show_default=True,
               help="With --live --predict: the stream's sample rate.")
 @click.option("--duration", type=float, help="With --live: stop after this many seconds (default: until Ctrl-C).")
+@tracker_option
 def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, force, predictor, horizon,
-            tune, tune_from, live_url, publish, length_unit, sensors, rate_hz, duration):
+            tune, tune_from, live_url, publish, length_unit, sensors, rate_hz, duration, tracker_file):
     """Correct the poses in INPUT_FILE (session .h5 or recording .csv) with LUT_FILE.
 
     Every output sample carries flags: 0 = trusted; 1 outside the mapped volume, 2 not
@@ -123,6 +125,8 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     if (tune or tune_from) and not predictor:
         raise click.UsageError("--tune and --tune-from tune a prediction filter: give --predict NAME too")
     if live_url:
+        if tracker_file:
+            raise click.UsageError("--tracker applies to recorded signals; a live stream must be in ideal units")
         if input_file or output:
             raise click.UsageError("--live reads from the network: give no INPUT_FILE or --output")
         if tune:
@@ -144,6 +148,9 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         if not session_io.is_recording_csv(output_path):
             raise click.UsageError("a CSV input is corrected into a CSV output (-o FILE.csv)")
         step = read_csv(input_path)
+        if tracker_file is not None:
+            step = with_tracker(Session(hemisphere or table.hemisphere, {"recording": step}), tracker_file
+                                ).steps["recording"]
         corrector = Corrector(table, hemisphere or table.hemisphere, interpolation, max_residual)
         out = corrector.batch(step.signal_matrices(), step.valid_mask)
         fixed = corrected_step(step, out, lut_file)
@@ -161,6 +168,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     unknown = [n for n in names if n not in data.steps]
     if unknown:
         raise click.UsageError(f"{input_path} has no step {', '.join(unknown)} (it has {', '.join(data.steps)})")
+    data = with_tracker(data, tracker_file, names)
     corrector = Corrector(table, data.hemisphere, interpolation, max_residual)
     results = {}
     for name in names:

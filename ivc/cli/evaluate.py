@@ -8,6 +8,7 @@ import click
 
 from ivc import lut
 from ivc import session as session_io
+from ivc.cli.tracker import tracker_option, with_tracker
 from ivc.correct import Corrector
 from ivc.correct.evaluate import evaluate as evaluate_table
 from ivc.correct.solver import MAX_RESIDUAL
@@ -49,13 +50,16 @@ def render_table(report: dict) -> str:
 @click.option("--max-residual", type=float, default=MAX_RESIDUAL, show_default=True,
               help="Flag corrections whose rms(M − T S)/rms(S) exceeds this.")
 @click.option("--json", "as_json", is_flag=True, help="Print the table as JSON.")
-def evaluate(lut_file, check_file, step, interpolation, max_residual, as_json):
+@tracker_option
+def evaluate(lut_file, check_file, step, interpolation, max_residual, as_json, tracker_file):
     """Correct the check poses of CHECK_FILE with LUT_FILE and compare with their truth (seed Table 24)."""
     if session_io.is_recording_csv(check_file):
         raise click.UsageError(f"{check_file}: a recording CSV holds no true poses; evaluate a session .h5 with "
                                "/truth/check (a simulation or a precision rig), or correct the CSV with `ivc correct`")
     table = lut.read(lut_file)
     check = session_io.read(check_file)
+    if tracker_file is not None and step in check.steps:
+        check = with_tracker(check, tracker_file, [step])
     corrector = Corrector(table, check.hemisphere, interpolation, max_residual)
     report = evaluate_table(corrector, check, step)
     click.echo(json.dumps(report, indent=2) if as_json else render_table(report))

@@ -12,6 +12,7 @@ import numpy as np
 from ivc import lut
 from ivc import session as session_io
 from ivc.cli.progress import StageBars
+from ivc.cli.tracker import tracker_option, with_tracker
 from ivc.lut.build import FitOptions
 
 
@@ -83,15 +84,16 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
               help="Gate: largest estimated sample error (eq. 101), mm.")
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists.")
 @click.option("--json", "as_json", is_flag=True, help="Print the fit report as JSON.")
+@tracker_option
 def fit(session_file, output, method, grid_spec, degree, refine, max_refinements, max_frames, min_support,
-        max_residual, max_error_mm, force, as_json):
+        max_residual, max_error_mm, force, as_json, tracker_file):
     """Fit the secondary-field look-up table of SESSION_FILE and write it to OUTPUT."""
     if not force and Path(output).exists():
         raise FileExistsError(f"{output} exists; pass --force to replace it")
     options = FitOptions(method=method, degree=degree, refine=refine, max_refinements=max_refinements,
                          max_frames=max_frames, min_support=min_support, max_residual=max_residual,
                          max_error=max_error_mm / 1000, **parse_grid(grid_spec))
-    data = session_io.read(session_file)
+    data = with_tracker(session_io.read(session_file), tracker_file)
     start = time.perf_counter()
     with StageBars("sample", disable=as_json) as bars:
         table = lut.fit_lut(data, options, source=session_file, progress=bars)

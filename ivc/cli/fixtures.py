@@ -8,6 +8,7 @@ import click
 from tqdm import tqdm
 
 from ivc import session as session_io
+from ivc.cli.tracker import tracker_option, with_tracker
 from ivc.fixtures import VERTEX_CHOICES
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import Gates
@@ -81,9 +82,11 @@ def render(report: dict) -> str:
               help="Gate: largest estimated sample error (eq. 101), mm.")
 @click.option("--compare-cubes", type=int, default=0, help="Also compare the cube vertex choices on this many frames.")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
-def fixtures(session_file, vertices, interpolant, method, max_residual, max_error_mm, compare_cubes, as_json):
+@tracker_option
+def fixtures(session_file, vertices, interpolant, method, max_residual, max_error_mm, compare_cubes, as_json,
+             tracker_file):
     """Calibrate the cube and wand of SESSION_FILE, solve the sweep, and report what a map would be built from."""
-    data = session_io.read(session_file)
+    data = with_tracker(session_io.read(session_file), tracker_file)
     frames = data.steps["wand_sweep"].n_frames if "wand_sweep" in data.steps else 0
     gates = Gates(max_residual=max_residual, max_error=max_error_mm / 1000)
     with tqdm(total=frames, desc="solving the sweep", unit="frame", leave=False, disable=as_json) as bar:

@@ -127,3 +127,20 @@ def check(tracker_file, recordings, carrier, no_stage_compensation, as_json):
     _, S, J_so, J_st = _load(recordings, carrier, not no_stage_compensation)
     report = check_tracker(model, fixtures, S, J_so, J_st)
     click.echo(json.dumps(report, indent=2) if as_json else render("Points", report))
+
+
+def tracker_option(command):
+    """``--tracker FILE``: the device's coil model, applied to the signals a command reads (docs/tracker.md)."""
+    return click.option("--tracker", "tracker_file", type=click.Path(exists=True, dir_okay=False),
+                        help="The tracker's coil model (from `ivc tracker calibrate`): signals are brought to "
+                             "ideal-dipole units before anything else.")(command)
+
+
+def with_tracker(data, tracker_file, steps=None):
+    """``data`` (a Session) with ``tracker_file``'s model applied to its steps (all, or ``steps``); None: as is."""
+    if tracker_file is None:
+        return data
+    from ivc.collect.tracker_units import apply_tracker_to_session, load_labelled_tracker
+
+    model, label = load_labelled_tracker(tracker_file)
+    return apply_tracker_to_session(data, model, label, steps)

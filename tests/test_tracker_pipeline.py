@@ -1,0 +1,96 @@
+"""The pipeline with a miscalibrated device, and with the tracker model that fixes it (--tracker)."""
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ivc import session as session_io
+from ivc.cli import cli
+from ivc.collect.tracker_units import TRACKER_ATTR, apply_tracker, apply_tracker_to_session, tracker_label
+from ivc.dipole.tracker import Tracker, save_tracker
+from ivc.errors import TrackerError
+from ivc.sim import Simulator
+from ivc.sim.scene import scene_from_dict
+from tests.test_tracker import imperfect_tracker
+
+
+def quiet_plate_scene():
+    scene = scene_from_dict({"conductor": [{"shape": "plate", "size": [1.0, 1.0], "position": [0.5, 0, -0.35],
+                                            "material": "aluminium", "resolution_mm": 120}],
+                             "noise": {"signal_relative": 0.0, "dropout_rate": 0.0}})
+    scene.tabulate = False
+    return scene
+
+
+@pytest.mark.parametrize("offsets", [False, True])
+def test_tracker_model_brings_a_miscalibrated_device_back_to_the_ideal_one(offsets):
+    scene = quiet_plate_scene()
+    device = imperfect_tracker(np.random.default_rng(4), offsets=offsets)
+    ideal, truth = Simulator(scene, seed=2).step("check", 300)
+    raw, _ = Simulator(scene, seed=2, tracker=device).step("check", 300)
+    def rel(a, b):
+        return np.linalg.norm(a - b, axis=(-2, -1)) / np.linalg.norm(b, axis=(-2, -1))
+
+    # the device's raw signals are off the ideal device's by its coil errors: percent
+    assert np.median(rel(raw.signal, ideal.signal)) > 1e-2
+    ideal_error = np.linalg.norm(ideal.position - truth.position, axis=-1)
+    fixed = apply_tracker(raw, device, scene.hemisphere, "device")
+    if not offsets:  # concentric coils: exact, whatever the room adds
+        assert rel(fixed.signal, ideal.signal).max() < 1e-12
+        fixed_error = np.linalg.norm(fixed.position - truth.position, axis=-1)
+        assert np.abs(fixed_error - ideal_error).max() < 1e-9
+    else:  # offsets: their share is taken at the pose the signal gives, off by this plate's 8 cm
+        assert np.median(rel(fixed.signal, ideal.signal)) < 0.1 * np.median(rel(raw.signal, ideal.signal))
+    # in free space the conversion is exact for both
+    free_ideal, _ = Simulator(scene, seed=2).step("wand_calibration", 20)
+    free_raw, _ = Simulator(scene, seed=2, tracker=device).step("wand_calibration", 20)
+    assert rel(apply_tracker(free_raw, device, "+x", "device").signal, free_ideal.signal).max() < 1e-10
+    assert fixed.attrs[TRACKER_ATTR] == "device"
+    assert apply_tracker(fixed, device, scene.hemisphere, "device") is fixed  # never twice
+    with pytest.raises(TrackerError, match="already converted"):
+        apply_tracker(fixed, device, scene.hemisphere, "another")
+
+
+def test_tracker_needs_signals(small_session):
+    _, data = small_session
+    step = data.steps["check"]
+    from dataclasses import replace
+
+    poses_only = replace(step, signal=None)
+    with pytest.raises(TrackerError, match="reported poses only"):
+        apply_tracker(poses_only, Tracker.ideal(), "+x", "t")
+    converted = apply_tracker_to_session(data, Tracker.ideal(), "ideal", ["check"])
+    assert converted.steps["check"].attrs[TRACKER_ATTR] == "ideal"
+    assert TRACKER_ATTR not in data.steps["check"].attrs  # the input session is untouched
+    assert np.array_equal(converted.steps["check"].signal, step.signal)
+
+
+def test_cli_tracker_option_through_collect_and_fixtures(tmp_path):
+    device = imperfect_tracker(np.random.default_rng(5), offsets=False)
+    tracker_file = tmp_path / "device.json"
+    save_tracker(device, tracker_file)
+    scene = tmp_path / "plate.toml"
+    scene.write_text('[noise]\nsignal_relative = 0.0\ndropout_rate = 0.0\n')
+    session = tmp_path / "s.h5"
+    runner = CliRunner()
+    result = runner.invoke(cli, ["collect", "check", "--source", f"sim:{scene}", "--frames", "50", "-o", str(session),
+                                 "--tracker", str(tracker_file)])
+    assert result.exit_code == 0, result.output
+    data = session_io.read(session)
+    step, truth = data.steps["check"], data.truth["check"]
+    assert step.attrs[TRACKER_ATTR] == tracker_label(tracker_file)
+    # free space and no noise: the converted signals give the true poses
+    assert np.abs(step.position - truth.position).max() < 1e-9
+    plain = tmp_path / "plain.h5"
+    result = runner.invoke(cli, ["collect", "check", "--source", f"sim:{scene}", "--frames", "50", "-o", str(plain)])
+    assert result.exit_code == 0
+    # a second, different model on an already converted session is refused in one line
+    other = tmp_path / "other.json"
+    save_tracker(imperfect_tracker(np.random.default_rng(6), offsets=False), other)
+    result = runner.invoke(cli, ["fixtures", str(session), "--tracker", str(other)])
+    assert result.exit_code == 1 and "already converted" in result.output and "Traceback" not in result.output
+    # a session recorded without --tracker is converted on reading instead (here: the label it gets)
+    from ivc.cli.tracker import with_tracker
+
+    converted = with_tracker(session_io.read(plain), str(tracker_file))
+    assert converted.steps["check"].attrs[TRACKER_ATTR] == tracker_label(tracker_file)
