@@ -1,14 +1,18 @@
-"""Stage 1: the AC dipole field model and the closed-form pose solver."""
+"""Stage 1: the AC dipole field model, the closed-form pose solver, and the tracker's own coil model."""
 
 from ivc.dipole.field import field, field_jacobian, signal, signal_from_pose
 from ivc.dipole.pose import HEMISPHERES, closed_form_pose, hemisphere_vector
+from ivc.dipole.tracker import Tracker, load_tracker, save_tracker
 
 __all__ = [
     "HEMISPHERES",
+    "Tracker",
     "closed_form_pose",
     "field",
     "field_jacobian",
     "hemisphere_vector",
+    "load_tracker",
+    "save_tracker",
     "signal",
     "signal_from_pose",
 ]

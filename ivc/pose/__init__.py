@@ -10,6 +10,7 @@ from ivc.pose.solver import (
     signal_residual,
     solve_pose,
 )
+from ivc.pose.tracker import tracker_pose
 
 __all__ = ["METHODS", "PoseSolution", "damped_step", "dipole_plus", "levenberg_marquardt",
-           "procrustes", "signal_residual", "solve_pose"]
+           "procrustes", "signal_residual", "solve_pose", "tracker_pose"]

@@ -2,5 +2,7 @@
 
 from ivc.sim.protocol import DEFAULT_FRAMES, Simulator
 from ivc.sim.scene import Scene, SceneError, builtin_scenes, load_scene
+from ivc.sim.stage import stage_pattern, stage_recording
 
-__all__ = ["DEFAULT_FRAMES", "Scene", "SceneError", "Simulator", "builtin_scenes", "load_scene"]
+__all__ = ["DEFAULT_FRAMES", "Scene", "SceneError", "Simulator", "builtin_scenes", "load_scene", "stage_pattern",
+           "stage_recording"]
