@@ -173,3 +173,52 @@ def test_reader_errors(tmp_path):
         read_ilemt(other)
     result = CliRunner().invoke(cli, ["tracker", "check", str(bad), str(bad)])
     assert result.exit_code == 1 and "Traceback" not in result.output
+
+
+def test_rig_csv_round_trip_and_cli(tmp_path, rng):
+    from ivc.collect.rig_csv import read_rig_csv, write_rig_csv
+    from ivc.sim.stage import stage_pattern
+
+    truth = Tracker(np.eye(3) + 0.03 * rng.standard_normal((3, 3)), np.eye(3) + 0.03 * rng.standard_normal((3, 3)))
+    fixtures = Fixtures(stage=_transform(t=np.array([0.0, 0.26, 0.0])))
+    J_so, J_st = stage_pattern(rz_deg=(-90.0, 0.0, 90.0))
+    S = stage_recording(truth, fixtures, J_so, J_st, noise_relative=1e-5, rng=rng)
+    path = tmp_path / "rig.csv"
+    write_rig_csv(path, S, J_st)
+    S2, J_so2, J_st2 = read_rig_csv(path)
+    np.testing.assert_array_equal(S2, S)
+    np.testing.assert_allclose(J_st2, J_st, atol=1e-15)
+    np.testing.assert_array_equal(J_so2, J_so)
+    out = tmp_path / "t.json"
+    result = CliRunner().invoke(cli, ["tracker", "calibrate", str(path), "-o", str(out), "--one-centre", "--json"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.output)["calibration"]["residue_rms_percent"] < 0.01
+    # millimetre columns and a source rotation
+    text = path.read_text().splitlines()
+    text[0] = text[0].replace("x,y,z", "x_mm,y_mm,z_mm")
+    mm = tmp_path / "mm.csv"
+    mm.write_text("\n".join([text[0]] + [",".join([str(1e3 * float(v)) for v in line.split(",")[:3]]
+                                                   + line.split(",")[3:]) for line in text[1:]]) + "\n")
+    np.testing.assert_allclose(read_rig_csv(mm)[2], J_st, atol=1e-12)
+    write_rig_csv(path, S, J_st, J_so)
+    assert np.array_equal(read_rig_csv(path)[1], J_so)
+
+
+def test_rig_csv_errors(tmp_path):
+    from ivc.collect.rig_csv import read_rig_csv
+
+    path = tmp_path / "rig.csv"
+    path.write_text("x,y,z,qw,qx,qy,qz\n0,0,0,1,0,0,0\n")
+    with pytest.raises(CsvError, match="missing columns s00"):
+        read_rig_csv(path)
+    columns = "x,y,z,qw,qx,qy,qz," + ",".join(f"s{i}{j}" for i in range(3) for j in range(3))
+    path.write_text(columns + "\n" + ",".join(["0"] * 3 + ["1", "0", "0", "0"] + ["1"] * 9) + "\n"
+                    + ",".join(["0"] * 3 + ["1", "0", "0"] + ["1"] * 9) + "\n")
+    with pytest.raises(CsvError, match="lines 3"):
+        read_rig_csv(path)
+    path.write_text(columns + "\n" + ",".join(["0"] * 3 + ["2", "0", "0", "0"] + ["1"] * 9) + "\n")
+    with pytest.raises(CsvError, match="line 2: qw,qx,qy,qz is not a unit quaternion"):
+        read_rig_csv(path)
+    path.write_text("a,b\n1,2\n")
+    with pytest.raises(CsvError, match="x,y,z"):
+        read_rig_csv(path)

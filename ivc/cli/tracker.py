@@ -7,18 +7,27 @@ import time
 from pathlib import Path
 
 import click
+import numpy as np
 from tqdm import tqdm
 
 from ivc.collect.ilemt import read_ilemt, stack
+from ivc.collect.rig_csv import read_rig_csv
 from ivc.dipole.calibrate import calibrate as fit_tracker
 from ivc.dipole.tracker import load_tracker, save_tracker
 from ivc.dipole.tracker_check import check_tracker, fixtures_of
 
 
 def _load(paths, carrier: str, compensate: bool):
-    recordings = [read_ilemt(p, carrier=carrier, compensate=compensate) for p in paths]
-    S, J_so, J_st, _ = stack(recordings)
-    return recordings, S, J_so, J_st
+    """Points of ILEMT .dat files and rig CSVs (docs/tracker.md), stacked."""
+    parts = []
+    for p in paths:
+        if str(p).lower().endswith(".csv"):
+            parts.append(read_rig_csv(p))
+        else:
+            S, J_so, J_st, _ = stack([read_ilemt(p, carrier=carrier, compensate=compensate)])
+            parts.append((S, J_so, J_st))
+    S, J_so, J_st = (np.concatenate([part[k] for part in parts]) for k in range(3))
+    return None, S, J_so, J_st
 
 
 def render(title: str, report: dict) -> str:
@@ -67,7 +76,10 @@ _compensation = click.option("--no-stage-compensation", is_flag=True,
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 def calibrate(recordings, output, one_centre, bias, no_output_correction, tests, carrier, no_stage_compensation,
               force, as_json):
-    """Fit the tracker model to RECORDINGS (ILEMT .dat files at known stage poses) and write it to OUTPUT.
+    """Fit the tracker model to RECORDINGS and write it to OUTPUT.
+
+    RECORDINGS are ILEMT .dat files, or rig CSVs of (known motion, signal) rows for any
+    precision rig (docs/tracker.md).
 
     The unknown source, stage and sensor fixture transforms are fitted with the magnetics
     and stored in the tracker file, so that `ivc tracker check` can score other recordings
