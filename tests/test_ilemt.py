@@ -222,3 +222,33 @@ def test_rig_csv_errors(tmp_path):
     path.write_text("a,b\n1,2\n")
     with pytest.raises(CsvError, match="x,y,z"):
         read_rig_csv(path)
+
+
+def test_recording_as_a_session_step(tmp_path, rng):
+    from ivc import session as session_io
+    from ivc.collect.tracker_units import apply_tracker
+    from ivc.dipole.calibrate import chain
+    from ivc.pose.tracker import tracker_pose
+    from ivc.session import Session
+
+    paths = _synthetic_recordings(tmp_path, rng)
+    recs = [read_ilemt(p) for p in paths]
+    result = calibrate(*stack(recs)[:3], offsets=False, output_correction=False)
+    step, truth = recs[1].to_step(result.fixtures)
+    assert step.signal.shape == (83, 1, 3, 3) and truth.position.shape == (83, 1, 3)
+    data = Session(hemisphere="+y", steps={"check": step}, truth={"check": truth})
+    path = tmp_path / "ilemt.h5"
+    session_io.write(data, path)
+    back = session_io.read(path)
+    np.testing.assert_array_equal(back.steps["check"].signal, step.signal)
+    np.testing.assert_array_equal(back.steps["check"].attrs["stage_poses"], recs[1].stage_compensated)
+    # in ideal units, the closed form gives the chain's poses (to the synthetic noise and the coil offsets)
+    home = truth.position[0, 0]
+    axis = int(np.argmax(np.abs(home)))
+    hemisphere = ("+" if home[axis] > 0 else "-") + "xyz"[axis]
+    ideal = apply_tracker(step, result.tracker, hemisphere, "fit")
+    P = chain(result.fixtures, recs[1].J_so, recs[1].J_st)
+    solved = tracker_pose(step.signal[:, 0], result.tracker, P[:, :3, 3])
+    closed = np.linalg.norm(ideal.poses(hemisphere)[0][:, 0] - P[:, :3, 3], axis=1)
+    assert np.median(closed) < 3e-3 and np.median(np.linalg.norm(solved.position - P[:, :3, 3], axis=1)) < 3e-3
+    assert recs[0].to_step()[1] is None

@@ -273,3 +273,12 @@ def test_tracker_file_round_trip_and_errors(tmp_path, rng):
         load_tracker(path)
     with pytest.raises(TrackerError, match="singular"):
         Tracker(np.zeros((3, 3)))
+
+
+def test_calibration_start_finds_a_rig_along_another_axis(rng):
+    truth = imperfect_tracker(rng, offsets=False)
+    fixtures = Fixtures(stage=_transform(t=np.array([0.0, 0.01, 0.3])))  # the stage out along source z
+    J_so, J_st = stage_pattern(rz_deg=(-90.0, 0.0, 90.0))
+    S = stage_recording(truth, fixtures, J_so, J_st)
+    result = calibrate(S, J_so, J_st, offsets=False, output_correction=False)
+    assert np.sqrt(np.mean(result.residue**2)) < 1e-9

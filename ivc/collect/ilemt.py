@@ -170,6 +170,33 @@ class IlemtRecording:
     def n_points(self) -> int:
         return len(self.stage)
 
+    def to_step(self, fixtures=None, hemisphere: str = "+y"):
+        """This recording as a session :class:`~ivc.session.Step` of one sensor, and its truth.
+
+        The signals go in as they are (ILEMT's units; ``--tracker`` or
+        :func:`ivc.collect.apply_tracker` brings them to ideal units). The known stage poses
+        are kept in the step's attributes (``stage_poses``, mm and degrees, compensated);
+        with the rig's fitted ``fixtures`` (:class:`ivc.dipole.calibrate.Fixtures`) the
+        chain's poses become the step's :class:`~ivc.session.Truth`, else the truth is None.
+        Rows have no time stamps: ``time`` is the row number (s) at 1 Hz.
+        """
+        from ivc import rotations
+        from ivc.session import Step, Truth
+
+        n = self.n_points
+        step = Step(time=np.arange(n, dtype=float), signal=self.signal[:, None].copy(), valid=np.ones((n, 1), bool),
+                    sample_rate_hz=1.0, sensor_ids=["sensor"],
+                    description=f"ILEMT recording {self.path.name} ({self.carrier} carrier)",
+                    attrs={"ilemt_file": self.path.name, "source_fixture": self.source_fixture,
+                           "sensor_fixture": self.sensor_fixture, "pattern": self.pattern,
+                           "stage_poses": self.stage_compensated})
+        if fixtures is None:
+            return step, None
+        from ivc.dipole.calibrate import chain
+
+        P = chain(fixtures, self.J_so, self.J_st)
+        return step, Truth(P[:, None, :3, 3].copy(), rotations.from_matrix(P[:, None, :3, :3]))
+
     @property
     def drift(self) -> float:
         """Largest |ΔC| between the first and the last home rows, relative to the largest |C| there."""

@@ -19,6 +19,7 @@ frame's origin. :func:`canonical_gauge` brings any model to that form.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -249,10 +250,11 @@ def _jacobian(layout: _Layout, tracker: Tracker, fixtures: Fixtures, J_so, J_st)
 
 
 def _initial(S, J_so, J_st, source_fixture, stage_offsets) -> tuple[Tracker, Fixtures]:
-    """Start: nominally aligned fixtures with the stage ``d`` out along +y; A and B by alternating linear fits."""
+    """Start: nominally aligned fixtures with the stage ``d`` out along source x, y or z (the dipole
+    model cannot tell +d from −d); A and B by alternating linear fits. The best start is kept."""
     best = None
-    for d in stage_offsets:
-        fixtures = Fixtures(stage=_transform(t=np.array([0.0, d, 0.0])))
+    for d, axis in itertools.product(stage_offsets, (1, 0, 2)):
+        fixtures = Fixtures(stage=_transform(t=d * np.eye(3)[axis]))
         P = chain(fixtures, J_so, J_st)
         R, t = P[:, :3, :3], P[:, :3, 3]
         from ivc.dipole.field import field as dipole_field
@@ -343,7 +345,7 @@ def calibrate(
     fit_source_fixture : fit ``F_so``; by default only when the source motions differ
         (with one source motion ``F_so`` cannot be told from ``F_st``).
     start : a starting model; by default nominally aligned fixtures, the stage at
-        ``stage_offsets`` metres along source +y (the best is kept), gains by linear fits.
+        ``stage_offsets`` metres along source x, y or z (the best is kept), gains by linear fits.
     bias : also fit a constant added signal (electronic pick-up), :attr:`Tracker.bias`.
     output_correction : then solve the calibration points' poses with the fitted model and
         fit the tracker's output correction (affine in position, :meth:`Tracker.correct_pose`)
