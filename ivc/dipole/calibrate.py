@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ivc import rotations
+from ivc.dipole.field import field as dipole_field
 from ivc.dipole.tracker import Tracker, model
 from ivc.errors import TrackerError
 
@@ -257,8 +258,6 @@ def _initial(S, J_so, J_st, source_fixture, stage_offsets) -> tuple[Tracker, Fix
         fixtures = Fixtures(stage=_transform(t=d * np.eye(3)[axis]))
         P = chain(fixtures, J_so, J_st)
         R, t = P[:, :3, :3], P[:, :3, 3]
-        from ivc.dipole.field import field as dipole_field
-
         F = dipole_field(t)  # (N, 3, 3)
         B = np.eye(3)
         w = 1.0 / np.linalg.norm(S, ord=2, axis=(1, 2))
