@@ -282,3 +282,57 @@ def test_calibration_start_finds_a_rig_along_another_axis(rng):
     S = stage_recording(truth, fixtures, J_so, J_st)
     result = calibrate(S, J_so, J_st, offsets=False, output_correction=False)
     assert np.sqrt(np.mean(result.residue**2)) < 1e-9
+
+
+def test_nominal_source_motions_get_their_own_errors(rng):
+    """A source fixture's 90-degree turn that is really 90.5 degrees: ``source_motions="free"`` fits it."""
+    truth, fixtures = imperfect_tracker(rng, offsets=False), rig_fixtures(rng)
+    J_so, J_st = stage_pattern(rz_deg=(-90.0, 0.0, 90.0))
+    turn = rotations.to_matrix(rotations.from_rotvec([0.0, 0.0, np.pi / 2]))
+    J_so[len(J_so) // 2 :, :3, :3] = turn
+    actual = J_so.copy()
+    error = _transform(rotations.to_matrix(rotations.from_rotvec(np.radians([0.2, -0.3, 0.5]))),
+                       np.array([0.001, -0.002, 0.0005]))
+    actual[len(J_so) // 2 :] = actual[len(J_so) // 2 :] @ error
+    S = stage_recording(truth, fixtures, actual, J_st)
+    exact = calibrate(S, J_so, J_st, offsets=False, output_correction=False)
+    free = calibrate(S, J_so, J_st, offsets=False, output_correction=False, source_motions="free")
+    assert np.sqrt(np.mean(exact.residue**2)) > 1e-3  # the nominal turn does not fit
+    assert np.sqrt(np.mean(free.residue**2)) < 1e-9
+    assert len(free.fixtures.motions) == 2 and np.allclose(free.fixtures.motion_errors[0], np.eye(4), atol=1e-12)
+    back = Fixtures.from_dict(json.loads(json.dumps(free.fixtures.to_dict())))
+    np.testing.assert_allclose(predicted_signal(free.tracker, back, J_so, J_st),
+                               predicted_signal(free.tracker, free.fixtures, J_so, J_st), rtol=1e-12)
+    other = J_so.copy()
+    other[:3, :3, :3] = turn.T
+    with pytest.raises(TrackerError, match="none of the calibration's"):
+        predicted_signal(free.tracker, free.fixtures, other, J_st)
+
+
+def test_calibration_jacobian_with_free_source_motions(rng):
+    tr, fixtures = imperfect_tracker(rng), rig_fixtures(rng)
+    J_so, J_st = stage_pattern(xyz_mm=(-40.0, 40.0), rz_deg=(-60.0, 30.0), sensor_fixtures=("YoutZup", "ZinYup"))
+    J_so[1::3, :3, :3] = rotations.to_matrix(rotations.from_rotvec([0.0, 0.0, np.pi / 2]))
+    J_so[2::3, :3, :3] = rotations.to_matrix(rotations.from_rotvec([np.pi, 0.0, 0.0]))
+    from ivc.dipole.calibrate import _distinct
+
+    motions = _distinct(J_so)
+    fixtures.motions = motions
+    fixtures.motion_errors = [np.eye(4)] + [
+        _transform(rotations.to_matrix(rotations.from_rotvec(0.01 * rng.standard_normal(3))),
+                   0.002 * rng.standard_normal(3)) for _ in motions[1:]]
+    layout = _Layout(True, False, motion_groups=len(motions))
+    _, J = _jacobian(layout, tr, fixtures, J_so, J_st)
+    for k in range(layout.fix, layout.size):
+        e = np.zeros(layout.size)
+        e[k] = 1.0
+
+        def moved(s, e=e):
+            return predicted_signal(*layout.apply(tr, fixtures, s * e), J_so, J_st).reshape(len(J_st), 9)
+
+        fd = _central(moved, 1e-7)
+        np.testing.assert_allclose(J[:, :, k], fd, atol=1e-5 * np.abs(fd).max() + 1e-9, err_msg=f"parameter {k}")
+    # the gauge moves every motion's points together
+    clean_tr, clean_fix = canonical_gauge(tr, fixtures, J_so[0], False)
+    np.testing.assert_allclose(predicted_signal(clean_tr, clean_fix, J_so, J_st),
+                               predicted_signal(tr, fixtures, J_so, J_st), rtol=1e-10, atol=1e-12)

@@ -68,14 +68,16 @@ _compensation = click.option("--no-stage-compensation", is_flag=True,
 @click.option("--bias", is_flag=True, help="Also fit a constant added signal (electronic pick-up).")
 @click.option("--no-output-correction", is_flag=True,
               help="Do not fit the affine output correction of solved poses.")
+@click.option("--source-motions", type=click.Choice(["exact", "free"]), default="exact", show_default=True,
+              help="With several source fixturings: their nominal turns are exact, or each gets a fitted error.")
 @click.option("--test", "tests", multiple=True, type=click.Path(exists=True, dir_okay=False),
               help="A held-out recording to score with the fitted model and fixtures (repeatable).")
 @_carrier
 @_compensation
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists.")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
-def calibrate(recordings, output, one_centre, bias, no_output_correction, tests, carrier, no_stage_compensation,
-              force, as_json):
+def calibrate(recordings, output, one_centre, bias, no_output_correction, source_motions, tests, carrier,
+              no_stage_compensation, force, as_json):
     """Fit the tracker model to RECORDINGS and write it to OUTPUT.
 
     RECORDINGS are ILEMT .dat files, or rig CSVs of (known motion, signal) rows for any
@@ -95,7 +97,7 @@ def calibrate(recordings, output, one_centre, bias, no_output_correction, tests,
     start = time.perf_counter()
     with tqdm(desc="calibrating", unit="iteration", leave=False, disable=as_json) as bar:
         result = fit_tracker(S, J_so, J_st, offsets=not one_centre, bias=bias,
-                             output_correction=not no_output_correction,
+                             output_correction=not no_output_correction, source_motions=source_motions,
                              progress=lambda iteration, cost: bar.update(1))
     seconds = time.perf_counter() - start
     report = {"calibration": check_tracker(result.tracker, result.fixtures, S, J_so, J_st),
@@ -106,6 +108,7 @@ def calibrate(recordings, output, one_centre, bias, no_output_correction, tests,
     result.tracker.calibration = {
         "model": "one centre" if one_centre else "per-coil offsets",
         "bias": bias,
+        "source_motions": source_motions,
         "output_correction": not no_output_correction,
         "carrier": carrier,
         "stage_compensation": compensate,

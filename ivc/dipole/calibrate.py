@@ -56,29 +56,70 @@ def _inverse(X: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Fixtures:
-    """The constant transforms of the pose chain (4x4, metres): source, stage and sensor fixtures."""
+    """The constant transforms of the pose chain (4x4, metres): source, stage and sensor fixtures.
+
+    ``motions`` and ``motion_errors`` (lists of 4x4, same length; empty by default): when
+    the known source motions are only nominal (a fixture's 90-degree turns are not exact),
+    the motion ``motions[k]`` is really ``motions[k] · motion_errors[k]``; the first is exact
+    (the others are measured against it).
+    """
 
     source: np.ndarray = field(default_factory=lambda: np.eye(4))
     stage: np.ndarray = field(default_factory=lambda: np.eye(4))
     sensor: np.ndarray = field(default_factory=lambda: np.eye(4))
+    motions: list = field(default_factory=list)
+    motion_errors: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        return {"source": self.source.tolist(), "stage": self.stage.tolist(), "sensor": self.sensor.tolist()}
+        out = {"source": self.source.tolist(), "stage": self.stage.tolist(), "sensor": self.sensor.tolist()}
+        if self.motions:
+            out["source_motions"] = [np.asarray(m).tolist() for m in self.motions]
+            out["source_motion_errors"] = [np.asarray(m).tolist() for m in self.motion_errors]
+        return out
 
     @classmethod
     def from_dict(cls, data: dict) -> Fixtures:
         try:
-            out = cls(*(np.array(data[k], dtype=float) for k in ("source", "stage", "sensor")))
+            out = cls(*(np.array(data[k], dtype=float) for k in ("source", "stage", "sensor")),
+                      [np.array(m, dtype=float) for m in data.get("source_motions", [])],
+                      [np.array(m, dtype=float) for m in data.get("source_motion_errors", [])])
         except (KeyError, TypeError, ValueError) as error:
             raise TrackerError(f"malformed fixtures entry ({error})") from None
-        if any(X.shape != (4, 4) for X in (out.source, out.stage, out.sensor)):
+        if any(X.shape != (4, 4) for X in (out.source, out.stage, out.sensor, *out.motions, *out.motion_errors)):
             raise TrackerError("each fixture must be a 4x4 homogeneous transform")
+        if len(out.motions) != len(out.motion_errors):
+            raise TrackerError("source_motions and source_motion_errors must have the same length")
         return out
+
+    def groups(self, J_so: np.ndarray) -> np.ndarray:
+        """Index (N,) of each point's source motion in ``motions``."""
+        group = np.full(len(J_so), -1)
+        for k, m in enumerate(self.motions):
+            group[np.all(np.isclose(J_so, m, atol=1e-9), axis=(1, 2))] = k
+        if np.any(group < 0):
+            raise TrackerError("a point's source motion is none of the calibration's: score only source "
+                               "fixturings the tracker was calibrated with")
+        return group
+
+    def effective_source_motions(self, J_so: np.ndarray) -> np.ndarray:
+        """``J_so`` (N, 4, 4) with each nominal motion's fitted error applied."""
+        if not self.motions:
+            return J_so
+        return J_so @ np.asarray(self.motion_errors)[self.groups(J_so)]
+
+
+def _distinct(J_so: np.ndarray) -> list[np.ndarray]:
+    """The distinct source motions, the first point's first."""
+    out: list[np.ndarray] = []
+    for m in J_so:
+        if not any(np.allclose(m, d, atol=1e-9) for d in out):
+            out.append(m.copy())
+    return out
 
 
 def chain(fixtures: Fixtures, J_so: np.ndarray, J_st: np.ndarray) -> np.ndarray:
     """Sensor poses ``P = F_so J_so F_st J_st F_se`` (N, 4, 4) in the source frame, metres."""
-    J_so = np.broadcast_to(J_so, np.shape(J_st))
+    J_so = fixtures.effective_source_motions(np.broadcast_to(J_so, np.shape(J_st)))
     return fixtures.source @ J_so @ fixtures.stage @ J_st @ fixtures.sensor
 
 
@@ -114,13 +155,19 @@ def canonical_gauge(tracker: Tracker, fixtures: Fixtures, J_so0: np.ndarray | No
     F_so, F_st, F_se = fixtures.source.copy(), fixtures.stage.copy(), fixtures.sensor.copy()
     J0 = np.eye(4) if J_so0 is None else J_so0
 
+    errors = [np.asarray(e).copy() for e in fixtures.motion_errors]
+
     def change_source(X: np.ndarray) -> None:  # new source coordinates = X · old
         nonlocal F_so, F_st
         if source_fixture_free:
             F_so = X @ F_so
         else:
             base = F_so @ J0
-            F_st = _inverse(base) @ X @ base @ F_st
+            inner = _inverse(base) @ X @ base
+            F_st = inner @ F_st
+            for k, m in enumerate(fixtures.motions):  # keep every other source motion's points in place
+                here = F_so @ m
+                errors[k] = _inverse(here) @ X @ here @ errors[k] @ _inverse(inner)
 
     Q, A = _qr_rotation(A)
     p = p @ Q
@@ -137,7 +184,7 @@ def canonical_gauge(tracker: Tracker, fixtures: Fixtures, J_so0: np.ndarray | No
     s = B[2, 2]
     A, B = A * s, B / s
     clean = Tracker(A, B, p, q, dict(tracker.calibration), tracker.bias.copy())
-    return clean, Fixtures(F_so, F_st, F_se)
+    return clean, Fixtures(F_so, F_st, F_se, [np.asarray(m).copy() for m in fixtures.motions], errors)
 
 
 @dataclass
@@ -155,10 +202,11 @@ class CalibrationResult:
 class _Layout:
     """Where each free parameter sits in θ, and how it moves the model."""
 
-    def __init__(self, offsets: bool, source_fixture: bool, bias: bool = False):
+    def __init__(self, offsets: bool, source_fixture: bool, bias: bool = False, motion_groups: int = 0):
         self.offsets = offsets
         self.source_fixture = source_fixture
         self.bias = bias
+        self.motion_groups = motion_groups
         n = 6 + 5
         self.off = n
         n += 12 if offsets else 0
@@ -166,6 +214,8 @@ class _Layout:
         n += 9 if bias else 0
         self.fix = n
         n += 18 if source_fixture else 12
+        self.motion_at = n
+        n += 6 * max(motion_groups - 1, 0)
         self.size = n
 
     def apply(self, tracker: Tracker, fixtures: Fixtures, theta: np.ndarray) -> tuple[Tracker, Fixtures]:
@@ -183,7 +233,7 @@ class _Layout:
         bias = tracker.bias.copy()
         if self.bias:
             bias += theta[self.bias_at : self.bias_at + 9].reshape(3, 3)
-        steps = theta[self.fix :].reshape(-1, 6)
+        steps = theta[self.fix : self.motion_at].reshape(-1, 6)
 
         def moved(X, eta):
             return X @ _transform(rotations.to_matrix(rotations.from_rotvec(eta[:3])), eta[3:])
@@ -191,7 +241,11 @@ class _Layout:
         F_se = moved(fixtures.sensor, steps[0])
         F_st = moved(fixtures.stage, steps[1])
         F_so = moved(fixtures.source, steps[2]) if self.source_fixture else fixtures.source
-        return Tracker(A, B, p, q, dict(tracker.calibration), bias), Fixtures(F_so, F_st, F_se)
+        errors = [np.asarray(e).copy() for e in fixtures.motion_errors]
+        for k, eta in enumerate(theta[self.motion_at :].reshape(-1, 6), start=1):
+            errors[k] = moved(errors[k], eta)
+        return (Tracker(A, B, p, q, dict(tracker.calibration), bias),
+                Fixtures(F_so, F_st, F_se, list(fixtures.motions), errors))
 
     def names(self) -> list[str]:
         out = [f"A[{a},{b}]" for a, b in _UPPER] + [f"B[{a},{b}]" for a, b in _UPPER[:5]]
@@ -244,18 +298,26 @@ def _jacobian(layout: _Layout, tracker: Tracker, fixtures: Fixtures, J_so, J_st)
     J_so = np.broadcast_to(J_so, J_st.shape)
     after_stage = J_st @ fixtures.sensor
     J[..., k + 6 : k + 12] = np.einsum("njia,nab->njib", d_xi, _adjoint_inverse(after_stage))
+    if layout.motion_groups > 1:
+        group = fixtures.groups(J_so)
+        adjoint = _adjoint_inverse(fixtures.stage @ after_stage)
+        for g in range(1, layout.motion_groups):
+            rows = group == g
+            at = layout.motion_at + 6 * (g - 1)
+            J[rows, ..., at : at + 6] = np.einsum("njia,nab->njib", d_xi[rows], adjoint[rows])
     if layout.source_fixture:
-        after_source = J_so @ fixtures.stage @ after_stage
+        after_source = fixtures.effective_source_motions(J_so) @ fixtures.stage @ after_stage
         J[..., k + 12 : k + 18] = np.einsum("njia,nab->njib", d_xi, _adjoint_inverse(after_source))
     return S, J.reshape(N, 9, layout.size)
 
 
-def _initial(S, J_so, J_st, source_fixture, stage_offsets) -> tuple[Tracker, Fixtures]:
+def _initial(S, J_so, J_st, source_fixture, stage_offsets, motions=()) -> tuple[Tracker, Fixtures]:
     """Start: nominally aligned fixtures with the stage ``d`` out along source x, y or z (the dipole
     model cannot tell +d from −d); A and B by alternating linear fits. The best start is kept."""
     best = None
     for d, axis in itertools.product(stage_offsets, (1, 0, 2)):
-        fixtures = Fixtures(stage=_transform(t=d * np.eye(3)[axis]))
+        fixtures = Fixtures(stage=_transform(t=d * np.eye(3)[axis]), motions=list(motions),
+                            motion_errors=[np.eye(4) for _ in motions])
         P = chain(fixtures, J_so, J_st)
         R, t = P[:, :3, :3], P[:, :3, 3]
         F = dipole_field(t)  # (N, 3, 3)
@@ -328,6 +390,7 @@ def calibrate(
     bias: bool = False,
     output_correction: bool = True,
     fit_source_fixture: bool | None = None,
+    source_motions: str = "exact",
     start: tuple[Tracker, Fixtures] | None = None,
     stage_offsets: tuple[float, ...] = (0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5),
     max_iterations: int = 200,
@@ -343,6 +406,9 @@ def calibrate(
     offsets : fit a position per coil (non-concentric coils); False: one centre each.
     fit_source_fixture : fit ``F_so``; by default only when the source motions differ
         (with one source motion ``F_so`` cannot be told from ``F_st``).
+    source_motions : ``"exact"`` (default): the known source motions are exact; ``"free"``:
+        each distinct source motion after the first is only nominal and gets its own fitted
+        error transform (:attr:`Fixtures.motion_errors`; ``F_so`` is then redundant and not fitted).
     start : a starting model; by default nominally aligned fixtures, the stage at
         ``stage_offsets`` metres along source x, y or z (the best is kept), gains by linear fits.
     bias : also fit a constant added signal (electronic pick-up), :attr:`Tracker.bias`.
@@ -362,17 +428,27 @@ def calibrate(
         raise TrackerError("signals and pose-chain transforms must be finite; drop the bad points first")
     if len(S) < 12:
         raise TrackerError(f"{len(S)} points cannot fix a tracker model and its fixtures; record at least 12")
-    if fit_source_fixture is None:
-        fit_source_fixture = not np.allclose(J_so, J_so[0])
+    if source_motions not in ("exact", "free"):
+        raise TrackerError(f"source_motions must be 'exact' or 'free', got {source_motions!r}")
+    distinct = _distinct(J_so)
+    motions = distinct if source_motions == "free" and len(distinct) > 1 else []
+    if motions:
+        fit_source_fixture = False
+    elif fit_source_fixture is None:
+        fit_source_fixture = len(distinct) > 1
     weights = 1.0 / np.linalg.norm(S, ord=2, axis=(1, 2))
     if start is None:
-        tracker, fixtures = _initial(S, J_so, J_st, fit_source_fixture, stage_offsets)
+        tracker, fixtures = _initial(S, J_so, J_st, fit_source_fixture, stage_offsets, motions)
     else:
-        tracker, fixtures = canonical_gauge(start[0], start[1], J_so[0], fit_source_fixture)
+        start_fixtures = start[1]
+        if motions and not start_fixtures.motions:
+            start_fixtures = Fixtures(start_fixtures.source, start_fixtures.stage, start_fixtures.sensor, motions,
+                                      [np.eye(4) for _ in motions])
+        tracker, fixtures = canonical_gauge(start[0], start_fixtures, J_so[0], fit_source_fixture)
     total = 0
-    layouts = [_Layout(False, fit_source_fixture)]
+    layouts = [_Layout(False, fit_source_fixture, motion_groups=len(motions))]
     if offsets or bias:
-        layouts.append(_Layout(offsets, fit_source_fixture, bias))
+        layouts.append(_Layout(offsets, fit_source_fixture, bias, motion_groups=len(motions)))
     for layout in layouts:
         tracker, fixtures, Jw, e, its, converged = _levenberg_marquardt(
             layout, tracker, fixtures, S, J_so, J_st, weights, max_iterations, tolerance, progress)
