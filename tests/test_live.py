@@ -17,7 +17,7 @@ from ivc.correct import Corrector
 from ivc.live import LiveCorrector, NDArrayMessage, TrackingDataMessage
 from ivc.live.igtl import Framer
 from ivc.lut import write as write_lut
-from tests.test_correct import distorted, exact_table  # noqa: F401  (fixture)
+from tests.helpers import distorted
 
 SENSORS = ("S0", "S1", "S2", "S3")
 

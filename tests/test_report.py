@@ -9,6 +9,7 @@ import pytest
 from click.testing import CliRunner
 from matplotlib.image import imread
 
+from ivc import demo as ivc_demo
 from ivc import dipole, lut
 from ivc import session as session_io
 from ivc.cli import cli
@@ -23,12 +24,9 @@ from ivc.session import Session
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
-    """A small `ivc demo` run, kept: the session and its table."""
-    folder = tmp_path_factory.mktemp("demo")
-    result = CliRunner().invoke(cli, ["demo", "--sweep-frames", "3000", "--check-frames", "300", "--keep",
-                                      str(folder)])
-    assert result.exit_code == 0, result.output
-    return folder / "demo.h5", folder / "demo_lut.h5"
+    """A small demo run (what `ivc demo --keep` writes): the session and its table."""
+    result = ivc_demo.run(sweep_frames=3000, check_frames=300, folder=tmp_path_factory.mktemp("demo"))
+    return result.session_file, result.table_file
 
 
 class _Images(HTMLParser):
