@@ -1,8 +1,10 @@
+
 """Correction with a look-up table: exact recovery, flags, streaming, quaternions, and the CLI."""
 
 import json
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from ivc import dipole, rotations
@@ -71,6 +73,7 @@ def test_compiled_quaternion_equals_the_reference(rng):
     np.testing.assert_allclose(q, rotations.from_matrix(T), atol=1e-15)
 
 
+@pytest.mark.slow
 def test_cli_fit_correct_evaluate(small_session, tmp_path):
     _, session = small_session
     session_file, table_file = tmp_path / "s.h5", tmp_path / "lut.h5"

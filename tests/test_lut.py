@@ -163,6 +163,7 @@ def test_fit_refuses_too_few_kept_samples_and_names_the_step_to_redo(small_sessi
         fit_lut(moved)
 
 
+@pytest.mark.slow
 def test_fit_and_refinement_on_a_simulated_session(small_session, tmp_path):
     simulator, session = small_session
     table = fit_lut(session, FitOptions(refine=True, max_refinements=2, min_support=5))

@@ -21,6 +21,8 @@ from ivc.report.compute import _cell_counts, _layers, declared_cube, percent_of_
 from ivc.report.figures import _boundary
 from ivc.session import Session
 
+pytestmark = pytest.mark.slow  # every test here builds on a small demo run
+
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
