@@ -1,4 +1,3 @@
-
 """Correction with a look-up table: exact recovery, flags, streaming, quaternions, and the CLI."""
 
 import json

@@ -1,4 +1,3 @@
-
 """The shipped recordings in sample_data/ still read, correct and predict as sample_data/README.md says."""
 
 import json
