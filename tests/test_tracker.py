@@ -21,20 +21,7 @@ from ivc.dipole.tracker import Tracker, load_tracker, model, save_tracker
 from ivc.errors import TrackerError
 from ivc.pose.tracker import tracker_pose
 from ivc.sim.stage import stage_pattern, stage_recording
-
-
-def imperfect_tracker(rng, offsets=True, scale=0.05):
-    """A miscalibrated device: percent gains, cross-talk, millimetre coil offsets."""
-    return Tracker(np.eye(3) + scale * rng.standard_normal((3, 3)), np.eye(3) + scale * rng.standard_normal((3, 3)),
-                   2e-3 * rng.standard_normal((3, 3)) if offsets else np.zeros((3, 3)),
-                   1e-3 * rng.standard_normal((3, 3)) if offsets else np.zeros((3, 3)))
-
-
-def rig_fixtures(rng):
-    def small(t):
-        return _transform(rotations.to_matrix(rotations.from_rotvec(0.03 * rng.standard_normal(3))), t)
-
-    return Fixtures(np.eye(4), small(np.array([0.01, 0.25, -0.01])), small(0.005 * rng.standard_normal(3)))
+from tests.helpers import imperfect_tracker, rig_fixtures
 
 
 def _central(fn, h=1e-6):

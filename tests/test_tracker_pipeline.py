@@ -11,7 +11,7 @@ from ivc.dipole.tracker import Tracker, save_tracker
 from ivc.errors import TrackerError
 from ivc.sim import Simulator
 from ivc.sim.scene import scene_from_dict
-from tests.test_tracker import imperfect_tracker
+from tests.helpers import imperfect_tracker
 
 
 def quiet_plate_scene():
