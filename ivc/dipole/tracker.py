@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -239,6 +240,8 @@ def save_tracker(tracker: Tracker, path: str | Path) -> None:
     from ivc.session import atomic_path
 
     text = json.dumps(_finite_json(tracker.to_dict()), indent=2)
+    # one line per matrix row: innermost lists of numbers on one line (JSON strings hold no raw newline)
+    text = re.sub(r"\[\n\s+([-+0-9.eE,\s]+?)\n\s*\]", lambda m: "[" + " ".join(m.group(1).split()) + "]", text)
     with atomic_path(path) as tmp:
         tmp.write_text(text + "\n", encoding="utf-8")
 
