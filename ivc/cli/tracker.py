@@ -15,6 +15,7 @@ from ivc.collect.rig_csv import read_rig_csv
 from ivc.dipole.calibrate import calibrate as fit_tracker
 from ivc.dipole.tracker import load_tracker, save_tracker
 from ivc.dipole.tracker_check import check_tracker, fixtures_of
+from ivc.session import Session
 
 
 def _load(paths, carrier: str, compensate: bool):
@@ -144,14 +145,14 @@ def check(tracker_file, recordings, carrier, no_stage_compensation, as_json):
     click.echo(json.dumps(report, indent=2) if as_json else render("Points", report))
 
 
-def tracker_option(command):
+def tracker_option(command: click.Command) -> click.Command:
     """``--tracker FILE``: the device's coil model, applied to the signals a command reads (docs/tracker.md)."""
     return click.option("--tracker", "tracker_file", type=click.Path(exists=True, dir_okay=False),
                         help="The tracker's coil model (from `ivc tracker calibrate`): signals are brought to "
                              "ideal-dipole units before anything else.")(command)
 
 
-def with_tracker(data, tracker_file, steps=None):
+def with_tracker(data: Session, tracker_file: str | None, steps: list[str] | None = None) -> Session:
     """``data`` (a Session) with ``tracker_file``'s model applied to its steps (all, or ``steps``); None: as is."""
     if tracker_file is None:
         return data
