@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import click
@@ -145,7 +146,7 @@ def check(tracker_file, recordings, carrier, no_stage_compensation, as_json):
     click.echo(json.dumps(report, indent=2) if as_json else render("Points", report))
 
 
-def tracker_option(command: click.Command) -> click.Command:
+def tracker_option(command: Callable) -> Callable:
     """``--tracker FILE``: the device's coil model, applied to the signals a command reads (docs/tracker.md)."""
     return click.option("--tracker", "tracker_file", type=click.Path(exists=True, dir_okay=False),
                         help="The tracker's coil model (from `ivc tracker calibrate`): signals are brought to "
