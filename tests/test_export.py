@@ -204,6 +204,6 @@ def test_cli_export_every_format_and_refuse_to_overwrite(table, tmp_path):
     again = runner.invoke(cli, ["export", str(lut_path), "--format", "csv"])
     assert again.exit_code != 0 and "exists" in again.output
     same = runner.invoke(cli, ["export", str(lut_path), "--format", "hdf5", "-o", str(lut_path), "--force"])
-    assert same.exit_code != 0 and "must not be the table" in same.output
+    assert same.exit_code != 0 and "never overwritten" in same.output
     with pytest.raises(ExportError, match="unknown export format"):
         export(table, "stl", tmp_path / "x.stl")

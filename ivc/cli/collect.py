@@ -9,6 +9,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ivc import rotations
+from ivc.cli.paths import refuse_inputs_as_outputs
 from ivc import session as session_io
 from ivc.collect import check_step, replay
 from ivc.session import STEPS, Session, SessionError, Step, Truth
@@ -121,6 +122,8 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
     (wand sensor 0 inside the cube, far end sweeping), check (independent poses).
     """
     kind, argument = _parse_source(source)
+    if kind == "replay" or argument is not None:
+        refuse_inputs_as_outputs({"--output": output}, {"the --source file": argument})
     sim = _SimulatorProgress(argument, seed) if kind == "sim" else None
     hemisphere = hemisphere or (sim.scene.hemisphere if sim else "+x")
     output = Path(output)

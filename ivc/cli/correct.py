@@ -136,7 +136,8 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         return
     if not input_file or not output:
         raise click.UsageError("give INPUT_FILE and -o OUTPUT (or --live igtl://HOST:PORT)")
-    input_path, output_path = input_and_output(input_file, output, force)
+    input_path, output_path = input_and_output(input_file, output, force,
+                                               [("LUT_FILE", lut_file), ("--tune-from", tune_from)])
     delta = parse_horizon(horizon) if predictor else None
     tuning = requested_tuning(predictor, tune, tune_from)
     table = lut.read(lut_file)
@@ -209,6 +210,6 @@ def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_resid
         stats = live.stats
     latency = np.median(stats.latency_s) * 1e3 if stats.latency_s else float("nan")
     click.echo(f"received {stats.received}, corrected {stats.corrected}, flagged {stats.flagged}, out of order "
-               f"{stats.out_of_order}, unknown {stats.unknown}, malformed bytes {stats.garbage_bytes}, dropped for "
+               f"{stats.out_of_order}, unknown {stats.unknown}, unusable {stats.rejected}, malformed bytes {stats.garbage_bytes}, dropped for "
                f"slow clients {stats.dropped_for_slow_clients}, connections {stats.connections}; median processing "
                f"{latency:.3f} ms per batch", err=True)

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from ivc import lut
+from ivc.cli.paths import check_output
 from ivc.export import FORMATS
 from ivc.export import export as export_table
 from ivc.units import LENGTH_UNITS
@@ -26,8 +27,7 @@ def export(lut_file, fmt, output, unit, force):
     """Write LUT_FILE in another format; docs/export.md says what each holds and which direction it maps."""
     table = lut.read(lut_file)
     path = Path(output) if output else Path(lut_file).with_suffix(FORMATS[fmt][1])
-    if path.resolve() == Path(lut_file).resolve():
-        raise click.UsageError("OUTPUT must not be the table itself")
+    check_output(path, force, {"LUT_FILE": lut_file})
     written = export_table(table, fmt, path, unit=unit, overwrite=force)
     click.echo(f"wrote {written} ({fmt}; {table.grid.shape[0]}x{table.grid.shape[1]}x{table.grid.shape[2]} nodes, "
                f"{table.valid.sum()} mapped)")

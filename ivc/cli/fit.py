@@ -11,6 +11,7 @@ import numpy as np
 
 from ivc import lut
 from ivc import session as session_io
+from ivc.cli.paths import check_output
 from ivc.cli.progress import StageBars
 from ivc.lut.build import FitOptions
 
@@ -86,8 +87,7 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
 def fit(session_file, output, method, grid_spec, degree, refine, max_refinements, max_frames, min_support,
         max_residual, max_error_mm, force, as_json):
     """Fit the secondary-field look-up table of SESSION_FILE and write it to OUTPUT."""
-    if not force and Path(output).exists():
-        raise FileExistsError(f"{output} exists; pass --force to replace it")
+    check_output(output, force, {"SESSION_FILE": session_file})
     options = FitOptions(method=method, degree=degree, refine=refine, max_refinements=max_refinements,
                          max_frames=max_frames, min_support=min_support, max_residual=max_residual,
                          max_error=max_error_mm / 1000, **parse_grid(grid_spec))

@@ -234,7 +234,7 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
         raise click.UsageError("predict a stream with one --filter")
     name = filters[0] if filters else "mmdq2"
     delta = parse_horizon(horizon)
-    input_path, output_path = input_and_output(input_file, output, force)
+    input_path, output_path = input_and_output(input_file, output, force, [("--tune-from", tune_from)])
     tuning = requested_tuning(name, tune, tune_from)
     if session_io.is_recording_csv(input_path):
         if not session_io.is_recording_csv(output_path):

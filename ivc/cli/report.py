@@ -8,9 +8,10 @@ import click
 
 from ivc import lut
 from ivc import session as session_io
+from ivc.cli.paths import refuse_inputs_as_outputs
 from ivc.cli.progress import StageBars
 from ivc.lut.build import file_digest
-from ivc.report import build_report
+from ivc.report import REPORT_FILES, build_report
 from ivc.report.compute import THIN_SAMPLES
 
 
@@ -38,6 +39,9 @@ def report(session_file, lut_file, check_file, directory, step, thin, max_frames
     """
     if max_frames is not None and max_frames < 1:
         raise click.BadParameter("must be at least 1", param_hint="--max-frames")
+    inputs = {"SESSION_FILE": session_file, "LUT_FILE": lut_file, "CHECK_FILE": check_file}
+    refuse_inputs_as_outputs({"--output": directory}, inputs)
+    refuse_inputs_as_outputs({f"--output's {name}": Path(directory) / name for name in REPORT_FILES}, inputs)
     table = lut.read(lut_file)
     data = session_io.read(session_file)
     check = session_io.read(check_file) if check_file else None

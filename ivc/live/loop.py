@@ -41,9 +41,32 @@ DEVICE_NAME_BYTES = 20
 LATENCY_HISTORY = 1 << 16
 
 
+#: a TRANSFORM translation beyond this (m) is no tracker's: AC trackers reach a few metres
+MAX_RANGE_M = 100.0
+#: largest |RᵀR − I| of a TRANSFORM's rotation (float32 matrices are orthonormal to ~1e-6)
+MAX_ORTHONORMALITY_ERROR = 1e-2
+
+
+def _unusable(kind: str, payload: np.ndarray, length_unit: float) -> str | None:
+    """Why a decoded TRANSFORM or NDARRAY cannot be corrected (None when it can)."""
+    if not np.all(np.isfinite(payload)):
+        return "it holds NaN or inf"
+    if kind == "TRANSFORM":
+        distance = float(np.linalg.norm(payload[:3, 3])) * length_unit
+        if distance > MAX_RANGE_M:
+            return f"its translation is {distance:.3g} m from the source (more than {MAX_RANGE_M:g} m)"
+        R = payload[:3, :3]
+        if np.abs(R.T @ R - np.eye(3)).max() > MAX_ORTHONORMALITY_ERROR or np.linalg.det(R) < 0:
+            return "its rotation part is not a rotation matrix"
+    elif payload.shape == (3, 3) and not np.any(payload):
+        return "the signal matrix is all zeros (a dropout?)"
+    return None
+
+
 @dataclass
 class LiveStats:
-    """Counters of a run; ``latency_s``: per batch (the latest LATENCY_HISTORY), seconds from its bytes arriving to
+    """Counters of a run (``rejected``: decoded messages that cannot be corrected: NaN, all-zero signals,
+    translations beyond MAX_RANGE_M, rotations that are not rotations); ``latency_s``: per batch (the latest LATENCY_HISTORY), seconds from its bytes arriving to
     its results being sent."""
 
     received: int = 0
@@ -54,6 +77,7 @@ class LiveStats:
     unknown: int = 0
     garbage_bytes: int = 0
     bad_messages: int = 0
+    rejected: int = 0
     dropped_for_slow_clients: int = 0
     connections: int = 0
     latency_s: deque = field(default_factory=lambda: deque(maxlen=LATENCY_HISTORY))
@@ -134,7 +158,7 @@ class LiveCorrector:
         sock.setblocking(False)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._upstream = sock
-        self._framer.buffer.clear()  # a partial message from the last connection is not continued by this one
+        self._framer.clear()  # a partial message from the last connection is not continued by this one
         self._selector.register(sock, selectors.EVENT_READ, "upstream")
         self.stats.connections += 1
         self.corrector.reset()
@@ -196,6 +220,12 @@ class LiveCorrector:
                 self.stats.out_of_order += 1
                 self._once(("order", name), f"sensor {name!r}: dropped a message older than (or as old as) the last "
                            "one; this and later ones are counted, not logged")
+                continue
+            problem = _unusable(f.message_type, f.payload, self.length_unit)
+            if problem:
+                self.stats.rejected += 1
+                self._once(("rejected", name), f"sensor {name!r}: dropped a {f.message_type} message: {problem}; "
+                           "later ones are counted, not logged")
                 continue
             self._last_time[name] = f.timestamp
             if f.message_type == "TRANSFORM":
@@ -264,13 +294,22 @@ class LiveCorrector:
         index = np.flatnonzero(sent)
         metadata = [{"ivc_flags": str(int(out.flags[n])), "ivc_predicted": "1" if predicted[n] else "0"}
                     for n in index]
-        messages = encode_transforms([_device(names[n] + self.suffix) for n in index], [stamps[n] for n in index],
+        messages = encode_transforms([self._published_name(names[n]) for n in index], [stamps[n] for n in index],
                                      m[index], metadata)
         tools = {names[n]: m[n] for n in np.flatnonzero(ok & sent)}
         if tools:
             messages.append(TrackingDataMessage(tools, timestamp=stamps[-1], device_name="ivc").pack())
         self._send_all(messages)
         self.stats.published_batches += 1
+
+    def _published_name(self, name: str) -> str:
+        """``<name><suffix>`` within OpenIGTLink's 20 bytes: a long name loses the end of its base, never the
+        suffix (else it would collide with the raw stream's node); said once per name."""
+        published = output_device_name(name, self.suffix)
+        if published != name + self.suffix:
+            self._once(("renamed", name), f"sensor {name!r} is published as {published!r}: OpenIGTLink device "
+                       f"names hold {DEVICE_NAME_BYTES} bytes, so its name was shortened to keep {self.suffix!r}")
+        return published
 
     # ---- downstream ---------------------------------------------------------------------------
     def _accept(self) -> None:
@@ -375,6 +414,9 @@ class LiveCorrector:
         self._selector.close()
 
 
-def _device(name: str) -> str:
-    """OpenIGTLink device names hold 20 bytes."""
-    return name.encode()[:DEVICE_NAME_BYTES].decode(errors="ignore")
+def output_device_name(name: str, suffix: str = "_ivc") -> str:
+    """The device name ``name`` is published under: ``name + suffix`` in at most DEVICE_NAME_BYTES bytes of
+    UTF-8, the base shortened (on a character boundary) when it is too long, the suffix kept whole."""
+    room = DEVICE_NAME_BYTES - len(suffix.encode())
+    base = name.encode()[:max(room, 0)].decode(errors="ignore")
+    return (base + suffix).encode()[:DEVICE_NAME_BYTES].decode(errors="ignore")
