@@ -9,8 +9,9 @@ import numpy as np
 from tqdm import tqdm
 
 from ivc import rotations
-from ivc.cli.paths import refuse_inputs_as_outputs
 from ivc import session as session_io
+from ivc.cli.options import POSITIVE, SIM_FRAMES
+from ivc.cli.paths import refuse_inputs_as_outputs
 from ivc.collect import check_step, replay
 from ivc.session import STEPS, Session, SessionError, Step, Truth
 from ivc.sim import Simulator, load_scene
@@ -104,12 +105,12 @@ def _record(name, sim, kind, argument, frames, rate, declared_position, declared
 @click.option("--source", default="sim", show_default=True, help="sim, sim:SCENE (name or .toml), or replay:FILE "
               "(a session .h5 or a recording .csv).")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Session file to add to.")
-@click.option("--frames", type=int, help="Frames to simulate (default: the step's protocol default).")
-@click.option("--sweep-frames", type=int, help="protocol: frames of the wand sweep (default 100,000).")
-@click.option("--check-frames", type=int, help="protocol: check poses (default 10,000).")
+@click.option("--frames", type=SIM_FRAMES, help="Frames to simulate (default: the step's protocol default).")
+@click.option("--sweep-frames", type=SIM_FRAMES, help="protocol: frames of the wand sweep (default 100,000).")
+@click.option("--check-frames", type=SIM_FRAMES, help="protocol: check poses (default 10,000).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Simulator seed.")
 @click.option("--hemisphere", help="Hemisphere of a replayed recording (default +x; a scene declares its own).")
-@click.option("--rate", type=float, help="Sample rate (Hz) of a replayed CSV (default: inferred from its times).")
+@click.option("--rate", type=POSITIVE, help="Sample rate (Hz) of a replayed CSV (default: inferred from its times).")
 @click.option("--declared-position", callback=_floats(3), help="cube_survey: declared cube position x,y,z in m.")
 @click.option("--declared-quaternion", callback=_floats(4), help="cube_survey: declared cube orientation w,x,y,z.")
 @click.option("--force", is_flag=True, help="Replace a step that is already in the session file.")

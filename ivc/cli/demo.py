@@ -13,6 +13,7 @@ from ivc import session as session_io
 from ivc.cli.collect import collect
 from ivc.cli.evaluate import render_table
 from ivc.cli.fit import render_fit
+from ivc.cli.options import SIM_FRAMES
 from ivc.cli.progress import StageBars
 from ivc.correct.evaluate import evaluate
 from ivc.lut.build import FitOptions
@@ -21,8 +22,8 @@ from ivc.lut.build import FitOptions
 @click.command()
 @click.option("--scene", default="default", show_default=True, help="Built-in scene name or a scene .toml file.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Simulator seed.")
-@click.option("--sweep-frames", type=int, default=100_000, show_default=True, help="Frames of the wand sweep.")
-@click.option("--check-frames", type=int, default=10_000, show_default=True, help="Random check poses.")
+@click.option("--sweep-frames", type=SIM_FRAMES, default=100_000, show_default=True, help="Frames of the wand sweep.")
+@click.option("--check-frames", type=SIM_FRAMES, default=10_000, show_default=True, help="Random check poses.")
 @click.option("--method", type=click.Choice(lut.METHODS), default="harmonic", show_default=True)
 @click.option("--keep", "keep_dir", type=click.Path(file_okay=False),
               help="Keep the session and table in this directory (default: a temporary one, removed).")

@@ -9,8 +9,10 @@ import click
 import numpy as np
 
 from ivc import session as session_io
+from ivc.cli.options import POSITIVE
 from ivc.cli.paths import input_and_output
-from ivc.collect.replay import read_csv, write_csv
+from ivc.collect.checks import rate_warning
+from ivc.collect.replay import read_csv, read_csv_columns, write_csv
 from ivc.predict import FILTERS, TUNABLE, make
 from ivc.predict.base import MAX_HORIZON
 from ivc.predict.evaluate import (
@@ -181,7 +183,7 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
 @click.option("--horizon", default="50ms", show_default=True, help="How far ahead: 50ms, 0.05s, or ms.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), help="Output: session .h5 or .csv, as the input.")
 @click.option("--step", "steps", multiple=True, help="Session input: step(s) to predict (default: all).")
-@click.option("--rate", type=float, help="Sample rate (Hz) of a CSV without a usable time column.")
+@click.option("--rate", type=POSITIVE, help="Sample rate (Hz) of a CSV without a usable time column.")
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists (never the input).")
 @click.option("--benchmark", is_flag=True, help="Evaluate predictors on synthetic head motion and print the "
               "thesis's tables (horizons 0-117 ms).")
@@ -239,10 +241,13 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
     if session_io.is_recording_csv(input_path):
         if not session_io.is_recording_csv(output_path):
             raise click.UsageError("a CSV input is predicted into a CSV output (-o FILE.csv)")
-        step = read_csv(input_path, rate)
+        step, columns = read_csv_columns(input_path, rate)
+        warning = rate_warning(step) if rate is None else None
+        if warning:
+            click.echo(f"warning: {warning}", err=True)
         out = predicted_step(step, name, delta, tune, tuning, tune_from)
         with session_io.atomic_path(output_path) as tmp:
-            write_csv(out, tmp)
+            write_csv(out, tmp, columns.extra, length_unit=columns.length_unit)
         click.echo(f"{input_path.name}: {step.n_frames} frames x {step.n_sensors} sensors predicted "
                    f"{delta * 1e3:g} ms ahead with {name}")
         click.echo(f"wrote {output_path}")

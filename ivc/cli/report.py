@@ -23,9 +23,10 @@ from ivc.report.compute import THIN_SAMPLES
               help="Directory for report.html, report.json and the PNG figures (made if missing).")
 @click.option("--step", default="check", show_default=True,
               help="Step holding the check poses (of CHECK_FILE, else of SESSION_FILE).")
-@click.option("--thin", type=int, default=THIN_SAMPLES, show_default=True,
+@click.option("--thin", type=click.IntRange(1), default=THIN_SAMPLES, show_default=True,
               help="A mapped cell with fewer kept wand samples than this is marked thin.")
-@click.option("--max-frames", type=int, help="Solve at most this many sweep frames, every k-th beyond (default: "
+@click.option("--max-frames", type=click.IntRange(1),
+              help="Solve at most this many sweep frames, every k-th beyond (default: "
               "as the table was fitted).")
 @click.option("--force", is_flag=True, help="Replace an earlier report in the directory.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")

@@ -66,7 +66,8 @@ def _unusable(kind: str, payload: np.ndarray, length_unit: float) -> str | None:
 @dataclass
 class LiveStats:
     """Counters of a run (``rejected``: decoded messages that cannot be corrected: NaN, all-zero signals,
-    translations beyond MAX_RANGE_M, rotations that are not rotations); ``latency_s``: per batch (the latest LATENCY_HISTORY), seconds from its bytes arriving to
+    translations beyond MAX_RANGE_M, rotations that are not rotations);
+    ``latency_s``: per batch (the latest LATENCY_HISTORY), seconds from its bytes arriving to
     its results being sent."""
 
     received: int = 0

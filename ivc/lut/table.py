@@ -16,7 +16,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ivc.errors import LutError
+from ivc.errors import IvcError, LutError
 from ivc.lut.grid import Grid, GridField
 from ivc.session import atomic_path
 from ivc.session.io import open_ivc_file
@@ -45,6 +45,10 @@ class LookupTable:
     provenance: dict = field(default_factory=dict)
 
     def __post_init__(self):
+        for name in ("values", "valid", "support"):
+            kind = np.asarray(getattr(self, name)).dtype.kind
+            if kind not in "biuf":
+                raise LutError(f"table {name}: expected numbers, got dtype {np.asarray(getattr(self, name)).dtype}")
         self.values = np.asarray(self.values, float)
         self.valid = np.asarray(self.valid, bool)
         self.support = np.asarray(self.support, np.int64)
@@ -98,3 +102,7 @@ def read(path: str | os.PathLike) -> LookupTable:
                                json.loads(h5["provenance"].attrs["json"]))
         except KeyError as error:
             raise LutError(f"{path}: missing {error.args[0]}") from None
+        except IvcError as error:
+            raise LutError(f"{path}: {error}") from None
+        except (ValueError, TypeError, IndexError, AttributeError) as error:  # numbers that are not, bad JSON
+            raise LutError(f"{path}: malformed look-up table ({error}); make a new one with `ivc fit`") from None

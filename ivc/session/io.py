@@ -127,6 +127,16 @@ def read(path: str | os.PathLike) -> Session:
         format; the message names the dataset and the problem.
     """
     path = Path(path)
+    try:
+        return _read(path)
+    except SessionError:
+        raise
+    except (ValueError, TypeError, IndexError, KeyError, AttributeError, UnicodeDecodeError) as error:
+        # a dataset or attribute of the wrong kind that no check above names: still the file's fault
+        raise SessionError(f"{path}: malformed session file ({type(error).__name__}: {error})") from None
+
+
+def _read(path: Path) -> Session:
     with open_ivc_file(path, FORMAT_NAME, FORMAT_VERSION, "session file") as (h5, attrs):
         if attrs.get("length_unit", "m") != "m":
             raise SessionError(

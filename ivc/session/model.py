@@ -82,7 +82,8 @@ class Step:
     @property
     def n_sensors(self) -> int:
         data = self.signal if self.signal is not None else self.position
-        return 0 if data is None else int(np.shape(data)[1])
+        shape = np.shape(data) if data is not None else ()
+        return int(shape[1]) if len(shape) >= 2 else 0
 
     @property
     def valid_mask(self) -> NDArray[np.bool_]:
