@@ -25,9 +25,9 @@ _HELP = "; ".join(f"{name}: {text}" for name, (_, _, text) in FORMATS.items())
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists.")
 def export(lut_file, fmt, output, unit, force):
     """Write LUT_FILE in another format; docs/export.md says what each holds and which direction it maps."""
-    table = lut.read(lut_file)
     path = Path(output) if output else Path(lut_file).with_suffix(FORMATS[fmt][1])
     check_output(path, force, {"LUT_FILE": lut_file})
+    table = lut.read(lut_file)
     written = export_table(table, fmt, path, unit=unit, overwrite=force)
     click.echo(f"wrote {written} ({fmt}; {table.grid.shape[0]}x{table.grid.shape[1]}x{table.grid.shape[2]} nodes, "
                f"{table.valid.sum()} mapped)")

@@ -31,8 +31,8 @@ from scipy.spatial.transform import Rotation
 from ivc import rotations
 from ivc.errors import CsvError
 from ivc.session import SessionError, Step, Truth, is_recording_csv
-from ivc.session.model import QUATERNION_NORM_TOLERANCE
 from ivc.session import read as read_session
+from ivc.session.model import QUATERNION_NORM_TOLERANCE
 from ivc.units import LENGTH_UNITS
 
 POSE_COLUMNS = ["x", "y", "z", "qw", "qx", "qy", "qz"]
@@ -264,8 +264,8 @@ def _check_range(path: Path, step: Step, layout: _Layout) -> None:
 
 
 def _checked_quaternions(path: Path, q: np.ndarray, valid: np.ndarray, rows: list[int], layout: _Layout) -> np.ndarray:
-    """Valid samples' quaternions normalised (when off by more than the session format's tolerance); a norm off by more than QUATERNION_TOLERANCE (a zero
-    quaternion, a column in the wrong place) is refused with its line."""
+    """Valid samples' quaternions normalised (when off by more than the session format's tolerance); a norm
+    off by more than QUATERNION_TOLERANCE (a zero quaternion, a column in the wrong place) is refused."""
     if layout.orientation == EULER_COLUMNS:
         return q
     norm = np.linalg.norm(q, axis=1)

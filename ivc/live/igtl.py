@@ -114,6 +114,11 @@ class Framer:
     def feed(self, data: bytes) -> None:
         self.buffer += data
 
+    @property
+    def waiting(self) -> bool:
+        """Whether a header waits for its body (call :meth:`messages` again later: its timeout may resync)."""
+        return self._waiting_since is not None
+
     def clear(self) -> None:
         """Forget any partial message (after a reconnection)."""
         self.buffer.clear()

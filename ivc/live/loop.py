@@ -186,8 +186,11 @@ class LiveCorrector:
         if not data:
             self._disconnect("connection closed")
             return
-        arrived = time.perf_counter()
         self._framer.feed(data)
+        self._drain(time.perf_counter())
+
+    def _drain(self, arrived: float) -> None:
+        """Process the whole messages the framer holds (also while a header waits for its body: its timeout)."""
         frames = self._framer.messages()
         if self._framer.garbage > self.stats.garbage_bytes:  # the framer counts over the whole run
             self._once(("garbage", self.stats.connections), "skipped malformed bytes from the tracking server "
@@ -396,6 +399,8 @@ class LiveCorrector:
                             self._read_upstream()
                     else:
                         self._client_event(key.data, mask)
+                if self._upstream is not None and self._framer.waiting:
+                    self._drain(time.perf_counter())
         finally:
             self.close()
         return self.stats
