@@ -12,6 +12,7 @@ from ivc.cli.options import POSITIVE
 from ivc.cli.paths import input_and_output
 from ivc.cli.predict import check_tuning_rate, parse_horizon, predicted_quaternions, prediction_attrs, requested_tuning
 from ivc.collect.checks import rate_warning
+from ivc.collect.plus import is_plus_sequence, read_plus, write_plus
 from ivc.collect.replay import read_csv_columns, write_csv
 from ivc.correct import Corrector, describe
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, MAX_RESIDUAL, NOT_CONVERGED, OUTSIDE, Correction
@@ -21,6 +22,8 @@ from ivc.predict import FILTERS, Tuning
 from ivc.session import Session, Step
 from ivc.units import LENGTH_UNITS
 
+#: the name of the corrected transforms added to a PLUS sequence
+PLUS_CORRECTED = "{tool}To{tracker}Ivc"
 #: free-space steps: nothing to correct there
 _FREE_SPACE = ("cube_calibration", "wand_calibration")
 
@@ -125,7 +128,11 @@ def _advice(out: Correction, max_residual: float) -> str | None:
 @click.option("--duration", type=POSITIVE, help="With --live: stop after this many seconds (default: until Ctrl-C).")
 def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, force, predictor, horizon,
             tune, tune_from, live_url, publish, length_unit, sensors, rate_hz, duration):
-    """Correct the poses in INPUT_FILE (session .h5 or recording .csv) with LUT_FILE.
+    """Correct the poses in INPUT_FILE (session .h5, recording .csv or PLUS sequence .igs.mha) with LUT_FILE.
+
+    A PLUS sequence (.igs.mha, .seq.mha, .igs.nrrd) is written back with each
+    <Tool>To<Tracker>Transform's correction added as <Tool>To<Tracker>IvcTransform, its
+    status (OK = trusted) and <Tool>To<Tracker>IvcFlags, for Slicer's Sequences module.
 
     Every output sample carries flags: 0 = trusted; 1 outside the mapped volume, 2 not
     converged, 4 residual too high, 8 invalid input (bits combine). Signals are used when
@@ -157,6 +164,10 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     delta = parse_horizon(horizon) if predictor else None
     tuning = requested_tuning(predictor, tune, tune_from)
     table = lut.read(lut_file)
+    if is_plus_sequence(input_path):
+        _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpolation, max_residual, predictor,
+                      delta, tune, tuning, tune_from)
+        return
     if session_io.is_recording_csv(input_path):
         if not session_io.is_recording_csv(output_path):
             raise click.UsageError("a CSV input is corrected into a CSV output (-o FILE.csv)")
@@ -204,6 +215,34 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
                 h5[f"steps/{name}/flags"].attrs["meaning"] = ("0 trusted; bits: 1 outside the mapped volume, "
                                                               "2 not converged, 4 residual too high, 8 invalid input")
                 h5[f"steps/{name}/residual"] = out.residual
+    click.echo(f"wrote {output_path}")
+
+
+def _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpolation, max_residual, predictor, delta,
+                  tune, tuning, tune_from) -> None:
+    """A PLUS sequence in; the same sequence with ``<Tool>To<Tracker>Ivc`` transforms added out (or a CSV, mm)."""
+    same_format = output_path.suffix.lower() == input_path.suffix.lower()
+    if not (same_format or session_io.is_recording_csv(output_path)):
+        raise click.UsageError(f"a PLUS sequence is corrected into a sequence of the same format (-o "
+                               f"FILE{input_path.suffix}) or a CSV (-o FILE.csv)")
+    sequence = read_plus(input_path)
+    step = sequence.step
+    _warn(rate_warning(step))
+    corrector = Corrector(table, hemisphere or table.hemisphere, interpolation, max_residual)
+    out = corrector.batch(step.signal_matrices(), step.valid_mask)
+    fixed = corrected_step(step, out, lut_file)
+    fixed.valid = out.flags == 0
+    if predictor:
+        fixed = _predicted(fixed, out, predictor, delta, tune, tuning, tune_from)
+    with session_io.atomic_path(output_path) as tmp:
+        if session_io.is_recording_csv(output_path):
+            write_csv(fixed, tmp, {"flags": out.flags, "residual": out.residual}, length_unit="mm")
+        else:
+            write_plus(sequence, tmp, {PLUS_CORRECTED: (fixed.position, fixed.quaternion, out.flags)})
+    click.echo(_summary(input_path.name, out))
+    _warn(_advice(out, max_residual))
+    if sequence.other_transforms:
+        _warn(f"not corrected (not to the {sequence.tracker} frame): {', '.join(sequence.other_transforms)}")
     click.echo(f"wrote {output_path}")
 
 

@@ -12,6 +12,7 @@ from ivc import session as session_io
 from ivc.cli.options import POSITIVE
 from ivc.cli.paths import input_and_output
 from ivc.collect.checks import rate_warning
+from ivc.collect.plus import is_plus_sequence, read_plus, write_plus
 from ivc.collect.replay import read_csv, read_csv_columns, write_csv
 from ivc.predict import FILTERS, TUNABLE, make
 from ivc.predict.base import MAX_HORIZON
@@ -117,6 +118,26 @@ def predicted_step(step: Step, name: str, horizon: float, tune: bool = False, tu
     quaternion = predicted_quaternions(step, name, horizon, tune=tune, tuning=tuning)
     return Step(step.time, None, step.position, quaternion, step.valid_mask, step.sample_rate_hz, step.sensor_ids,
                 f"{step.description} (orientation predicted by ivc)".strip(), attrs)
+
+
+def _predict_plus(input_path, output_path, name, delta, tune, tuning, tune_from, rate) -> None:
+    """A PLUS sequence in; the sequence with ``<Tool>To<Tracker>Predicted`` transforms added (or a CSV, mm)."""
+    if not (output_path.suffix.lower() == input_path.suffix.lower() or session_io.is_recording_csv(output_path)):
+        raise click.UsageError(f"a PLUS sequence is predicted into a sequence of the same format (-o "
+                               f"FILE{input_path.suffix}) or a CSV (-o FILE.csv)")
+    sequence = read_plus(input_path)
+    step = sequence.step
+    if rate:
+        step.sample_rate_hz = rate
+    out = predicted_step(step, name, delta, tune, tuning, tune_from)
+    with session_io.atomic_path(output_path) as tmp:
+        if session_io.is_recording_csv(output_path):
+            write_csv(out, tmp, length_unit="mm")
+        else:
+            write_plus(sequence, tmp, {"{tool}To{tracker}Predicted": (out.position, out.quaternion, None)})
+    click.echo(f"{input_path.name}: {step.n_frames} frames x {step.n_sensors} sensors predicted "
+               f"{delta * 1e3:g} ms ahead with {name}")
+    click.echo(f"wrote {output_path}")
 
 
 def run_compensators(seed: int, evaluations: int, as_json: bool) -> None:
@@ -238,6 +259,9 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
     delta = parse_horizon(horizon)
     input_path, output_path = input_and_output(input_file, output, force, [("--tune-from", tune_from)])
     tuning = requested_tuning(name, tune, tune_from)
+    if is_plus_sequence(input_path):
+        _predict_plus(input_path, output_path, name, delta, tune, tuning, tune_from, rate)
+        return
     if session_io.is_recording_csv(input_path):
         if not session_io.is_recording_csv(output_path):
             raise click.UsageError("a CSV input is predicted into a CSV output (-o FILE.csv)")

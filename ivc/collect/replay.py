@@ -29,6 +29,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ivc import rotations
+from ivc.collect.plus import is_plus_sequence, read_plus
 from ivc.errors import CsvError
 from ivc.session import SessionError, Step, Truth, is_recording_csv
 from ivc.session import read as read_session
@@ -348,12 +349,18 @@ def _assemble(path, numbers, sensors, valid, has_pose, has_signal, sample_rate_h
 
 
 def replay(path: str | Path, step_name: str, sample_rate_hz: float | None = None) -> tuple[Step, Truth | None]:
-    """A recorded step from a session file (with its truth, if any) or a recording CSV."""
+    """A recorded step from a session file (with its truth, if any), a recording CSV or a PLUS sequence
+    (``.igs.mha``, ``.seq.nrrd``, ...: :mod:`ivc.collect.plus`)."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such recording")
     if is_recording_csv(path):
         return read_csv(path, sample_rate_hz), None
+    if is_plus_sequence(path):
+        step = read_plus(path).step
+        if sample_rate_hz is not None:
+            step.sample_rate_hz = sample_rate_hz
+        return step, None
     source = read_session(path)
     if step_name not in source.steps:
         have = ", ".join(source.steps) or "no steps"
