@@ -26,6 +26,12 @@ FORMAT_VERSION = 1
 COMPONENTS = ("Gxx", "Gxy", "Gxz", "Gyx", "Gyy", "Gyz", "Gzx", "Gzy", "Gzz")
 
 
+#: what the values G are, in the words every file carries
+FIELD_UNIT = ("normalised dipole units: those of the dipole model f_D(r) = (3 r r^T / |r|^2 - I) / |r|^3 with r in "
+              "metres (column j: the field of source coil j; on a coil's axis at 1 m its component along the axis "
+              "is 2); the secondary field G is in the same units")
+
+
 @dataclass
 class LookupTable:
     """``values`` (nx, ny, nz, 3, 3): ``G[i, j]`` = field component ``i`` of source coil ``j``;
@@ -77,7 +83,7 @@ def write(table: LookupTable, path: str | os.PathLike, *, overwrite: bool = Fals
         raise FileExistsError(f"{path} exists; pass --force to replace it")
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
         h5.attrs.update(ivc_format=FORMAT_NAME, ivc_format_version=FORMAT_VERSION, length_unit="m",
-                        hemisphere=table.hemisphere, field_unit="normalised dipole units (f_D of MATH.md §2)")
+                        hemisphere=table.hemisphere, field_unit=FIELD_UNIT)
         grid = h5.create_group("grid")
         grid.attrs.update(origin=table.grid.origin, spacing=table.grid.spacing, shape=np.array(table.grid.shape),
                           index_order="x slowest, z fastest (seed eq. 105)")
