@@ -57,7 +57,10 @@ class LookupTable:
                 raise LutError(f"table {name}: expected numbers, got dtype {np.asarray(getattr(self, name)).dtype}")
         self.values = np.asarray(self.values, float)
         self.valid = np.asarray(self.valid, bool)
-        self.support = np.asarray(self.support, np.int64)
+        support = np.asarray(self.support)
+        if support.dtype.kind == "f" and not np.all(np.isfinite(support) & (support == np.round(support))):
+            raise LutError("table support: expected whole numbers of samples, got NaN, inf or fractions")
+        self.support = support.astype(np.int64)
         shape = self.grid.shape
         if self.values.shape != (*shape, 3, 3) or self.valid.shape != shape or self.support.shape != shape:
             raise LutError(f"table arrays {self.values.shape}, {self.valid.shape}, {self.support.shape} do not "
@@ -110,5 +113,6 @@ def read(path: str | os.PathLike) -> LookupTable:
             raise LutError(f"{path}: missing {error.args[0]}") from None
         except IvcError as error:
             raise LutError(f"{path}: {error}") from None
-        except (ValueError, TypeError, IndexError, AttributeError) as error:  # numbers that are not, bad JSON
+        except (ValueError, TypeError, IndexError, AttributeError, OSError, RuntimeError) as error:
+            # numbers that are not, bad JSON, a dataset HDF5 cannot read
             raise LutError(f"{path}: malformed look-up table ({error}); make a new one with `ivc fit`") from None
