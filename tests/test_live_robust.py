@@ -158,3 +158,21 @@ def test_a_phantom_header_does_not_lose_the_messages_after_it(exact_table, rng, 
     names, stats, _ = _run_live(exact_table, payloads, 40, caplog)
     assert names.count("S0_ivc") == 40  # every frame after the ghost published
     assert stats.garbage_bytes >= HEADER.size
+
+
+def test_a_large_body_is_crc_checked_piecewise_as_it_arrives():
+    pixels = np.random.default_rng(2).integers(0, 255, (1, 512, 640), dtype=np.uint8)
+    image = bytearray(pyigtl.ImageMessage(pixels, device_name="Video").pack())
+    for corrupt in (False, True):
+        data = bytearray(image)
+        if corrupt:
+            data[len(data) // 2] ^= 0x10  # in a part already checked when the end arrives
+        framer = Framer()
+        stream = bytes(data) + transform(0)
+        frames = []
+        for at in range(0, len(stream), 50_000):
+            framer.feed(stream[at:at + 50_000])
+            frames += framer.messages()
+        kinds = [f.message_type for f in frames]
+        assert kinds == (["TRANSFORM"] if corrupt else ["IMAGE", "TRANSFORM"]), kinds
+        assert (framer.garbage > 0) == corrupt

@@ -34,6 +34,9 @@ MAX_BODY = 1 << 28
 #: seconds a header may wait for its body before the framer looks past it for the next whole, CRC-valid message
 BODY_TIMEOUT_S = 0.1
 DEFAULT_PORT = 18944
+#: bodies at least this long (bytes) have their CRC computed piecewise as they arrive
+INCREMENTAL_CRC_BYTES = 1 << 16
+_CRC_START = CRC64(b"")
 #: where a header may start: version 1-3, then a type name's first character
 _CANDIDATE = re.compile(rb"\x00[\x01-\x03][0-9:;<=>?@A-Z_]")
 
@@ -110,6 +113,8 @@ class Framer:
         self.bad = 0
         self.timeout_s = float(timeout_s)
         self._waiting_since: float | None = None  # when the header at the buffer's start began to wait
+        self._resync_from = 1  # where the search past a waiting header resumes (nothing before it can start one)
+        self._partial: tuple[int, int] | None = None  # (CRC so far, body bytes covered) of the header at 0
 
     def feed(self, data: bytes) -> None:
         self.buffer += data
@@ -123,6 +128,8 @@ class Framer:
         """Forget any partial message (after a reconnection)."""
         self.buffer.clear()
         self._waiting_since = None
+        self._resync_from = 1
+        self._partial = None
 
     def _header_at(self, at: int):
         version, kind, device, seconds, fraction, size, crc = HEADER.unpack_from(self.buffer, at)
@@ -135,6 +142,20 @@ class Framer:
         if size > BODY_LIMITS.get(kind, MAX_BODY) or (version >= 2 and size < _EXTENDED.size):
             return None
         return version, kind, device, seconds, fraction, size, crc
+
+    def _advance_crc(self) -> None:
+        """Extend the running CRC of a large body waiting at the buffer's start over the bytes that arrived,
+        so that a video frame's CRC costs nothing extra when its last bytes come (and tracking messages
+        behind it do not wait for it)."""
+        header = self._header_at(0)
+        if header is None or header[5] < INCREMENTAL_CRC_BYTES:
+            return
+        running, done = self._partial or (_CRC_START, 0)
+        available = min(len(self.buffer) - HEADER_SIZE, header[5])
+        if available > done:
+            with memoryview(self.buffer) as view, view[HEADER_SIZE + done:HEADER_SIZE + available] as part:
+                running = CRC64(part, running)
+            self._partial = (running, available)
 
     def _next_candidate(self, start: int) -> int:
         """Position of the next possible header at or after ``start`` (or where scanning may resume)."""
@@ -151,15 +172,24 @@ class Framer:
         return end <= len(self.buffer) and CRC64(bytes(self.buffer[at + HEADER_SIZE:end])) == header[6]
 
     def _resync_past_stalled_header(self) -> int | None:
-        """Where the first whole, CRC-valid message after the header at 0 starts, or None."""
-        at = 1
+        """Where the first whole, CRC-valid message after the header at 0 starts, or None. The search resumes
+        where the last one left off (at the first header still waiting for its body), so a large body
+        arriving slowly is scanned once, not once per read."""
+        at = self._resync_from
         while len(self.buffer) - at >= HEADER_SIZE:
             at = self._next_candidate(at)
             if len(self.buffer) - at < HEADER_SIZE:
-                return None
-            if self._whole_message_at(at):
-                return at
+                break
+            header = self._header_at(at)
+            if header is not None:
+                end = at + HEADER_SIZE + header[5]
+                if end > len(self.buffer):  # may be whole later: resume here next time
+                    self._resync_from = at
+                    return None
+                if CRC64(bytes(self.buffer[at + HEADER_SIZE:end])) == header[6]:
+                    return at
             at += 1
+        self._resync_from = max(1, len(self.buffer) - HEADER_SIZE + 1)
         return None
 
     def messages(self, now: float | None = None) -> list[Frame]:
@@ -178,17 +208,23 @@ class Framer:
             end = at + HEADER_SIZE + size
             if len(buf) < end:
                 break  # wait for the rest of the body
-            body = bytes(buf[at + HEADER_SIZE:end])
-            if CRC64(body) != crc:
+            if at == 0 and self._partial is not None:  # the CRC of the body's start, computed as it arrived
+                running, done = self._partial
+            else:
+                running, done = _CRC_START, 0
+            with memoryview(buf) as view, view[at + HEADER_SIZE + done:end] as rest:
+                running = CRC64(rest, running)
+            self._partial = None
+            if running != crc:
                 skip = self._next_candidate(at + 1)
                 self.garbage += skip - at
                 at = skip
                 continue
             payload = None
             decoder = _DECODERS.get(kind)
-            if decoder is not None:
+            if decoder is not None:  # the small tracking messages: a copy of the body to decode
                 try:
-                    payload = decoder(_content(version, body))
+                    payload = decoder(_content(version, bytes(buf[at + HEADER_SIZE:end])))
                 except (struct.error, ValueError):
                     self.bad += 1
             name = device.rstrip(b"\0").decode(errors="replace")
@@ -197,7 +233,10 @@ class Framer:
         if at:
             del buf[:at]
             self._waiting_since = None
+            self._resync_from = 1
+            self._partial = None
         if len(buf) >= HEADER_SIZE:  # a header waits for its body
+            self._advance_crc()
             now = time.monotonic() if now is None else now
             if self._waiting_since is None:
                 self._waiting_since = now
@@ -206,7 +245,9 @@ class Framer:
                 if resume is not None:
                     self.garbage += resume
                     del buf[:resume]
+                    self._partial = None
                     self._waiting_since = None
+                    self._resync_from = 1
                     out += self.messages(now)
         return out
 

@@ -177,7 +177,7 @@ class LiveCorrector:
 
     def _read_upstream(self) -> None:
         try:
-            data = self._upstream.recv(1 << 16)
+            data = self._upstream.recv(1 << 20)  # a video frame arrives in a few reads
         except (BlockingIOError, InterruptedError):
             return
         except OSError as error:
