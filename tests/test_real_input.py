@@ -321,3 +321,35 @@ def test_corrected_csv_keeps_extra_columns_the_input_unit_and_a_valid_that_agree
     out = Corrector(exact_table).batch(step.signal)
     ok = out.flags == 0
     np.testing.assert_allclose(corrected.position[ok], out.position[ok], atol=1e-12)
+
+
+# ---- small things a new user trips on ---------------------------------------------------------------------------
+
+def test_a_horizon_without_a_unit_is_refused(tmp_path, rng, lut_file):
+    csv_in = tmp_path / "rec.csv"
+    write_csv(signal_step(rng), csv_in)
+    one_line_refusal(run("predict", csv_in, "-o", tmp_path / "p.csv", "--horizon", "0.05"), "no unit", "0.05ms",
+                     "0.05s")
+    one_line_refusal(run("correct", lut_file, csv_in, "-o", tmp_path / "c.csv", "--predict", "mmdq2",
+                         "--horizon", "50"), "no unit")
+    step = signal_step(rng, 40, 1)
+    p, R = dipole.closed_form_pose(step.signal)
+    poses = tmp_path / "poses.csv"
+    write_csv(Step(step.time, None, p, rotations.from_matrix(R), sensor_ids=["S0"]), poses)
+    result = run("predict", poses, "-o", tmp_path / "p.csv", "--horizon", "0.05s")
+    assert result.exit_code == 0, result.output
+
+
+def test_demo_without_keep_names_no_file_it_deletes_and_draws_no_bars_off_a_terminal():
+    result = run("demo", "--sweep-frames", "3000", "--check-frames", "300")
+    assert result.exit_code == 0, result.output
+    assert "ivc-demo-" not in result.output and "demo.h5" not in result.output
+    assert "\r" not in result.output and "it/s" not in result.output  # no tqdm fragments in a log
+    assert "ivc demo finished" in result.output
+
+
+def test_refine_is_shown_as_the_default():
+    help_text = run("fit", "--help").output
+    assert "[default: refine]" in help_text
+    readme = (ROOT / "README.md").read_text()
+    assert "[--no-refine]" in readme

@@ -12,6 +12,7 @@ from ivc import rotations
 from ivc import session as session_io
 from ivc.cli.options import POSITIVE, SIM_FRAMES
 from ivc.cli.paths import refuse_inputs_as_outputs
+from ivc.cli.progress import ON_TERMINAL
 from ivc.collect import check_step, replay
 from ivc.session import STEPS, Session, SessionError, Step, Truth
 from ivc.sim import Simulator, load_scene
@@ -57,7 +58,7 @@ class _SimulatorProgress:
         click.echo(f"Solving eddy currents in scene {self.scene.name!r} ...", err=True)
         field = self.simulator.secondary
         if field.dipoles is not None and field.roi is not None:
-            with tqdm(desc="tabulating the secondary field", unit="slab", leave=False) as bar:
+            with tqdm(desc="tabulating the secondary field", unit="slab", leave=False, disable=ON_TERMINAL) as bar:
 
                 def advance(done: int, total: int) -> None:
                     bar.total = total
@@ -114,8 +115,10 @@ def _record(name, sim, kind, argument, frames, rate, declared_position, declared
 @click.option("--declared-position", callback=_floats(3), help="cube_survey: declared cube position x,y,z in m.")
 @click.option("--declared-quaternion", callback=_floats(4), help="cube_survey: declared cube orientation w,x,y,z.")
 @click.option("--force", is_flag=True, help="Replace a step that is already in the session file.")
+@click.option("--name-output/--no-name-output", "name_output", default=True, hidden=True,
+              help="Print the output's path (ivc demo: not for a temporary file it deletes).")
 def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemisphere, rate, declared_position,
-            declared_quaternion, force):
+            declared_quaternion, force, name_output=True):
     """Record protocol STEP (or the whole `protocol`) into the session file OUTPUT.
 
     The protocol (seed 001 ch. 4.4.3): cube_calibration (free space), cube_survey (cube at
@@ -135,7 +138,7 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
             raise FileExistsError(f"{output}: exists; choose a new file or pass --force to replace it")
         counts = {"wand_sweep": sweep_frames, "check": check_frames}
         collected = Session(hemisphere=hemisphere, attrs={"scene": sim.scene.name, "seed": seed})
-        for name in tqdm(STEPS, desc="protocol", unit="step"):
+        for name in tqdm(STEPS, desc="protocol", unit="step", disable=ON_TERMINAL):
             new, truth = _record(name, sim, kind, argument, counts.get(name, frames), rate, declared_position,
                                  declared_quaternion)
             for warning in check_step(name, new, collected, hemisphere):
@@ -146,7 +149,7 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
         session_io.write(collected, output, overwrite=force)
         for name in STEPS:
             click.echo(_summary(name, collected.steps[name], collected.truth.get(name)))
-        click.echo(f"wrote {output}")
+        click.echo(f"wrote {output}" if name_output else "wrote the session")
         return
     existing = session_io.read(output) if output.exists() else None
     if existing is not None and step in existing.steps and not force:

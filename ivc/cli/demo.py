@@ -39,10 +39,11 @@ def demo(ctx, scene, seed, sweep_frames, check_frames, method, keep_dir, force):
         for existing in (session_file, table_file):
             if existing.exists() and not force:
                 raise FileExistsError(f"{existing} exists; pass --force to replace it, or --keep another directory")
-        click.echo(f"1/3 collect: simulating scene {scene!r} (seed {seed}) into {session_file}", err=True)
+        into = f" into {session_file}" if keep_dir else ""  # a temporary file is deleted: no path to print
+        click.echo(f"1/3 collect: simulating scene {scene!r} (seed {seed}){into}", err=True)
         ctx.invoke(collect, step="protocol", source=f"sim:{scene}", output=str(session_file), frames=None,
                    sweep_frames=sweep_frames, check_frames=check_frames, seed=seed, hemisphere=None, rate=None,
-                   declared_position=None, declared_quaternion=None, force=force)
+                   declared_position=None, declared_quaternion=None, force=force, name_output=bool(keep_dir))
         click.echo(f"2/3 fit: {method} look-up table", err=True)
         data = session_io.read(session_file)
         fit_start = time.perf_counter()

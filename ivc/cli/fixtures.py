@@ -9,6 +9,7 @@ from tqdm import tqdm
 
 from ivc import session as session_io
 from ivc.cli.options import POSITIVE
+from ivc.cli.progress import ON_TERMINAL
 from ivc.fixtures import VERTEX_CHOICES
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import Gates
@@ -88,7 +89,8 @@ def fixtures(session_file, vertices, interpolant, method, max_residual, max_erro
     data = session_io.read(session_file)
     frames = data.steps["wand_sweep"].n_frames if "wand_sweep" in data.steps else 0
     gates = Gates(max_residual=max_residual, max_error=max_error_mm / 1000)
-    with tqdm(total=frames, desc="solving the sweep", unit="frame", leave=False, disable=as_json) as bar:
+    with tqdm(total=frames, desc="solving the sweep", unit="frame", leave=False,
+              disable=True if as_json else ON_TERMINAL) as bar:
         report = fixture_report(data, vertices, method, gates, compare_cubes, progress=bar.update,
                                 interpolant=interpolant)
     click.echo(json.dumps(report, indent=2) if as_json else render(report))

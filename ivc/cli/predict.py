@@ -11,6 +11,7 @@ import numpy as np
 from ivc import session as session_io
 from ivc.cli.options import POSITIVE
 from ivc.cli.paths import input_and_output
+from ivc.cli.progress import ON_TERMINAL
 from ivc.collect.checks import rate_warning
 from ivc.collect.plus import is_plus_sequence, read_plus, write_plus
 from ivc.collect.replay import read_csv, read_csv_columns, write_csv
@@ -35,8 +36,11 @@ BENCHMARK_FILTERS = ("none", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", 
 
 
 def parse_horizon(text: str) -> float:
-    """'50ms', '0.05s' or '50' (ms) -> seconds."""
+    """'50ms' or '0.05s' -> seconds; a bare number is refused (0.05 read as ms would be 50 µs)."""
     match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(ms|s)?\s*", str(text))
+    if match and not match.group(2):
+        raise click.BadParameter(f"{text!r} has no unit: write {text.strip()}ms or {text.strip()}s",
+                                 param_hint="--horizon")
     if not match:
         raise click.BadParameter(f"{text!r}: give a horizon like 50ms or 0.05s")
     value = float(match.group(1)) * (1.0 if match.group(2) == "s" else 1e-3)
@@ -150,7 +154,8 @@ def run_compensators(seed: int, evaluations: int, as_json: bool) -> None:
     records = compensator.yaw_records(seed=seed)
     designs, counts = {"default": np.array(DEFAULT_W)}, {}
     for name in ("twist", "hybrid"):
-        with tqdm(total=evaluations, desc=f"Powell: {name} design", unit="cost", leave=False) as bar:
+        with tqdm(total=evaluations, desc=f"Powell: {name} design", unit="cost", leave=False,
+                  disable=ON_TERMINAL) as bar:
             designs[name], result = compensator.optimise(name, records, max_evaluations=evaluations,
                                                          progress=bar.update)
         counts[name] = int(result.nfev)
@@ -173,7 +178,7 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
     tuning = synthetic(frames, rate, seed) if tune else None
     if tuning is not None and not as_json:
         click.echo(tuning.summary() + "\n")
-    for motion, name in tqdm(runs, desc="benchmark", unit="run", leave=False):
+    for motion, name in tqdm(runs, desc="benchmark", unit="run", leave=False, disable=ON_TERMINAL):
         if motion not in recordings:
             recordings[motion] = head_motion(motion, frames, rate, seed=seed)
         h = recordings[motion]
@@ -201,7 +206,7 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
 @click.argument("input_file", required=False, type=click.Path(dir_okay=False))
 @click.option("--filter", "filters", multiple=True, type=click.Choice(list(FILTERS)),
               help="Predictor (default mmdq2). With --benchmark: repeat to choose several (default: all but nasa-ekf).")
-@click.option("--horizon", default="50ms", show_default=True, help="How far ahead: 50ms, 0.05s, or ms.")
+@click.option("--horizon", default="50ms", show_default=True, help="How far ahead, with its unit: 50ms or 0.05s.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), help="Output: session .h5 or .csv, as the input.")
 @click.option("--step", "steps", multiple=True, help="Session input: step(s) to predict (default: all).")
 @click.option("--rate", type=POSITIVE, help="Sample rate (Hz) of a CSV without a usable time column.")
