@@ -38,7 +38,7 @@ WIDTH, HEIGHT = 1280, 1024
 
 def _matrices(table, frames: int, rng) -> np.ndarray:
     """Reported poses (frames, tools, 4, 4), mm, float32: the tools wander in the mapped ball."""
-    from tests.test_lut import CENTRE
+    from tests.helpers import CENTRE
 
     t = np.arange(frames)[:, None] / RATE_HZ
     phase = rng.uniform(0, 2 * np.pi, (len(TOOLS), 3))

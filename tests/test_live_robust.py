@@ -14,7 +14,7 @@ from ivc.correct import Corrector
 from ivc.live import LiveCorrector, NDArrayMessage
 from ivc.live.igtl import BODY_LIMITS, HEADER, Framer
 from ivc.live.loop import output_device_name
-from tests.test_correct import distorted, exact_table  # noqa: F401  (fixture)
+from tests.helpers import distorted
 from tests.test_live import reported_matrices
 
 

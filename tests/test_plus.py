@@ -15,7 +15,6 @@ from ivc.cli import cli
 from ivc.collect import PlusError, read_csv, read_plus, replay, write_plus
 from ivc.correct import Corrector
 from ivc.lut import write as write_lut
-from tests.test_correct import exact_table  # noqa: F401  (fixture)
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "plus"
 FILES = ["Prostate10_tracker.igs.mha", "WaterTankBottomTranslationTrackerBuffer-trimmed.igs.mha"]

@@ -24,7 +24,7 @@ from ivc.lut import read as read_lut
 from ivc.lut import write as write_lut
 from ivc.lut.build import FitOptions, check_grid_memory, fit_lut
 from ivc.session import Step
-from tests.test_correct import distorted, exact_table  # noqa: F401  (fixture)
+from tests.helpers import distorted
 
 ROOT = Path(__file__).resolve().parents[1]
 
