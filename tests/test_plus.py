@@ -160,3 +160,10 @@ def test_a_status_other_than_ok_is_invalid_whatever_the_matrix(tmp_path):
     step = read_plus(path).step
     assert step.valid[:, 0].tolist() == [True, False, False]
     assert step.position[0, 0].tolist() == [0.1, 0.0, 0.0]
+
+
+def test_info_summarises_a_plus_file():
+    path = real(FILES[1])
+    result = CliRunner().invoke(cli, ["info", str(path)])
+    assert result.exit_code == 0, result.output
+    assert "PLUS sequence, 801 frames x 3 sensors" in result.output

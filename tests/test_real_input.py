@@ -353,3 +353,10 @@ def test_refine_is_shown_as_the_default():
     assert "[default: refine]" in help_text
     readme = (ROOT / "README.md").read_text()
     assert "[--no-refine]" in readme
+
+
+def test_a_session_step_with_a_repeated_time_is_refused(tmp_path, rng):
+    step = signal_step(rng, 5, 1)
+    step.time = np.array([0.0, 0.1, 0.1, 0.2, 0.3])
+    with pytest.raises(SessionError, match="frame 2 repeats the time"):
+        session_io.write(session_io.Session(steps={"check": step}), tmp_path / "s.h5")

@@ -216,6 +216,9 @@ def validate_step(name: str, step: Step) -> None:
         raise SessionError(f"{base}/time: holds NaN or inf")
     if np.any(np.diff(time) < 0):
         raise SessionError(f"{base}/time: goes backwards at frame {int(np.argmax(np.diff(time) < 0)) + 1}")
+    if np.any(np.diff(time) == 0):
+        raise SessionError(f"{base}/time: frame {int(np.argmax(np.diff(time) == 0)) + 1} repeats the time of the "
+                           "frame before; each frame needs its own time")
     if step.signal is None and step.position is None and step.quaternion is None:
         raise SessionError(f"{base}: holds neither signal nor position + quaternion")
     if (step.position is None) != (step.quaternion is None):
