@@ -177,10 +177,12 @@ def _vrui(table: LookupTable, path: Path, unit: str) -> None:
 FORMATS: dict[str, tuple[Callable[[LookupTable, Path, str], None], str, str]] = {
     "hdf5": (_hdf5, ".h5", "the canonical table (ivc's own format)"),
     "npz": (_npz, ".npz", "NumPy arrays"),
-    "csv": (_csv, ".csv", "one row per node, seed eq. 105 order, header with grid and units"),
+    "csv": (_csv, ".csv", "one row per node, seed eq. 105 order, under a plain header row; grid and units in "
+                          "FILE.csv.json"),
     "vti": (_vti, ".vti", "VTK image data for ParaView"),
     "slicer": (_slicer, ".nrrd", "displacement-field transform (LPS, mm) for 3D Slicer"),
-    "vrui": (_vrui, ".grid", "Vrui ForwardGridCalibrator grid"),
+    "vrui": (_vrui, ".grid", "Vrui ForwardGridCalibrator grid, in the --unit of the tracker driver, ringed by "
+                             "invalid vertices"),
 }
 
 
