@@ -56,7 +56,7 @@ def _image() -> bytes:
     return pyigtl.ImageMessage(pixels, device_name="Video").pack()
 
 
-def _source(sock, matrices, image, sent) -> int:
+def _source(sock, matrices, image, sent, fps=FPS) -> int:
     """Tracking frame k at k / RATE_HZ, an image whenever one is due before it; sent[k] = its send time.
     Returns the number of images sent."""
     names = [f"{tool}ToTracker" for tool in TOOLS]
@@ -66,8 +66,8 @@ def _source(sock, matrices, image, sent) -> int:
     images = 0
     for k, frame in enumerate(frames):
         due = start + k / RATE_HZ
-        while images / FPS <= k / RATE_HZ:  # the next image is due before this frame
-            while (wait := start + images / FPS - time.perf_counter()) > 0:
+        while fps and images / fps <= k / RATE_HZ:  # the next image is due before this frame
+            while (wait := start + images / fps - time.perf_counter()) > 0:
                 time.sleep(min(wait, 0.001) if wait > 0.0015 else 0)
             sock.sendall(image)
             images += 1
@@ -100,7 +100,7 @@ def _consumer(sock, arrived, suffix, stop) -> None:
                     arrived[k, n] = now
 
 
-def _stream(matrices, image, connect_consumer, suffix):
+def _stream(matrices, image, connect_consumer, suffix, fps=FPS):
     listener = socket.create_server(("127.0.0.1", 0))
     consumer = connect_consumer(listener.getsockname()[1])
     upstream, _ = listener.accept()
@@ -110,7 +110,7 @@ def _stream(matrices, image, connect_consumer, suffix):
     stop = threading.Event()
     reader = threading.Thread(target=_consumer, args=(consumer, arrived, suffix, stop))
     reader.start()
-    images = _source(upstream, matrices, image, sent)
+    images = _source(upstream, matrices, image, sent, fps)
     time.sleep(0.5)
     stop.set()
     reader.join()
@@ -125,6 +125,36 @@ def _connect(port, timeout=0.2):
     return s
 
 
+def _through_ivc(lut_path, matrices, image, fps):
+    """The stream through ``ivc correct --live`` in its own process: (latency, images sent, its stderr)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        publish_port = probe.getsockname()[1]
+    procs = {}
+
+    def connect(port):
+        procs["ivc"] = subprocess.Popen(
+            [sys.executable, "-m", "ivc.cli", "correct", str(lut_path), "--live", f"igtl://127.0.0.1:{port}",
+             "--publish", f"127.0.0.1:{publish_port}"], stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                return _connect(publish_port)
+            except OSError:
+                if time.monotonic() > deadline or procs["ivc"].poll() is not None:
+                    raise RuntimeError("ivc correct --live did not start") from None
+                time.sleep(0.05)
+
+    latency, images = _stream(matrices, image, connect, "_ivc", fps)
+    procs["ivc"].send_signal(signal.SIGINT)
+    try:
+        _, err = procs["ivc"].communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        procs["ivc"].kill()
+        _, err = procs["ivc"].communicate()
+    return latency, images, err
+
+
 def run() -> list[Figure]:
     seconds = float(os.environ.get("IVC_LIVE_SECONDS", 30))
     frames = int(seconds * RATE_HZ)
@@ -136,31 +166,9 @@ def run() -> list[Figure]:
     with tempfile.TemporaryDirectory() as tmp:
         lut_path = Path(tmp) / "map.h5"
         write_lut(table, lut_path)
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            publish_port = probe.getsockname()[1]
-        procs = {}
-
-        def through_ivc(port):
-            procs["ivc"] = subprocess.Popen(
-                [sys.executable, "-m", "ivc.cli", "correct", str(lut_path), "--live", f"igtl://127.0.0.1:{port}",
-                 "--publish", f"127.0.0.1:{publish_port}"], stderr=subprocess.PIPE, text=True)
-            deadline = time.monotonic() + 60
-            while True:
-                try:
-                    return _connect(publish_port)
-                except OSError:
-                    if time.monotonic() > deadline or procs["ivc"].poll() is not None:
-                        raise RuntimeError("ivc correct --live did not start") from None
-                    time.sleep(0.05)
-
-        latency, images = _stream(matrices, image, through_ivc, "_ivc")
-        procs["ivc"].send_signal(signal.SIGINT)
-        try:
-            _, err = procs["ivc"].communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            procs["ivc"].kill()
-            _, err = procs["ivc"].communicate()
+        latency, images, err = _through_ivc(lut_path, matrices, image, FPS)
+        # reference, same run: the tracking stream alone through ivc (what the images add)
+        alone, _, _ = _through_ivc(lut_path, matrices[: int(10 * RATE_HZ)], image, 0.0)
     dropped = int(np.sum(np.any(np.isnan(latency), axis=1)))
     median, p99 = (float(np.nanpercentile(latency, q)) * 1e3 for q in (50, 99))
     hops, hops99 = (float(np.nanpercentile(baseline, q)) * 1e3 for q in (50, 99))
@@ -174,4 +182,8 @@ def run() -> list[Figure]:
                p99 <= 10.0, higher_is_better=False),
         Figure(f"{label}, dropped tracking frames of {frames}", dropped, "frames", "", float("nan"), "0",
                dropped == 0, higher_is_better=False),
+        Figure("(reference) the tracking alone through ivc, median", float(np.nanmedian(alone)) * 1e3, "ms",
+               "same stream, hops alone", hops, "", None, higher_is_better=False),
+        Figure("(reference) the tracking alone through ivc, p99", float(np.nanpercentile(alone, 99)) * 1e3, "ms",
+               "same stream, hops alone p99", hops99, "", None, higher_is_better=False),
     ]
