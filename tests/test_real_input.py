@@ -266,8 +266,9 @@ def test_a_partial_signal_column_set_is_refused(tmp_path):
 def test_unsorted_or_repeated_times_are_refused(tmp_path, order):
     rows = _rows()
     path = _pose_csv(tmp_path / "shuffled.csv", [rows[k] for k in order])
-    with pytest.raises(CsvError, match="time order"):
+    with pytest.raises(CsvError, match="time order") as refused:
         read_csv(path)
+    assert "np.float64" not in str(refused.value) and "line 4: time " in str(refused.value)
     with pytest.raises(CsvError, match="time order"):
         read_csv(path, 240.0)  # --rate does not excuse them
 

@@ -231,8 +231,8 @@ def _times(path: Path, frames: list[dict], key: str, required: bool, ordered: bo
         raise PlusError(f"{path}: a {key} is NaN or inf")
     if ordered and len(t) > 1 and not np.all(np.diff(t) > 0):
         k = int(np.argmax(~(np.diff(t) > 0))) + 1
-        raise PlusError(f"{path}: Seq_Frame{k:04d}_{key} = {t[k]!r} s is not after the previous frame's "
-                        f"({t[k - 1]!r} s): frames must be in time order, each time once")
+        raise PlusError(f"{path}: Seq_Frame{k:04d}_{key} = {float(t[k])!r} s is not after the previous frame's "
+                        f"({float(t[k - 1])!r} s): frames must be in time order, each time once")
     return t
 
 

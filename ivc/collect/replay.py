@@ -322,8 +322,9 @@ def _assemble(path, numbers, sensors, valid, has_pose, has_signal, sample_rate_h
     if len(repeated):
         f = int(repeated[0]) + 1
         what = "repeats" if time[f] == time[f - 1] else "is earlier than"
-        raise CsvError(f"{path}: line {rows[f * N]}: time {time[f]!r} s {what} the previous frame's ({time[f - 1]!r} "
-                       "s): frames must be in time order, each time once (sort the file, or remove the duplicates)")
+        raise CsvError(f"{path}: line {rows[f * N]}: time {float(time[f])!r} s {what} the previous frame's "
+                       f"({float(time[f - 1])!r} s): frames must be in time order, each time once (sort the file, "
+                       "or remove the duplicates)")
     column = 1
     position = quaternion = signal = None
     if has_pose:
