@@ -361,3 +361,17 @@ def test_a_session_step_with_a_repeated_time_is_refused(tmp_path, rng):
     step.time = np.array([0.0, 0.1, 0.1, 0.2, 0.3])
     with pytest.raises(SessionError, match="frame 2 repeats the time"):
         session_io.write(session_io.Session(steps={"check": step}), tmp_path / "s.h5")
+
+
+def test_evaluate_and_report_survive_an_all_zero_signal(tmp_path):
+    samples = ROOT / "sample_data" / "recordings"
+    data = session_io.read(samples / "default_room_check.h5")
+    data.steps["check"].signal[5, 0] = 0.0  # a dropout in a sample marked valid
+    check = tmp_path / "zero.h5"
+    session_io.write(data, check)
+    lut_path = samples / "default_room_lut.h5"
+    result = run("evaluate", lut_path, check, "--json")
+    assert result.exit_code == 0, result.output
+    result = run("report", check, lut_path, "-o", tmp_path / "report")
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "report" / "report.html").exists()
