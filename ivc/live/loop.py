@@ -47,20 +47,35 @@ MAX_RANGE_M = 100.0
 MAX_ORTHONORMALITY_ERROR = 1e-2
 
 
-def _unusable(kind: str, payload: np.ndarray, length_unit: float) -> str | None:
-    """Why a decoded TRANSFORM or NDARRAY cannot be corrected (None when it can)."""
-    if not np.all(np.isfinite(payload)):
-        return "it holds NaN or inf"
-    if kind == "TRANSFORM":
-        distance = float(np.linalg.norm(payload[:3, 3])) * length_unit
-        if distance > MAX_RANGE_M:
-            return f"its translation is {distance:.3g} m from the source (more than {MAX_RANGE_M:g} m)"
-        R = payload[:3, :3]
-        if np.abs(R.T @ R - np.eye(3)).max() > MAX_ORTHONORMALITY_ERROR or np.linalg.det(R) < 0:
-            return "its rotation part is not a rotation matrix"
-    elif payload.shape == (3, 3) and not np.any(payload):
-        return "the signal matrix is all zeros (a dropout?)"
-    return None
+def _unusable(frames, length_unit: float) -> dict[int, str]:
+    """{index in ``frames``: why that decoded TRANSFORM or NDARRAY cannot be corrected}, checked for all the
+    frames of a read at once (NaN or inf, a translation beyond MAX_RANGE_M, a rotation part that is not a
+    rotation, an all-zero signal matrix)."""
+    problems: dict[int, str] = {}
+    transforms = [k for k, f in enumerate(frames) if f.message_type == "TRANSFORM" and f.payload is not None]
+    if transforms:
+        m = np.array([frames[k].payload for k in transforms])
+        with np.errstate(all="ignore"):
+            finite = np.all(np.isfinite(m.reshape(len(m), 16)), axis=1)
+            distance = np.linalg.norm(m[:, :3, 3], axis=1) * length_unit
+            R = m[:, :3, :3]
+            off = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
+            determinant = np.linalg.det(np.where(finite[:, None, None], R, np.eye(3)))
+            rotation = (off <= MAX_ORTHONORMALITY_ERROR) & (determinant > 0)
+        for n, k in enumerate(transforms):
+            if not finite[n]:
+                problems[k] = "it holds NaN or inf"
+            elif not distance[n] <= MAX_RANGE_M:
+                problems[k] = f"its translation is {distance[n]:.3g} m from the source (more than {MAX_RANGE_M:g} m)"
+            elif not rotation[n]:
+                problems[k] = "its rotation part is not a rotation matrix"
+    for k, f in enumerate(frames):
+        if f.message_type == "NDARRAY" and f.payload is not None:
+            if not np.all(np.isfinite(f.payload)):
+                problems[k] = "it holds NaN or inf"
+            elif f.payload.shape == (3, 3) and not np.any(f.payload):
+                problems[k] = "the signal matrix is all zeros (a dropout?)"
+    return problems
 
 
 @dataclass
@@ -207,7 +222,8 @@ class LiveCorrector:
         """(device, timestamp, signal matrix (3, 3)) of the usable tracking messages, in arrival order."""
         names, times, signals = [], [], []
         poses, positions, rotations_ = [], [], []  # the TRANSFORM samples: index, position (m), rotation
-        for f in frames:
+        problems = _unusable(frames, self.length_unit)
+        for k, f in enumerate(frames):
             if f.message_type not in ("TRANSFORM", "NDARRAY"):
                 self._once(("type", f.message_type), f"ignoring {f.message_type} messages (expected TRANSFORM poses "
                            "or NDARRAY 3x3 signal matrices)", logging.INFO)
@@ -225,7 +241,7 @@ class LiveCorrector:
                 self._once(("order", name), f"sensor {name!r}: dropped a message older than (or as old as) the last "
                            "one; this and later ones are counted, not logged")
                 continue
-            problem = _unusable(f.message_type, f.payload, self.length_unit)
+            problem = problems.get(k)
             if problem:
                 self.stats.rejected += 1
                 self._once(("rejected", name), f"sensor {name!r}: dropped a {f.message_type} message: {problem}; "
