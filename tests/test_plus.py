@@ -167,3 +167,37 @@ def test_info_summarises_a_plus_file():
     result = CliRunner().invoke(cli, ["info", str(path)])
     assert result.exit_code == 0, result.output
     assert "PLUS sequence, 801 frames x 3 sensors" in result.output
+
+
+NRRD = b"""NRRD0004
+# Complete NRRD file format specification at:
+type: uint8
+dimension: 3
+sizes: 1 1 2
+kinds: domain domain list
+encoding: raw
+Seq_Frame0000_ToolToTrackerTransform:=1 0 0 100 0 1 0 0 0 0 1 0 0 0 0 1
+Seq_Frame0000_ToolToTrackerTransformStatus:=OK
+Seq_Frame0000_Timestamp:=1.0
+Seq_Frame0001_ToolToTrackerTransform:=0 -1 0 120 1 0 0 5 0 0 1 0 0 0 0 1
+Seq_Frame0001_ToolToTrackerTransformStatus:=OK
+Seq_Frame0001_Timestamp:=1.5
+
+\x07\x09"""
+
+
+def test_an_nrrd_sequence_reads_and_writes_back_for_pynrrd(tmp_path):
+    nrrd = pytest.importorskip("nrrd")
+    path = tmp_path / "in.seq.nrrd"
+    path.write_bytes(NRRD)
+    sequence = read_plus(path)
+    assert sequence.nrrd and sequence.data == b"\x07\x09"
+    np.testing.assert_allclose(sequence.step.position[:, 0], [[0.1, 0, 0], [0.12, 0.005, 0]])
+    out = tmp_path / "out.seq.nrrd"
+    write_plus(sequence, out, {"{tool}To{tracker}Ivc": (sequence.step.position, sequence.step.quaternion, None)})
+    data, header = nrrd.read(str(out))
+    assert data.shape == (1, 1, 2) and data.ravel().tolist() == [7, 9]
+    m = np.array(header["Seq_Frame0001_ToolToTrackerIvcTransform"].split(), float).reshape(4, 4)
+    np.testing.assert_allclose(m[:3, 3], [120, 5, 0], atol=1e-6)
+    again = read_plus(out)
+    np.testing.assert_array_equal(again.step.position, sequence.step.position)
