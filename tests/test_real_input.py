@@ -341,6 +341,7 @@ def test_a_horizon_without_a_unit_is_refused(tmp_path, rng, lut_file):
     assert result.exit_code == 0, result.output
 
 
+@pytest.mark.slow
 def test_demo_without_keep_names_no_file_it_deletes_and_draws_no_bars_off_a_terminal():
     result = run("demo", "--sweep-frames", "3000", "--check-frames", "300")
     assert result.exit_code == 0, result.output
