@@ -11,6 +11,7 @@ import click
 import numpy as np
 from tqdm import tqdm
 
+from ivc.cli.progress import ON_TERMINAL
 from ivc.collect.ilemt import read_ilemt, stack
 from ivc.collect.rig_csv import read_rig_csv
 from ivc.dipole.calibrate import calibrate as fit_tracker
@@ -97,7 +98,7 @@ def calibrate(recordings, output, one_centre, bias, no_output_correction, source
     compensate = not no_stage_compensation
     _, S, J_so, J_st = _load(recordings, carrier, compensate)
     start = time.perf_counter()
-    with tqdm(desc="calibrating", unit="iteration", leave=False, disable=as_json) as bar:
+    with tqdm(desc="calibrating", unit="iteration", leave=False, disable=True if as_json else ON_TERMINAL) as bar:
         result = fit_tracker(S, J_so, J_st, offsets=not one_centre, bias=bias,
                              output_correction=not no_output_correction, source_motions=source_motions,
                              progress=lambda iteration, cost: bar.update(1))
