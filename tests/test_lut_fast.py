@@ -74,3 +74,23 @@ def test_field_samples_roundtrip_through_the_fit_unchanged(rng):
     fh.fit_harmonic(samples, degree=3)
     np.testing.assert_array_equal(samples.positions, before.positions)
     np.testing.assert_array_equal(samples.fields, before.fields)
+
+
+def test_compiled_rigid_solve_equals_numpy(small_session):
+    from ivc.fixtures.mapping import FixtureModel, Gates, map_sweep
+    from ivc.lut.refine import solve_rigid
+
+    _, session = small_session
+    table = fit_lut(session, FitOptions(min_support=5))
+    model = FixtureModel.from_session(session)
+    part = session.select_frames("wand_sweep", slice(0, 600))
+    mapping = map_sweep(part, model, Gates())
+    sweep = part.steps["wand_sweep"]
+    args = (sweep.signal_matrices(), sweep.valid_mask, model.wand, model.interpolant.value_and_jacobian, table.field(),
+            mapping.positions[:, 0], mapping.rotations[:, 0])
+    r, T, ok = solve_rigid(*args)
+    r_ref, T_ref, ok_ref = solve_rigid(*args, compiled=False)
+    assert ok.mean() > 0.95
+    np.testing.assert_array_equal(ok, ok_ref)
+    np.testing.assert_allclose(r[ok], r_ref[ok], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(T[ok], T_ref[ok], rtol=0, atol=1e-9)
