@@ -53,10 +53,10 @@ def cli(ctx: click.Context, debug: bool) -> None:
 
 
 def _register() -> None:
-    from ivc.cli import collect, correct, demo, evaluate, export, fit, fixtures, info, predict, report
+    from ivc.cli import collect, correct, demo, evaluate, export, fit, fixtures, info, predict, report, warmup
 
     for command in (collect.collect, correct.correct, demo.demo, evaluate.evaluate, export.export, fit.fit,
-                    fixtures.fixtures, info.info, predict.predict, report.report):
+                    fixtures.fixtures, info.info, predict.predict, report.report, warmup.warmup):
         cli.add_command(command)
 
 

@@ -18,8 +18,18 @@ from ivc.lut._kernels import grid_point
 
 FIXED_POINT_STEPS = 2
 
+# The helpers below are plain (not numba-inlined) functions: LLVM still inlines what pays, but numba
+# no longer copies their IR into every call site, which made the first compile of the correction
+# kernels take minutes (the cold start of `ivc correct`).
 
-@numba.njit(inline="always")
+
+@numba.njit
+def _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K):
+    """ivc.dipole's closed-form pose of one frame, compiled once here rather than inlined at each use."""
+    closed_form_one(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
+
+
+@numba.njit
 def _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz):
     """M = f_D(r) + g(r) (3, 3) and ∂M/∂r (3, 3, 3); returns whether r is in the mapped volume."""
     x, y, z = r[0], r[1], r[2]
@@ -47,7 +57,7 @@ def _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, 
     return mapped
 
 
-@numba.njit(inline="always")
+@numba.njit
 def _residual(S, M, dM, T, e, J):
     """e = S − Tᵀ M (9,) and its Jacobian (9, 6) in (δr, ω)."""
     for i in range(3):
@@ -92,7 +102,7 @@ def _solve6(A, b, x):
     return True
 
 
-@numba.njit(inline="always")
+@numba.njit
 def _rotate_increment(T, w, out):
     """out = T exp([w]×) (Rodrigues: exp([w]×) = I + a [w]× + b [w]×²)."""
     angle2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
@@ -137,13 +147,13 @@ def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape
         for a in range(3):
             r[a] = seed[a]
     else:
-        closed_form_one(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
+        _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
         for _ in range(FIXED_POINT_STEPS):  # MATH.md §9: subtract Tᵀ g(r), re-solve the dipole pose
             grid_point(padded, valid_cells, origin, spacing, shape, r, cubic, g, dg, wx, wy, wz, dx, dy, dz)
             for i in range(3):
                 for j in range(3):
                     Sc[i, j] = S[i, j] - (T[0, i] * g[j] + T[1, i] * g[3 + j] + T[2, i] * g[6 + j])
-            closed_form_one(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
+            _closed_form(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
     _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
     for i in range(3):
         for j in range(3):

@@ -59,7 +59,7 @@ def _weights(t, cubic, w, dw):
         dw[3] = 0.0
 
 
-@numba.njit(inline="always")
+@numba.njit
 def grid_point(padded, valid_cells, origin, spacing, shape, p, cubic, value, gradient, wx, wy, wz, dx, dy, dz):
     """Value (C,) and gradient (C, 3) of the table at one point p; returns whether p is in a valid cell."""
     i, tx, in_x = _cell(p[0], origin[0], spacing, shape[0])
