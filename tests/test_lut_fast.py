@@ -5,7 +5,7 @@ import numpy as np
 from ivc.lut import FitOptions, fit_lut, harmonics
 from ivc.lut import fit_harmonic as fh
 from ivc.lut.samples import FieldSamples
-from tests.test_lut import ball, quadratic_field, samples_of
+from tests.helpers import ball, quadratic_field, samples_of
 
 
 def test_compiled_gradient_rows_equal_the_numpy_basis(rng):
