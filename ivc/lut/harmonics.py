@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ivc.errors import InputError
+
 
 def count(degree: int) -> int:
     """Number of real harmonic potentials of degrees 1..degree."""
@@ -76,6 +78,6 @@ def gradient_rows(x: np.ndarray, degree: int, out: np.ndarray | None = None) -> 
     if out is None:
         out = np.empty((len(x), 3, K))
     elif out.shape != (len(x), 3, K) or not out.flags.c_contiguous or out.dtype != np.float64:
-        raise ValueError(f"out must be a C-contiguous float64 array of shape {(len(x), 3, K)}")
+        raise InputError(f"out must be a C-contiguous float64 array of shape {(len(x), 3, K)}")
     harmonic_gradient_rows(x, int(degree), out)
     return out
