@@ -154,7 +154,8 @@ def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape
                 for j in range(3):
                     Sc[i, j] = S[i, j] - (T[0, i] * g[j] + T[1, i] * g[3 + j] + T[2, i] * g[6 + j])
             _closed_form(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
-    _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
+    mapped = _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
+    Ma = M.copy()  # the model at the accepted position, and whether it is mapped: no re-evaluation at the end
     for i in range(3):
         for j in range(3):
             K[i, j] = M[i, 0] * S[j, 0] + M[i, 1] * S[j, 1] + M[i, 2] * S[j, 2]
@@ -198,11 +199,16 @@ def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape
         for a in range(3):
             rt[a] = r[a] + step[a]
         _rotate_increment(T, step[3:], Tt)
-        _model(rt, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
+        trial_mapped = _model(rt, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx,
+                              dy, dz)
         _residual(S, M, dM, Tt, et, Jt)
         trial = _cost(et)
         small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance
         if trial <= cost:
+            mapped = trial_mapped
+            for i in range(3):
+                for j in range(3):
+                    Ma[i, j] = M[i, j]
             for a in range(3):
                 r[a] = rt[a]
             for i in range(3):
@@ -222,13 +228,12 @@ def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape
             if damping > 1e8:  # no step lowers the cost: at the numerical minimum
                 converged = True
                 break
-    mapped = _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
     lam = 0.0
     s2 = 0.0
     for i in range(3):
         for j in range(3):
             p = T[i, 0] * S[0, j] + T[i, 1] * S[1, j] + T[i, 2] * S[2, j]
-            lam += (M[i, j] - p) ** 2
+            lam += (Ma[i, j] - p) ** 2
             s2 += S[i, j] ** 2
     return converged, iterations, np.sqrt(lam / s2), mapped
 
