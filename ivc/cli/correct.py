@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import click
 import h5py
 import numpy as np
@@ -269,11 +271,15 @@ def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_resid
     host, _, port = publish.rpartition(":")
     if not host or not port.isdigit():
         raise click.UsageError(f"--publish wants HOST:PORT, got {publish!r}")
+    click.echo("preparing the compiled correction (compiled once after an install, then loaded from the cache; "
+               "`ivc warmup` does it ahead)", err=True)
+    start = time.perf_counter()
     live = LiveCorrector(corrector, source, (host, int(port)), length_unit=LENGTH_UNITS[length_unit],
                          predictor=predictor, horizon=parse_horizon(horizon) if predictor else 0.0, rate_hz=rate_hz,
                          tuning=tuning,
                          sensors=list(sensors) or None)
-    click.echo(f"correcting {url} -> serving on {live.publish_address[0]}:{live.publish_address[1]}", err=True)
+    click.echo(f"ready in {time.perf_counter() - start:.1f} s: correcting {url} -> serving on "
+               f"{live.publish_address[0]}:{live.publish_address[1]}", err=True)
     try:
         stats = live.run(duration)
     except KeyboardInterrupt:

@@ -53,6 +53,10 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
         lines.append(f"  refinement {step['iteration']}: {step['frames_converged']} frames re-solved as rigid "
                      f"wands, sensor 0 moved {step['sensor0_moved_median_mm']:.4f} mm (median), map changed "
                      f"{step['map_change_mm']:.4f} mm, CV {step['cv_rms_mm']:.4f} mm")
+    if fit["refinement"]:
+        kept = next((step["iteration"] for step in fit["refinement"] if step.get("kept")), 0)
+        lines.append(f"  refinement stopped: {fit.get('refinement_stopped', 'done')}; kept "
+                     + (f"refinement {kept}" if kept else "the first fit") + " (lowest CV)")
     extent = (grid.origin, grid.origin + grid.spacing * (np.array(grid.shape) - 1))
     lines.append(f"Grid: {grid.shape[0]} x {grid.shape[1]} x {grid.shape[2]} nodes at {1000 * grid.spacing:.1f} mm "
                  f"from ({', '.join(f'{1000 * v:.1f}' for v in extent[0])}) to "

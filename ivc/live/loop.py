@@ -132,11 +132,6 @@ class LiveCorrector:
         self.sensors = set(sensors) if sensors else None
         self.retry_s = retry_s
         self.stats = LiveStats()
-        self._selector = selectors.DefaultSelector()
-        self._listener = socket.create_server(publish, reuse_port=False)
-        self._listener.setblocking(False)
-        self._selector.register(self._listener, selectors.EVENT_READ, "listen")
-        self.publish_address = self._listener.getsockname()[:2]
         self._upstream: socket.socket | None = None
         self._framer = Framer()
         self._next_connect = 0.0
@@ -144,7 +139,12 @@ class LiveCorrector:
         self._last_time: dict[str, float] = {}
         self._streams: dict = {}
         self._logged: set = set()
-        self._warm_up()
+        self._warm_up()  # compiled (or loaded from the cache) before the publish port accepts anyone
+        self._selector = selectors.DefaultSelector()
+        self._listener = socket.create_server(publish, reuse_port=False)
+        self._listener.setblocking(False)
+        self._selector.register(self._listener, selectors.EVENT_READ, "listen")
+        self.publish_address = self._listener.getsockname()[:2]
 
     def _warm_up(self) -> None:
         """Run every compiled step once, so the first frames do not wait for it."""

@@ -3,7 +3,9 @@
 Stages: the fixtures are calibrated and the sweep solved through the cube
 (:mod:`ivc.fixtures.mapping`); the gated samples are fitted on the grid by the chosen
 method; then, optionally, the wand frames are re-solved as rigid bodies against the map
-and the map refitted until it stops changing (:mod:`ivc.lut.refine`).
+and the map refitted until it stops changing or stops gaining (:mod:`ivc.lut.refine`):
+each refinement must lower the cross-validation score by ``REFINE_MIN_GAIN``, and the map
+with the lowest score is the one kept.
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ BYTES_PER_NODE = 2048
 MAX_GRID_MEMORY = 4 << 30
 #: refinement stops when the map changes by less than this, pose-equivalent RMS over valid nodes (m)
 REFINE_TOLERANCE = 5e-6
+#: ... or when its cross-validation score improves by less than this fraction; the best-scoring map is kept
+REFINE_MIN_GAIN = 0.01
 
 #: what to redo when most samples fail a gate
 _ADVICE = {
@@ -260,10 +264,11 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
     values, report = tabulate(samples, grid, options, progress(_fitting(options), _work(options, samples)))
     support = node_support(grid, samples.positions)
     valid = _mapped_nodes(values, support, options.min_support)
-    history = []
+    history, stopped = [], None
     if options.refine:
         S = sweep.signal_matrices()
         position0, rotation0 = mapping.positions[:, 0], mapping.rotations[:, 0]
+        best = (report["cv_rms_mm"], values, valid, support, samples, report, 0)
         for iteration in range(1, options.max_refinements + 1):
             table = GridField(grid, values, valid)
             r0, T0, ok = resolve_sweep(S, sweep.valid_mask, model.wand, model.interpolant.value_and_jacobian,
@@ -287,14 +292,26 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
                 ok[:, None, None], T0, rotation0)
             support = node_support(grid, samples.positions)
             valid = _mapped_nodes(values, support, options.min_support)
+            gained = report["cv_rms_mm"] < (1 - REFINE_MIN_GAIN) * best[0]
+            if report["cv_rms_mm"] < best[0]:
+                best = (report["cv_rms_mm"], values, valid, support, samples, report, iteration)
             if change < REFINE_TOLERANCE:
+                stopped = f"the map changed by less than {1e6 * REFINE_TOLERANCE:g} µm"
                 break
+            if not gained:
+                stopped = f"the cross-validation score improved by less than {100 * REFINE_MIN_GAIN:g} %"
+                break
+        _, values, valid, support, samples, report, kept = best
+        for step in history:
+            step["kept"] = step["iteration"] == kept
+        stopped = stopped or f"--max-refinements {options.max_refinements} reached"
     fit = {
         "method": options.method, **report,
         "frames": {"recorded": recorded, "used": sweep.n_frames, "stride": stride},
         "samples": {"total": int(mapping.keep.size), "kept": mapping.kept, "used": len(samples),
                     "outside_grid": outside, "dropped": mapping.dropped},
         "refinement": history,
+        "refinement_stopped": stopped,
         "grid_from": "user" if options.origin is not None else "data (one-cell margin)",
         "min_support": options.min_support,
         "valid_nodes": int(valid.sum()),
