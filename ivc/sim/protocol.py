@@ -102,8 +102,9 @@ class Simulator:
             rng=rng,
             description=f"simulated: {STEP_DESCRIPTIONS[name]} (scene {scene.name!r}, seed {self.seed})",
             sensor_prefix="cube" if name.startswith("cube") else ("wand" if name.startswith("wand") else "check"),
+            solver=scene.tracker,
         )
-        step.attrs.update(attrs)
+        step.attrs.update(attrs, tracker_solver=scene.tracker)
         return step, Truth(positions, quaternions)
 
     @staticmethod

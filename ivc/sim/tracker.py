@@ -2,8 +2,9 @@
 
 For each sample it forms ``S = Tᵀ (f_D(r) + G(r))`` (zero G in free space), applies
 the scene's noise model (gain drift, white noise, dropouts, saturation close to the
-source) and, like a commercial unit, also reports the pose of its own closed-form
-dipole solver (MATH.md §3), which is distorted wherever G is not zero.
+source) and, like a commercial unit, also reports the pose of its own solver, which is
+distorted wherever G is not zero: the closed-form dipole solver (docs/math.md §3) by default,
+or the least-squares one (``ivc.dipole.tracker_solver``).
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ivc import dipole, rotations
+from ivc.dipole.tracker_solver import reported_pose
 from ivc.session import Step
 from ivc.sim.field import SecondaryField
 from ivc.sim.scene import NoiseSpec
@@ -32,6 +34,7 @@ def measure(
     rng: np.random.Generator,
     description: str = "",
     sensor_prefix: str = "sensor",
+    solver: str = "closed-form",
 ) -> Step:
     """Simulate a tracker recording of true sensor poses ``positions`` (F, N, 3), ``quaternions`` (F, N, 4)."""
     frames, sensors = positions.shape[:2]
@@ -48,7 +51,7 @@ def measure(
     dropped = rng.random((frames, sensors)) < noise.dropout_rate
     valid = ~(saturated | dropped)
     S[~valid] = np.nan
-    position, T_reported = dipole.closed_form_pose(S, hemisphere)
+    position, T_reported = reported_pose(S, solver, hemisphere)
     with np.errstate(invalid="ignore"):
         quaternion = rotations.from_matrix(T_reported)
     quaternion[~valid] = np.nan
