@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import click
@@ -18,6 +19,12 @@ from ivc.correct.evaluate import evaluate
 from ivc.lut.build import FitOptions
 
 
+def without_signals(data: session_io.Session) -> session_io.Session:
+    """The session with every step's signal matrices removed (reported poses kept)."""
+    steps = {name: replace(step, signal=None) for name, step in data.steps.items()}
+    return session_io.Session(data.hemisphere, steps, data.truth, data.attrs)
+
+
 @click.command()
 @click.option("--scene", default="default", show_default=True, help="Built-in scene name or a scene .toml file.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Simulator seed.")
@@ -26,9 +33,11 @@ from ivc.lut.build import FitOptions
 @click.option("--method", type=click.Choice(lut.METHODS), default="harmonic", show_default=True)
 @click.option("--keep", "keep_dir", type=click.Path(file_okay=False),
               help="Keep the session and table in this directory (default: a temporary one, removed).")
+@click.option("--pose-only", is_flag=True, help="Drop the signals after collecting, as a tracker that reports poses "
+              "only would: fit and correct from the reported poses alone.")
 @click.option("--force", is_flag=True, help="With --keep: replace files from an earlier demo.")
 @click.pass_context
-def demo(ctx, scene, seed, sweep_frames, check_frames, method, keep_dir, force):
+def demo(ctx, scene, seed, sweep_frames, check_frames, method, pose_only, keep_dir, force):
     """Simulate a distorted room, collect the protocol, fit the map, and compare corrected with uncorrected poses."""
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="ivc-demo-") as scratch:
@@ -42,8 +51,12 @@ def demo(ctx, scene, seed, sweep_frames, check_frames, method, keep_dir, force):
         ctx.invoke(collect, step="protocol", source=f"sim:{scene}", output=str(session_file), frames=None,
                    sweep_frames=sweep_frames, check_frames=check_frames, seed=seed, hemisphere=None, rate=None,
                    declared_position=None, declared_quaternion=None, force=force)
-        click.echo(f"2/3 fit: {method} look-up table", err=True)
         data = session_io.read(session_file)
+        if pose_only:
+            data = without_signals(data)
+            session_io.write(data, session_file, overwrite=True)
+            click.echo("   signals dropped: the session now holds reported poses only", err=True)
+        click.echo(f"2/3 fit: {method} look-up table" + (" from reported poses" if pose_only else ""), err=True)
         fit_start = time.perf_counter()
         with StageBars("sample") as bars:
             table = lut.fit_lut(data, FitOptions(method=method), source=session_file, progress=bars)

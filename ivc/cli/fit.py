@@ -12,6 +12,7 @@ import numpy as np
 from ivc import lut
 from ivc import session as session_io
 from ivc.cli.progress import StageBars
+from ivc.dipole.tracker_solver import SOLVERS
 from ivc.lut.build import FitOptions
 
 
@@ -43,8 +44,16 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
         if count:
             lines.append(f"  dropped {count:>8}: {reason}")
     degree = f"degree {fit['degree']} ({fit['degree_chosen_by']})"
-    lines.append(f"Fit: {fit['method']}, {degree}; {fit['cv_folds']}-fold cross-validation RMS "
-                 f"{fit['cv_rms_mm']:.4f} mm (pose-equivalent)")
+    if fit.get("input") == "reported poses":
+        cube = fit["cube"]
+        lines.append(f"From reported poses alone (tracker solver {fit['tracker_solver']}): cube field degree "
+                     f"{cube['degree']}, vertex residual {cube['vertex_position_rms_mm']:.4f} mm / "
+                     f"{cube['vertex_orientation_rms_mrad']:.4f} mrad RMS")
+        lines.append(f"Fit: {fit['method']} through the tracker model, {degree}; {fit['cv_folds']}-fold "
+                     f"cross-validation RMS {fit['cv_rms_mm']:.4f} mm (reported-pose residual)")
+    else:
+        lines.append(f"Fit: {fit['method']}, {degree}; {fit['cv_folds']}-fold cross-validation RMS "
+                     f"{fit['cv_rms_mm']:.4f} mm (pose-equivalent)")
     if fit.get("outliers_downweighted"):
         lines.append(f"  {fit['outliers_downweighted']} samples down-weighted as outliers (Huber)")
     for step in fit["refinement"]:
@@ -81,10 +90,13 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
               help="Gate: largest rms(Λ)/rms(S) of sensor 0's solve in the cube.")
 @click.option("--max-error-mm", type=float, default=1000 * FitOptions.max_error, show_default=True,
               help="Gate: largest estimated sample error (eq. 101), mm.")
+@click.option("--tracker", type=click.Choice(SOLVERS), default="closed-form", show_default=True,
+              help="A session of reported poses only (no signals): the tracker's own pose solver, whose model the "
+              "map is fitted through.")
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists.")
 @click.option("--json", "as_json", is_flag=True, help="Print the fit report as JSON.")
 def fit(session_file, output, method, grid_spec, degree, refine, max_refinements, max_frames, min_support,
-        max_residual, max_error_mm, force, as_json):
+        max_residual, max_error_mm, tracker, force, as_json):
     """Fit the secondary-field look-up table of SESSION_FILE and write it to OUTPUT."""
     if not force and Path(output).exists():
         raise FileExistsError(f"{output} exists; pass --force to replace it")
@@ -94,7 +106,7 @@ def fit(session_file, output, method, grid_spec, degree, refine, max_refinements
     data = session_io.read(session_file)
     start = time.perf_counter()
     with StageBars("sample", disable=as_json) as bars:
-        table = lut.fit_lut(data, options, source=session_file, progress=bars)
+        table = lut.fit_lut(data, options, source=session_file, progress=bars, tracker=tracker)
     lut.write(table, output, overwrite=force)
     seconds = time.perf_counter() - start
     click.echo(json.dumps(table.fit, indent=2) if as_json else render_fit(table, seconds) + f"\nwrote {output}")

@@ -201,10 +201,11 @@ def fit_through_tracker(pairs: PosePairs, basis: Basis, counts: dict[int, int], 
     normal, rms = _accumulate(pairs, basis, coefficients, fold, folds, solver, hemisphere, progress)
     history.append(rms)
     for _ in range(iterations):
-        if folds > 1 and degree is None:
+        if folds > 1:
             scores = _cv_scores(normal, candidates)
-            best = min(scores.values())
-            chosen = min(d for d, s in scores.items() if s <= 1.01 * best)
+            if degree is None:
+                best = min(scores.values())
+                chosen = min(d for d, s in scores.items() if s <= 1.01 * best)
         m = 3 * candidates[chosen]
         gram, rhs = normal.gram.sum(axis=0)[:m, :m], normal.rhs.sum(axis=0)[:m]
         current = coefficients.reshape(-1)[:m]
