@@ -84,19 +84,25 @@ class SeedMap:
         self.probes, self.images, J = probes[good], images[good], J[good]
         self.inverse = np.linalg.inv(J)
         self.tree = cKDTree(self.images)
-        # a probe's image neighbourhood: where images of its own cell can fall (twice the stretch of a half-cell)
+        # a probe's image neighbourhood: one probe spacing, stretched as the map stretches it there
         stretch = np.linalg.norm(J, ord=2, axis=(1, 2))
-        radius = 2.0 * stretch * self.spacing * np.sqrt(3.0)
+        radius = stretch * self.spacing
         self.partner = np.full(len(self.probes), -1)
-        for i, near in enumerate(self.tree.query_ball_point(self.images, radius)):
-            near = np.asarray(near, dtype=int)
-            apart = self.probes[near] - self.probes[i]
-            linear = np.einsum("ij,nj->ni", self.inverse[i], self.images[near] - self.images[i])
-            # another branch: far apart, and not where the local linear map puts it
-            far = near[(np.linalg.norm(apart, axis=1) > 2 * self.spacing)
-                       & (np.linalg.norm(apart - linear, axis=1) > 0.5 * np.linalg.norm(apart, axis=1))]
-            if len(far):
-                self.partner[i] = far[np.argmin(np.linalg.norm(self.images[far] - self.images[i], axis=1))]
+        near = self.tree.query_ball_point(self.images, radius)
+        counts = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
+        i = np.repeat(np.arange(len(near)), counts)
+        j = np.fromiter((k for n in near for k in n), dtype=np.int64, count=int(counts.sum()))
+        apart = self.probes[j] - self.probes[i]
+        linear = np.einsum("nij,nj->ni", self.inverse[i], self.images[j] - self.images[i])
+        distance = np.linalg.norm(apart, axis=1)
+        # another branch: far apart, and not where the local linear map puts it
+        far = (distance > 2 * self.spacing) & (np.linalg.norm(apart - linear, axis=1) > 0.5 * distance)
+        i, j = i[far], j[far]
+        if len(i):
+            order = np.lexsort((np.linalg.norm(self.images[j] - self.images[i], axis=1), i))
+            i, j = i[order], j[order]
+            first = np.r_[True, i[1:] != i[:-1]]  # per probe, its partner with the nearest image
+            self.partner[i[first]] = j[first]
         self.reach = 4.0 * self.spacing * max(float(np.max(stretch)), 1.0)
 
     @property
@@ -168,7 +174,8 @@ class PoseCorrector:
     def seeds(self) -> SeedMap:
         """The probe map the inversions start from (built on first use)."""
         if self._seeds is None:
-            self._seeds = SeedMap(self.field, self.solver, self.hemisphere)
+            # starts only: the closed form's map is close to any equivariant solver's and far cheaper
+            self._seeds = SeedMap(self.field, "closed-form", self.hemisphere)
         return self._seeds
 
     def _invert(self, v, start, H, serial):
