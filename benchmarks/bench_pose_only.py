@@ -28,12 +28,12 @@ from ivc.correct import Corrector
 from ivc.correct.evaluate import check_errors, summarise
 from ivc.correct.pose_domain import PoseCorrector
 from ivc.fixtures.pose_mapping import PoseFixtureModel, map_sweep_poses
-from ivc.fixtures.report import declared_frame_map
 from ivc.lut import FitOptions, fit_lut
 from ivc.lut.pose_domain import fit_pose_domain_table
 from ivc.pose.reported import invert_distortion
 from ivc.session import Session
 from ivc.sim import Simulator, load_scene
+from ivc.truth import declared_frame_map
 
 
 def _sessions() -> tuple[Session, Session]:

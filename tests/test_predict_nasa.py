@@ -6,8 +6,9 @@ from scipy import signal
 from scipy.linalg import expm
 
 from ivc import rotations
-from ivc.predict import compensator, make
+from ivc.predict import make
 from ivc.predict.nasa import DEFAULT_W, N, NasaEKF, expm_taylor, jacobian, omega_matrix, q_matrix
+from ivc.predict.studies import compensator
 
 
 def _kinematics(x):
@@ -97,6 +98,7 @@ def test_displacement_and_twist_of_a_two_degree_yaw():
     assert compensator.twist(error, -rotations.IDENTITY) == pytest.approx(np.radians(2.0))
 
 
+@pytest.mark.slow
 def test_optimised_designs_reproduce_the_papers_orderings():
     """Table 1's reading: the twist design is best on twist; the hybrid suppresses vertical noise (to about no
     prediction) where default and twist amplify it, and gives up twist accuracy to do so."""

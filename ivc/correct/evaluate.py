@@ -23,14 +23,9 @@ from ivc import rotations
 from ivc.correct.pose_domain import PoseCorrector
 from ivc.correct.solver import FLAG_NAMES, Corrector
 from ivc.dipole import closed_form_pose
-from ivc.fixtures.report import DECLARED_FRAME, RAW_FRAME, declared_frame_map, percentiles
 from ivc.lut.table import LookupTable
 from ivc.session import Session, SessionError
-
-
-def _errors(position, rotation, true_position, true_rotation):
-    return (1000 * np.linalg.norm(position - true_position, axis=-1),
-            1000 * rotations.angle_between_matrices(rotation, true_rotation))
+from ivc.truth import DECLARED_FRAME, RAW_FRAME, declared_frame_map, percentiles, pose_errors
 
 
 @dataclass
@@ -89,7 +84,7 @@ def aligned_errors(position, rotation, true_position, true_rotation, ok):
         R, t = rigid_alignment(position[ok][used], true_position[ok][used])
         miss = np.linalg.norm(position[ok] @ R.T + t - true_position[ok], axis=1)
         used = miss <= max(ALIGNMENT_OUTLIER * float(np.median(miss)), 1e-6)
-    p_mm[ok], a_mrad[ok] = _errors(position[ok] @ R.T + t, R @ rotation[ok], true_position[ok], true_rotation[ok])
+    p_mm[ok], a_mrad[ok] = pose_errors(position[ok] @ R.T + t, R @ rotation[ok], true_position[ok], true_rotation[ok])
     return p_mm, a_mrad
 
 
@@ -131,14 +126,14 @@ def check_errors(table: LookupTable | Corrector | PoseCorrector, check: Session,
         frame_map = None if found is None else found[:2]
     ok = out.flags == 0
     T_ivc = rotations.to_matrix(np.where(ok[..., None], out.quaternion, rotations.IDENTITY))
-    raw_p, raw_a = _errors(out.position, T_ivc, true_p, true_T)
-    dip_p, dip_a = _errors(r_dip, T_dip, true_p, true_T)
+    raw_p, raw_a = pose_errors(out.position, T_ivc, true_p, true_T)
+    dip_p, dip_a = pose_errors(r_dip, T_dip, true_p, true_T)
     aligned_p, aligned_a = aligned_errors(out.position, T_ivc, true_p, true_T, ok)
     p, a, placement, judged = raw_p, raw_a, None, true_p
     if frame_map is not None:
         D_R, D_t = frame_map
         judged = true_p @ D_R.T + D_t
-        p, a = _errors(out.position, T_ivc, judged, D_R @ true_T)
+        p, a = pose_errors(out.position, T_ivc, judged, D_R @ true_T)
         placement = float(1000 * np.linalg.norm(D_t + (D_R - np.eye(3)) @ np.mean(true_p[valid], axis=0)))
     return CheckErrors(valid, ok, out.flags, out.iterations, p, a, raw_p, raw_a, dip_p, dip_a, judged, frame_map,
                        placement, aligned_p, aligned_a, "signals" if data.signal is not None else "reported poses")

@@ -12,7 +12,6 @@ from collections.abc import Callable
 from ivc.predict.base import Predictor, PredictorError, Stream
 from ivc.predict.dq import DQPredictor, dqekf_ca, dqekf_cv, mmdq2, mmdq3
 from ivc.predict.evaluate import NoPrediction
-from ivc.predict.kalman import ExtendedKalmanFilter, KalmanFilter
 from ivc.predict.linear import LinearPredictor, alpha_beta, kinematic, polynomial
 from ivc.predict.mmae import MMAE
 from ivc.predict.nasa import NasaEKF
@@ -60,5 +59,5 @@ def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Pre
     return FILTERS[name](rate_hz, sigma_w=tuning.sigma_w, sigma_v=tuple(tuning.sigma_v_dq))
 
 
-__all__ = ["DQPredictor", "ExtendedKalmanFilter", "FILTERS", "KalmanFilter", "LinearPredictor", "MMAE",
+__all__ = ["DQPredictor", "FILTERS", "LinearPredictor", "MMAE",
            "NasaEKF", "NoPrediction", "Predictor", "PredictorError", "QEKF", "Stream", "TUNABLE", "Tuning", "make"]
