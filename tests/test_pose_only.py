@@ -112,6 +112,7 @@ def pose_only_table(small_session):
     return poses, lut.fit_lut(poses, FitOptions(degree=5, max_frames=1500))
 
 
+@pytest.mark.slow
 def test_mapping_from_reported_poses_alone(small_session, pose_only_table):
     _, signals = small_session
     poses, table = pose_only_table
@@ -129,6 +130,7 @@ def test_mapping_from_reported_poses_alone(small_session, pose_only_table):
     assert report["ivc_aligned"]["position_mm"]["p50"] < 0.2
 
 
+@pytest.mark.slow
 def test_cli_end_to_end_on_a_pose_only_session_and_csv(pose_only_table, tmp_path):
     poses, table = pose_only_table
     session_file, lut_file = tmp_path / "poses.h5", tmp_path / "map.h5"
