@@ -24,8 +24,7 @@ from ivc.live.igtl import Framer
 from ivc.lut.build import FitOptions
 from ivc.pose.reported import invert_distortion
 from ivc.session import Session
-from tests.test_correct import exact_table  # noqa: F401  (fixture)
-from tests.test_lut import CENTRE, ball, quadratic_field
+from tests.helpers import CENTRE, ball, quadratic_field
 
 
 def reported(rng, n, radius=0.15, solver="closed-form"):
@@ -41,7 +40,7 @@ def without_signals(session: Session) -> Session:
                    session.truth, session.attrs)
 
 
-def test_noise_free_round_trip_recovers_the_true_pose(exact_table, rng):  # noqa: F811
+def test_noise_free_round_trip_recovers_the_true_pose(exact_table, rng):
     r, T, v, Q = reported(rng, 3000)
     assert np.median(np.linalg.norm(v - r, axis=1)) > 5e-3  # a real distortion
     out = PoseCorrector(exact_table).batch(v, rotations.from_matrix(Q))
@@ -51,7 +50,7 @@ def test_noise_free_round_trip_recovers_the_true_pose(exact_table, rng):  # noqa
     assert np.all(out.residual < 1e-10)
 
 
-def test_round_trip_with_the_least_squares_tracker_model(exact_table, rng):  # noqa: F811
+def test_round_trip_with_the_least_squares_tracker_model(exact_table, rng):
     r, T, v, Q = reported(rng, 40, solver="least-squares")
     assert PoseCorrector(exact_table, solver="least-squares").solver == "least-squares"
     out = PoseCorrector(exact_table, solver="least-squares").batch(v, rotations.from_matrix(Q))
@@ -63,7 +62,7 @@ def test_round_trip_with_the_least_squares_tracker_model(exact_table, rng):  # n
     assert np.median(np.linalg.norm(wrong.position - r, axis=1)) > 1e-6
 
 
-def test_compiled_inversion_matches_the_numpy_reference(exact_table, rng):  # noqa: F811
+def test_compiled_inversion_matches_the_numpy_reference(exact_table, rng):
     _, _, v, Q = reported(rng, 300)
     field = exact_table.field()
     reference = invert_distortion(v, lambda p: field.evaluate(p)[0])
@@ -71,7 +70,7 @@ def test_compiled_inversion_matches_the_numpy_reference(exact_table, rng):  # no
     np.testing.assert_allclose(out.position, reference.position, atol=1e-10)
 
 
-def test_streaming_matches_batch(exact_table, rng):  # noqa: F811
+def test_streaming_matches_batch(exact_table, rng):
     _, _, v, Q = reported(rng, 400)
     corrector = PoseCorrector(exact_table)
     batch = corrector.batch(v, rotations.from_matrix(Q))
@@ -80,7 +79,7 @@ def test_streaming_matches_batch(exact_table, rng):  # noqa: F811
     assert all(np.all(s.flags == 0) for s in streamed)
 
 
-def test_flags_mean_what_they_say(exact_table, rng):  # noqa: F811
+def test_flags_mean_what_they_say(exact_table, rng):
     r, T, v, Q = reported(rng, 4)
     q = rotations.from_matrix(Q)
     v_bad = v.copy()
@@ -156,7 +155,7 @@ def test_cli_end_to_end_on_a_pose_only_session_and_csv(pose_only_table, tmp_path
     assert "reported poses only" in result.output and "rigid fit" in result.output
 
 
-def test_live_transform_input_is_corrected_and_published_as_trusted_tdata(exact_table, rng):  # noqa: F811
+def test_live_transform_input_is_corrected_and_published_as_trusted_tdata(exact_table, rng):
     r, T, v, Q = reported(rng, 8 * 3)
     m = np.zeros((8, 3, 4, 4))
     m[..., :3, :3], m[..., :3, 3], m[..., 3, 3] = Q.reshape(8, 3, 3, 3), 1000 * v.reshape(8, 3, 3), 1.0
@@ -180,7 +179,7 @@ def test_live_transform_input_is_corrected_and_published_as_trusted_tdata(exact_
         framer = Framer()
         consumer.settimeout(5.0)
         deadline = time.monotonic() + 20
-        while len(transforms) < 24 and time.monotonic() < deadline:
+        while (len(transforms) < 24 or len(tdata) < 8) and time.monotonic() < deadline:
             framer.feed(consumer.recv(1 << 16))
             for f in framer.messages():
                 if f.message_type == "TDATA":
