@@ -10,6 +10,7 @@ import numpy as np
 
 from ivc import lut
 from ivc import session as session_io
+from ivc.collect.plus import is_plus_sequence, read_plus
 from ivc.collect.replay import read_csv
 from ivc.session import STEPS, Session, Step
 
@@ -80,8 +81,8 @@ def info(file: str, as_json: bool) -> None:
                    f"\nmade by ivc {table.provenance.get('ivc_version')} on {table.provenance.get('created_utc')}"
                    f" from {table.provenance.get('input', 'an unnamed session')}")
         return
-    if session_io.is_recording_csv(file):
-        summary = summarise_recording(read_csv(file))
+    if session_io.is_recording_csv(file) or is_plus_sequence(file):
+        summary = summarise_recording(read_csv(file) if session_io.is_recording_csv(file) else read_plus(file).step)
         click.echo(json.dumps(summary, indent=2) if as_json else render_recording(file, summary))
         return
     summary = summarise(session_io.read(file))
@@ -105,7 +106,8 @@ def render_recording(path: str, summary: dict) -> str:
     if summary["data"] == "pose":
         uses = "`ivc predict FILE ...`; without signal matrices, `ivc correct` solves from the reported poses"
     return "\n".join([
-        f"{path}: recording CSV, {summary['frames']} frames x {count} sensors ({named})",
+        f"{path}: {'PLUS sequence' if is_plus_sequence(path) else 'recording CSV'}, {summary['frames']} frames x "
+        f"{count} sensors ({named})",
         f"  {summary['sample_rate_hz']:.1f} Hz, {summary['duration_s']:.2f} s, {100 * summary['valid_fraction']:.2f}% "
         f"valid, data: {summary['data']}",
         f"  use it with {uses}",
