@@ -193,7 +193,7 @@ def test_bad_input_is_dropped_and_logged_once_and_slow_clients_do_not_block(exac
     assert names.count("S0_ivc") == 6 and names.count("S2_ivc") == 7 and "Needle_ivc" not in names
     assert stats.unknown == 6 and stats.out_of_order == 1 and stats.garbage_bytes >= 3000
     assert stats.received == 6 * 4 + 1 and stats.rejected == 1  # the NaN pose is dropped, logged, not published
-    assert stats.flagged >= 1
+    assert stats.flagged == 0  # TRANSFORMs go through the pose path: every valid pose of the exact table is trusted
     warnings = [r.getMessage() for r in caplog.records]
     assert sum("unknown sensor 'Needle'" in w for w in warnings) == 1
     assert sum("malformed bytes" in w for w in warnings) == 1
