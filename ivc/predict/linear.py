@@ -23,10 +23,11 @@ from scipy.signal import lfilter, ss2tf
 
 from ivc import rotations
 from ivc.predict.base import (
+    FixedRatePredictor,
     FloatArray,
-    Predictor,
     PredictorError,
     Stream,
+    _Clock,
     as_given,
     check_horizons,
     check_rate,
@@ -34,17 +35,24 @@ from ivc.predict.base import (
 )
 from ivc.predict.delta import deltas
 from ivc.predict.frequency import kinematic_gain
+from ivc.predict.timing import check_time, repeats, restarts
 
 
 @dataclass
-class LinearPredictor(Predictor):
-    """Per-axis linear predictor: X(k) = G X(k−1) + K θ(k), θ̂(k + p) = D(p) X(k)."""
+class LinearPredictor(FixedRatePredictor):
+    """Per-axis linear predictor: X(k) = G X(k−1) + K θ(k), θ̂(k + p) = D(p) X(k).
+
+    The α-β and kinematic filters are steady-state designs at ``rate_hz`` (:class:`FixedRatePredictor`).
+    A polynomial predictor (``order`` 1 or 2) instead fits its last ``window`` samples at their actual
+    times, so it follows a stream's own time steps; on a uniform stream it is the same linear filter.
+    """
 
     G: FloatArray
     K: FloatArray
     D: Callable[[float], FloatArray]
     rate_hz: float = 120.0
     name: str = "linear"
+    order: int = 0  # 1 or 2 for a polynomial predictor, 0 otherwise
     _cache: dict = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self):
@@ -73,9 +81,47 @@ class LinearPredictor(Predictor):
         steps = rotations.to_rotvec(deltas(filled))
         return np.concatenate([np.zeros((1,) + steps.shape[1:]), np.cumsum(steps, axis=0)])
 
-    def predict(self, q, horizons, valid=None):
+    def predict(self, q, horizons, valid=None, time=None):
+        if not self.order:
+            return super().predict(q, horizons, valid, time)
         h = check_horizons(horizons)
         qs, ok, single = check_stream(q, valid)
+        t = check_time(time, qs.shape[0], self.rate_hz)
+        use = ok & ~repeats(qs, ok)
+        segment = np.cumsum(restarts(t, ok, self.max_gap_s), axis=0)
+        out = np.full((len(h),) + qs.shape, np.nan)
+        window = self.K.size
+        for s in range(qs.shape[1]):
+            idx = np.flatnonzero(use[:, s])
+            if len(idx) < window:
+                continue
+            seg = segment[idx, s]
+            dq = rotations.multiply(qs[idx[1:], s], rotations.conjugate(qs[idx[:-1], s]))
+            theta = np.concatenate([np.zeros((1, 3)), np.cumsum(rotations.to_rotvec(np.where(dq[:, :1] < 0, -dq, dq)),
+                                                                axis=0)])
+            ends = np.arange(window - 1, len(idx))
+            rows = ends[:, None] - np.arange(window)[None, :]  # newest first
+            whole = seg[rows[:, -1]] == seg[ends]  # the window lies within one stretch between gaps
+            ends, rows = ends[whole], rows[whole]
+            coef = polynomial_fit(t[idx[rows]] - t[idx[ends]][:, None], theta[rows], self.order)
+            # every valid frame predicts from the latest accepted sample (itself, or the one it repeats)
+            latest = np.maximum.accumulate(np.where(use[:, s], np.arange(len(t)), -1))
+            frames = np.flatnonzero(ok[:, s] & (latest >= 0))
+            pos = np.searchsorted(idx, latest[frames])
+            fitted = np.full(len(idx), -1)
+            fitted[ends] = np.arange(len(ends))
+            has = (fitted[pos] >= 0) & (segment[frames, s] == seg[pos])
+            frames, pos = frames[has], pos[has]
+            c = coef[fitted[pos]]  # (n, order + 1, 3)
+            age = t[frames] - t[idx[pos]]
+            for i, d in enumerate(h):
+                p = (d + age)[:, None] ** np.arange(self.order + 1)[None, :]
+                ahead = np.einsum("nj,njc->nc", p, c) - theta[pos]
+                out[i, frames, s] = rotations.multiply(rotations.from_rotvec(ahead), qs[idx[pos], s])
+        return as_given(out, single)
+
+    def _predict_uniform(self, qs, horizons, ok):
+        h = check_horizons(horizons)
         theta = self.angles(qs, ok)
         out = []
         for d in h:
@@ -84,10 +130,74 @@ class LinearPredictor(Predictor):
             out.append(rotations.multiply(rotations.from_rotvec(ahead), qs))
         out = np.stack(out)
         out[:, ~ok] = np.nan
-        return as_given(out, single)
+        return out
 
-    def stream(self, n_sensors: int = 1) -> LinearStream:
+    def stream(self, n_sensors: int = 1) -> Stream:
+        return PolynomialStream(self, n_sensors) if self.order else super().stream(n_sensors)
+
+    def _stream_uniform(self, n_sensors: int) -> LinearStream:
         return LinearStream(self, n_sensors)
+
+
+def polynomial_fit(times: FloatArray, theta: FloatArray, order: int) -> FloatArray:
+    """Least-squares polynomial coefficients (n, order + 1, 3) of θ (n, w, 3) at ``times`` (n, w) s, lowest first."""
+    V = times[..., None] ** np.arange(order + 1)  # (n, w, order + 1)
+    if V.shape[1] == order + 1:  # as many samples as coefficients: the interpolating polynomial
+        return np.linalg.solve(V, theta)
+    return np.linalg.solve(np.einsum("nwi,nwj->nij", V, V), np.einsum("nwi,nwc->nic", V, theta))
+
+
+class PolynomialStream(Stream):
+    """The live polynomial predictor: the last ``window`` accepted samples of each sensor at their times."""
+
+    def __init__(self, predictor: LinearPredictor, n_sensors: int):
+        super().__init__(predictor, n_sensors)
+        w = predictor.K.size
+        self.window = w
+        self.clock = _Clock(predictor.tau, n_sensors)
+        self.theta = np.zeros((n_sensors, w, 3))  # newest first
+        self.times = np.zeros((n_sensors, w))
+        self.count = np.zeros(n_sensors, np.int64)  # accepted samples since the start or the last gap
+        self.base = np.full((n_sensors, 4), np.nan)  # the latest accepted sample
+        self.previous = np.full((n_sensors, 4), np.nan)  # the latest valid sample
+        self.coef = np.zeros((n_sensors, predictor.order + 1, 3))
+        self.ok = np.zeros(n_sensors, bool)
+
+    def update(self, q, valid=None, time=None):
+        qs, ok = self._check_frame(q, valid)
+        self.clock.tick(time)
+        now = self.clock.now
+        gap = ok & (now - self.clock.last_valid > self.predictor.max_gap_s) & np.isfinite(self.clock.last_valid)
+        self.restarts += int(gap.sum())
+        self.count[gap] = 0
+        new = ok & ~np.all(qs == self.previous, axis=1)
+        self.previous = np.where(ok[:, None], qs, self.previous)
+        self.clock.last_valid = np.where(ok, now, self.clock.last_valid)
+        for s in np.flatnonzero(new):
+            step = np.zeros(3)
+            if self.count[s]:
+                dq = rotations.multiply(qs[s], rotations.conjugate(self.base[s]))
+                step = rotations.to_rotvec(np.where(dq[:1] < 0, -dq, dq))
+            self.theta[s] = np.roll(self.theta[s], 1, axis=0)
+            self.times[s] = np.roll(self.times[s], 1)
+            self.theta[s, 0] = self.theta[s, 1] + step if self.count[s] else 0.0
+            self.times[s, 0] = now
+            self.base[s] = qs[s]
+            self.count[s] += 1
+            if self.count[s] >= self.window:
+                self.coef[s] = polynomial_fit((self.times[s] - now)[None], self.theta[s][None],
+                                              self.predictor.order)[0]
+        self.ok = ok & (self.count >= self.window)
+        self.last = qs
+
+    def predict(self, horizon):
+        d = float(check_horizons(horizon)[0])
+        age = self.clock.now - self.times[:, 0]
+        p = (d + age)[:, None] ** np.arange(self.predictor.order + 1)[None, :]
+        ahead = np.einsum("sj,sjc->sc", p, self.coef) - self.theta[:, 0]
+        out = rotations.multiply(rotations.from_rotvec(ahead), np.where(self.ok[:, None], self.base, 1.0))
+        out[~self.ok] = np.nan
+        return out
 
 
 class LinearStream(Stream):
@@ -98,7 +208,7 @@ class LinearStream(Stream):
         self.started = np.zeros(n_sensors, bool)
         self.ok = np.zeros(n_sensors, bool)
 
-    def update(self, q, valid=None):
+    def update(self, q, valid=None, time=None):
         qs, ok = self._check_frame(q, valid)
         step = np.zeros((self.n_sensors, 3))
         moving = ok & self.started
@@ -151,7 +261,7 @@ def polynomial(rate_hz: float = 120.0, order: int = 2, window: int | None = None
         return (float(p) ** np.arange(order + 1)) @ fit
 
     name = f"poly{order}" if window == default else f"poly{order}-w{window}"
-    return LinearPredictor(G, K, D, rate_hz, name=name)
+    return LinearPredictor(G, K, D, rate_hz, name=name, order=order)
 
 
 def alpha_beta(rate_hz: float = 120.0, alpha: float = 0.568) -> LinearPredictor:

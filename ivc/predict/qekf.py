@@ -16,7 +16,15 @@ import numpy as np
 
 from ivc._linalg import cholesky, congruence, factored_update
 from ivc.predict._quat import delta_q_jacobian, normalise, qmul, qmul_conj, rate_of
-from ivc.predict.base import Predictor, PredictorError, Stream, as_given, check_horizons, check_rate, check_stream
+from ivc.predict.base import (
+    FixedRatePredictor,
+    PredictorError,
+    Stream,
+    as_given,
+    check_horizons,
+    check_rate,
+    check_stream,
+)
 from ivc.predict.delta import extrapolate
 from ivc.predict.dq import SIGMA_CV1
 
@@ -142,7 +150,7 @@ def _run(qs, ok, x, P, status, qvar, R, tau, p0w, out_x, out_ok):
 
 
 @dataclass
-class QEKF(Predictor):
+class QEKF(FixedRatePredictor):
     """7-state quaternion EKF (seed 001 Ch. 2 "Q"); ``base`` = "state" (default) or "measurement"."""
 
     rate_hz: float = 120.0
@@ -171,12 +179,12 @@ class QEKF(Predictor):
              self.p0_omega, out_x, out_ok)
         return qs, out_x, out_ok
 
-    def rates(self, q, valid=None):
+    def rates(self, q, valid=None, time=None):  # a fixed-rate design: the nominal rate
         _, x, usable = self.filter(q, valid)
         out = np.where(usable[..., None], x[..., 4:], np.nan)
         return as_given(out, np.ndim(q) == 2)
 
-    def predict(self, q, horizons, valid=None):
+    def _predict_uniform(self, q, horizons, valid=None):
         h = check_horizons(horizons)
         qs, x, usable = self.filter(q, valid)
         base = x[..., :4] if self.base == "state" else qs
@@ -184,7 +192,7 @@ class QEKF(Predictor):
         out[:, ~usable] = np.nan
         return as_given(out, np.ndim(q) == 2)
 
-    def stream(self, n_sensors: int = 1) -> QStream:
+    def _stream_uniform(self, n_sensors: int = 1) -> QStream:
         return QStream(self, n_sensors)
 
 
