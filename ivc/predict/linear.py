@@ -18,11 +18,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 from scipy.signal import lfilter, ss2tf
 
 from ivc import rotations
+from ivc.predict._quat import delta_q, qmul, qmul_conj, rate_of
 from ivc.predict.base import (
+    MAX_HORIZON,
     FixedRatePredictor,
     FloatArray,
     PredictorError,
@@ -147,6 +150,86 @@ def polynomial_fit(times: FloatArray, theta: FloatArray, order: int) -> FloatArr
     return np.linalg.solve(np.einsum("nwi,nwj->nij", V, V), np.einsum("nwi,nwc->nic", V, theta))
 
 
+@numba.njit(cache=True)
+def _solve_small(A, b, n):
+    """b := A⁻¹ b for an n x n (n <= 3) symmetric positive definite A, by Gaussian elimination (in place)."""
+    for i in range(n):
+        for r in range(i + 1, n):
+            f = A[r, i] / A[i, i]
+            for c in range(i, n):
+                A[r, c] -= f * A[i, c]
+            for k in range(3):
+                b[r, k] -= f * b[i, k]
+    for i in range(n - 1, -1, -1):
+        for k in range(3):
+            acc = b[i, k]
+            for c in range(i + 1, n):
+                acc -= A[i, c] * b[c, k]
+            b[i, k] = acc / A[i, i]
+
+
+@numba.njit(cache=True)
+def _poly_update(qs, new, now, theta, times, count, base, coef, order):
+    """Push each new sample into its sensor's window (newest first) and refit the polynomial where it is full."""
+    S, w = times.shape
+    dq = np.empty(4)
+    step = np.empty(3)
+    A = np.empty((3, 3))
+    for s in range(S):
+        if not new[s]:
+            continue
+        if count[s] > 0:
+            qmul_conj(qs[s], base[s], dq)
+            if dq[0] < 0.0:
+                for i in range(4):
+                    dq[i] = -dq[i]
+            rate_of(dq, 1.0, step)
+        for j in range(w - 1, 0, -1):
+            times[s, j] = times[s, j - 1]
+            for k in range(3):
+                theta[s, j, k] = theta[s, j - 1, k]
+        times[s, 0] = now
+        for k in range(3):
+            theta[s, 0, k] = theta[s, 1, k] + step[k] if count[s] > 0 else 0.0
+        for i in range(4):
+            base[s, i] = qs[s, i]
+        count[s] += 1
+        if count[s] < w:
+            continue
+        n = order + 1
+        for i in range(n):
+            for j in range(n):
+                acc = 0.0
+                for m in range(w):
+                    acc += (times[s, m] - now) ** (i + j)
+                A[i, j] = acc
+            for k in range(3):
+                acc = 0.0
+                for m in range(w):
+                    acc += (times[s, m] - now) ** i * theta[s, m, k]
+                coef[s, i, k] = acc
+        _solve_small(A, coef[s], n)
+
+
+@numba.njit(cache=True)
+def _poly_predict(base, theta, times, coef, ok, now, delta, order, out):
+    """exp(x̂(δ + age) − θ) ⊗ base per sensor, NaN where ``ok`` is False."""
+    step = np.empty(3)
+    dq = np.empty(4)
+    for s in range(base.shape[0]):
+        if not ok[s]:
+            out[s, :] = np.nan
+            continue
+        p = delta + now - times[s, 0]
+        for k in range(3):
+            acc = 0.0
+            for i in range(order + 1):
+                acc += coef[s, i, k] * p**i
+            step[k] = acc - theta[s, 0, k]
+        delta_q(step[0], step[1], step[2], 1.0, dq)
+        qmul(dq, base[s], out[s])
+
+
 class PolynomialStream(Stream):
     """The live polynomial predictor: the last ``window`` accepted samples of each sensor at their times."""
 
@@ -168,39 +251,29 @@ class PolynomialStream(Stream):
         self.clock.tick(time)
         now = self.clock.now
         gap = ok & (now - self.clock.last_valid > self.predictor.max_gap_s) & np.isfinite(self.clock.last_valid)
-        self.restarts += int(gap.sum())
-        self.count[gap] = 0
+        if gap.any():
+            self.restarts += int(gap.sum())
+            self.count[gap] = 0
         new = ok & ~np.all(qs == self.previous, axis=1)
         self.previous = np.where(ok[:, None], qs, self.previous)
         self.clock.last_valid = np.where(ok, now, self.clock.last_valid)
-        for s in np.flatnonzero(new):
-            step = np.zeros(3)
-            if self.count[s]:
-                dq = rotations.multiply(qs[s], rotations.conjugate(self.base[s]))
-                step = rotations.to_rotvec(np.where(dq[:1] < 0, -dq, dq))
-            self.theta[s] = np.roll(self.theta[s], 1, axis=0)
-            self.times[s] = np.roll(self.times[s], 1)
-            self.theta[s, 0] = self.theta[s, 1] + step if self.count[s] else 0.0
-            self.times[s, 0] = now
-            self.base[s] = qs[s]
-            self.count[s] += 1
-            if self.count[s] >= self.window:
-                self.coef[s] = polynomial_fit((self.times[s] - now)[None], self.theta[s][None],
-                                              self.predictor.order)[0]
+        _poly_update(qs, new, now, self.theta, self.times, self.count, self.base, self.coef, self.predictor.order)
         self.ok = ok & (self.count >= self.window)
         self.last = qs
 
     def predict(self, horizon):
-        d = float(check_horizons(horizon)[0])
-        age = self.clock.now - self.times[:, 0]
-        p = (d + age)[:, None] ** np.arange(self.predictor.order + 1)[None, :]
-        ahead = np.einsum("sj,sjc->sc", p, self.coef) - self.theta[:, 0]
-        out = rotations.multiply(rotations.from_rotvec(ahead), np.where(self.ok[:, None], self.base, 1.0))
-        out[~self.ok] = np.nan
+        d = float(horizon)
+        if not 0.0 <= d <= MAX_HORIZON:
+            check_horizons(horizon)
+        out = np.empty((self.n_sensors, 4))
+        _poly_predict(self.base, self.theta, self.times, self.coef, self.ok, self.clock.now, d,
+                      self.predictor.order, out)
         return out
 
 
 class LinearStream(Stream):
+    """The steady-state filter at the nominal rate (the inner stream of :class:`FixedRateStream`)."""
+
     def __init__(self, predictor: LinearPredictor, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.X = np.zeros((n_sensors, predictor.K.size, 3))
