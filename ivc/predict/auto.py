@@ -9,8 +9,10 @@ frame k for t(k) + h is compared, once the sample after t(k) + h has arrived, wi
 slerped there (the rule of :mod:`ivc.predict.recording`; references between samples more than
 40 ms apart are not scored). Each candidate's geodesic errors are summed with an exponential
 forgetting of time constant ``memory_s``, and each frame shows the candidate with the smallest sum
-(ties, within a relative 1e-9, go to the earlier candidate; until any is scored, the first, ``none``). In batch the selection is made per horizon; the live form
-scores at ``horizon_s`` and shows that selection at any horizon.
+(ties, within a relative 1e-9, go to the earlier candidate; until any is scored, the first, ``none``).
+Where the shown candidate has no prediction yet, the measured orientation is shown. In batch the
+selection is made per horizon; the live form scores at ``horizon_s`` and shows that selection at
+any horizon.
 """
 
 from __future__ import annotations
