@@ -147,10 +147,12 @@ def plot(scores: Sequence[Score], path, title: str = "") -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(9.5, 4.0), sharex=True)
-    for s in scores:
-        style = "k--" if s.name == "none" else "-"
+    colours = plt.get_cmap("tab20")
+    for i, s in enumerate(scores):
+        style = {"color": "k", "linestyle": "--"} if s.name == "none" else {"color": colours(i % 20)}
+        width = 2.5 if s.name == "auto" else 1.2
         for ax, key in zip(axes, ("median", "p95"), strict=True):
-            ax.plot(1e3 * s.horizons_s, [r[key] for r in s.rows], style, marker=".", label=s.name)
+            ax.plot(1e3 * s.horizons_s, [r[key] for r in s.rows], marker=".", linewidth=width, label=s.name, **style)
     for ax, key in zip(axes, ("median", "95th percentile"), strict=True):
         ax.set_xlabel("prediction horizon (ms)")
         ax.set_ylabel(f"{key} error (mrad)")
