@@ -76,15 +76,16 @@ def test_auto_is_the_default_and_live_equals_batch(rng):
     valid = np.ones((len(t), 2), bool)
     valid[500:520, 0] = False
     predictor = make("auto", 60.0)
-    batch, chosen = predictor.selections(q2, [0.05], valid, time=t)
+    batch, weights = predictor.selections(q2, [0.05], valid, time=t)
+    assert np.allclose(weights.sum(axis=-1), 1.0)
     stream = predictor.stream(2)
     live = np.empty((len(t), 2, 4))
-    picks = np.empty((len(t), 2), int)
+    picks = np.empty((len(t), 2, len(CANDIDATES)))
     for k in range(len(t)):
         stream.update(q2[k], valid[k], time=t[k])
         live[k] = stream.predict(0.05)
-        picks[k] = stream.chosen
-    assert np.array_equal(picks, chosen[0])
+        picks[k] = stream.weights
+    assert np.allclose(picks, weights[0], atol=1e-9)
     assert np.array_equal(np.isnan(live), np.isnan(batch[0]))
     assert np.nanmax(np.abs(live - batch[0])) < 1e-9
 
@@ -98,8 +99,8 @@ def test_auto_picks_what_suits_the_stream(rng):
     turning = rotations.multiply(rotations.from_rotvec(rng.normal(0, 2e-4, (n, 3))), turning)
     names = list(CANDIDATES)
     for q, best_kind in ((still, "none"), (turning, "motion")):
-        _, chosen = make("auto", 120.0).selections(q, [0.05], time=t)
-        shown = np.bincount(chosen[0, 300:, 0], minlength=len(names))
+        _, weights = make("auto", 120.0).selections(q, [0.05], time=t)
+        shown = weights[0, 300:, 0].mean(axis=0)
         favourite = names[int(np.argmax(shown))]
         assert (favourite == "none") == (best_kind == "none"), (favourite, shown)
         scores = score([make("auto", 120.0)] + [CANDIDATES[c](120.0) for c in names], q, t, [0.05])

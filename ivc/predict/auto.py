@@ -8,11 +8,12 @@ stream and scores each, causally, against the stream's own later samples: the pr
 frame k for t(k) + h is compared, once the sample after t(k) + h has arrived, with the orientation
 slerped there (the rule of :mod:`ivc.predict.recording`; references between samples more than
 40 ms apart are not scored). Each candidate's geodesic errors are summed with an exponential
-forgetting of time constant ``memory_s``, and each frame shows the candidate with the smallest sum
-(ties, within a relative 1e-9, go to the earlier candidate; until any is scored, the first, ``none``).
-Where the shown candidate has no prediction yet, the measured orientation is shown. In batch the
-selection is made per horizon; the live form scores at ``horizon_s`` and shows that selection at
-any horizon.
+forgetting of time constant ``memory_s`` (1 s), and each frame shows the candidates' turns from the
+measured orientation averaged with weights (smallest sum / the candidate's sum)^``power`` (8),
+normalised: in effect the best candidate, blended with the nearly as good ones (while nothing is
+scored, ``none``; a sum of exactly 0 takes all the weight, ties to the earlier candidate). Where a
+candidate has no prediction yet, its turn is 0 (the measured orientation). In batch the weights are
+kept per horizon; the live form scores at ``horizon_s`` and uses those weights at any horizon.
 """
 
 from __future__ import annotations
@@ -59,7 +60,9 @@ CANDIDATES = {
     "mmdq2": mmdq2,
 }
 #: time constant (s) of the forgetting of past errors
-MEMORY_S = 2.0
+MEMORY_S = 1.0
+#: a candidate's weight is (smallest error sum / its error sum) to this power, normalised
+POWER = 8.0
 
 
 #: error sums within this relative difference are a tie, won by the earlier candidate: candidates that make the
@@ -80,16 +83,34 @@ def _first_best(total):
 
 
 @numba.njit(cache=True)
-def _choose(total, out):
-    """out[s] = :func:`_first_best` of each sensor's row of total (S, C)."""
-    for s in range(total.shape[0]):
-        out[s] = _first_best(total[s])
+def _weights(total, power, out):
+    """out (C,) = (smallest sum / each sum)^power, normalised; all on the first best while the smallest is 0."""
+    low = total[0]
+    for c in range(1, total.shape[0]):
+        low = min(low, total[c])
+    if not low > 0.0:
+        out[:] = 0.0
+        out[_first_best(total)] = 1.0
+        return
+    acc = 0.0
+    for c in range(total.shape[0]):
+        out[c] = (low / total[c]) ** power
+        acc += out[c]
+    for c in range(total.shape[0]):
+        out[c] /= acc
 
 
 @numba.njit(cache=True)
-def _select(err, known, dt, memory, out):
-    """out[k] = the candidate with the smallest forgotten error sum at frame k (err (C, F) mrad, NaN = unscored;
-    known (F,) the frame each error is first known at, −1 never; dt (F,) s between frames)."""
+def _weigh(total, power, out):
+    """out[s] = :func:`_weights` of each sensor's row of total (S, C)."""
+    for s in range(total.shape[0]):
+        _weights(total[s], power, out[s])
+
+
+@numba.njit(cache=True)
+def _select(err, known, dt, memory, power, out):
+    """out[k] (C,) = the candidates' weights at frame k from their forgotten error sums (err (C, F) mrad, NaN =
+    unscored; known (F,) the frame each error is first known at, −1 never; dt (F,) s between frames)."""
     C, F = err.shape
     order = np.argsort(known, kind="mergesort")
     total = np.zeros(C)
@@ -107,7 +128,7 @@ def _select(err, known, dt, memory, out):
                 for c in range(C):
                     total[c] += err[c, k]
             e += 1
-        out[j] = _first_best(total)
+        _weights(total, power, out[j])
 
 
 @numba.njit(cache=True)
@@ -162,6 +183,13 @@ def _slerp(q0, q1, u, out):
     out[3] = w * q0[3] + x * q0[2] - y * q0[1] + z * q0[0]
 
 
+def blend(shown: FloatArray, weights: FloatArray, q: FloatArray) -> FloatArray:
+    """exp(Σ_c w_c log(shown_c ⊗ q*)) ⊗ q: the candidates' turns from the measured q (..., 4), weighted (C, ...)."""
+    turn = rotations.to_rotvec(rotations.multiply(shown, rotations.conjugate(q)))
+    mean = np.einsum("c...,c...k->...k", weights, turn)
+    return rotations.multiply(rotations.from_rotvec(mean), np.broadcast_to(q, shown.shape[1:]))
+
+
 @dataclass
 class AutoPredictor(Predictor):
     """The bank of :data:`CANDIDATES`, each sensor and horizon shown its best recent candidate (module docstring)."""
@@ -169,6 +197,7 @@ class AutoPredictor(Predictor):
     rate_hz: float = 120.0
     candidates: tuple[str, ...] = tuple(CANDIDATES)
     memory_s: float = MEMORY_S
+    power: float = POWER
     horizon_s: float = 0.05  # the live form's scoring horizon
     max_step_s: float = REFERENCE_MAX_STEP_S
     name: str = "auto"
@@ -179,13 +208,13 @@ class AutoPredictor(Predictor):
         unknown = [c for c in self.candidates if c not in CANDIDATES]
         if unknown or not self.candidates:
             raise PredictorError(f"auto's candidates are among {', '.join(CANDIDATES)}; got {self.candidates}")
-        if not (self.memory_s > 0 and self.max_step_s > 0):
-            raise PredictorError("memory_s and max_step_s must be positive numbers of seconds")
+        if not (self.memory_s > 0 and self.max_step_s > 0 and self.power >= 0):
+            raise PredictorError("memory_s and max_step_s must be positive numbers of seconds, power >= 0")
         check_horizons(self.horizon_s)
         self.bank = [CANDIDATES[c](self.rate_hz) for c in self.candidates]
 
     def selections(self, q, horizons, valid=None, time=None) -> tuple[FloatArray, np.ndarray]:
-        """(predictions (H, F, S, 4) as :meth:`predict`, the candidate shown (H, F, S): an index of ``candidates``)."""
+        """(predictions (H, F, S, 4) as :meth:`predict`, the candidates' weights (H, F, S, C), in candidates' order)."""
         h = check_horizons(horizons)
         qs, ok, _ = check_stream(q, valid)
         F, S = ok.shape
@@ -197,17 +226,17 @@ class AutoPredictor(Predictor):
             P = p.predict(qs, h, ok, time=t)
             shown.append(np.where(np.all(np.isfinite(P), axis=-1, keepdims=True), P, qs[None]))
         shown = np.stack(shown)  # (C, H, F, S, 4)
-        chosen = np.zeros((len(h), F, S), np.int64)
+        weights = np.zeros((len(h), F, S, len(self.bank)))
         for i, d in enumerate(h):
             for s in range(S):
                 ref, inside, known = future_reference(t, qs[:, s], usable[:, s], d, self.max_step_s, known_at=True)
                 scored = inside & ok[:, s]
                 err = np.full((len(self.bank), F), np.nan)
                 err[:, scored] = 1e3 * rotations.angle_between(shown[:, i, scored, s], ref[scored][None])
-                _select(err, np.where(scored, known, -1), dt, self.memory_s, chosen[i, :, s])
-        out = np.take_along_axis(shown, chosen[None, ..., None], axis=0)[0]
+                _select(err, np.where(scored, known, -1), dt, self.memory_s, self.power, weights[i, :, s])
+        out = blend(shown, np.moveaxis(weights, -1, 0), qs[None])
         out[:, ~ok] = np.nan
-        return out, chosen
+        return out, weights
 
     def predict(self, q, horizons, valid=None, time=None):
         out, _ = self.selections(q, horizons, valid, time)
@@ -225,7 +254,8 @@ class AutoStream(Stream):
         self.streams = [p.stream(n_sensors) for p in predictor.bank]
         self.clock = _Clock(predictor.tau, n_sensors)
         self.total = np.zeros((n_sensors, len(self.streams)))
-        self.chosen = np.zeros(n_sensors, np.int64)
+        self.weights = np.zeros((n_sensors, len(self.streams)))
+        self.weights[:, 0] = 1.0
         self.pending = deque()  # (target time, shown (S, C, 4), the sensors still to score (S,)), in time order
         self.previous = np.full((n_sensors, 4), np.nan)  # the latest valid sample (repeat test)
         self.knot_t = np.full(n_sensors, np.nan)  # the latest usable sample: time, orientation
@@ -257,7 +287,7 @@ class AutoStream(Stream):
                 self.pending.popleft()
         self.knot_t = np.where(usable, now, self.knot_t)
         self.knot_q = np.where(usable[:, None], qs, self.knot_q)
-        _choose(self.total, self.chosen)
+        _weigh(self.total, p.power, self.weights)
         if np.any(ok):
             ahead = np.stack([s.predict(p.horizon_s) for s in self.streams], axis=1)  # (S, C, 4)
             ahead = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, qs[:, None])
@@ -267,7 +297,8 @@ class AutoStream(Stream):
 
     def predict(self, horizon):
         d = float(check_horizons(horizon)[0])
-        out = np.stack([s.predict(d) for s in self.streams], axis=1)[np.arange(self.n_sensors), self.chosen]
-        out = np.where(np.all(np.isfinite(out), axis=1, keepdims=True), out, self.last)  # as the batch shows it
+        ahead = np.stack([s.predict(d) for s in self.streams])  # (C, S, 4)
+        ahead = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, self.last[None])  # as the batch
+        out = blend(ahead, self.weights.T, self.last)
         out[~self.ok] = np.nan
         return out
