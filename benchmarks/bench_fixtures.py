@@ -17,7 +17,7 @@ from benchmarks.harness import Figure
 from ivc import rotations
 from ivc.fixtures.mapping import FixtureModel, solve_sensor0
 from ivc.fixtures.report import declared_frame_map
-from ivc.session import Session
+from ivc.session import FIT_STEPS
 from ivc.sim import Simulator, load_scene
 
 FRAMES = 100_000
@@ -26,9 +26,7 @@ TABLE_18 = {"p50": (0.27, 1.50), "p75": (0.50, 2.40), "max": (4.9, 23.4)}
 
 def run() -> list[Figure]:
     simulator = Simulator(load_scene("default"), seed=0)
-    session = Session()
-    for name in ("cube_calibration", "cube_survey", "wand_calibration", "wand_sweep"):
-        session.steps[name], session.truth[name] = simulator.step(name, FRAMES if name == "wand_sweep" else None)
+    session = simulator.protocol({"wand_sweep": FRAMES}, steps=FIT_STEPS)
     models = {name: FixtureModel.from_session(session, interpolant=name) for name in ("harmonic", "trilinear")}
     D_R, D_t, _ = declared_frame_map(session)
     sweep, truth = session.steps["wand_sweep"], session.truth["wand_sweep"]

@@ -36,9 +36,7 @@ TARGETS = {("position_mm", "p50"): 1.0, ("position_mm", "p95"): 3.0, ("position_
 
 def _session() -> Session:
     simulator = Simulator(load_scene("default"), seed=0)
-    session = Session(hemisphere=simulator.scene.hemisphere)
-    for name in ("cube_calibration", "cube_survey", "wand_calibration", "wand_sweep", "check"):
-        session.steps[name], session.truth[name] = simulator.step(name)
+    session = simulator.protocol()
     quiet = Simulator(replace(simulator.scene, noise=NoiseSpec.none()), seed=0)
     noiseless = Session(hemisphere=session.hemisphere, steps=dict(session.steps), truth=dict(session.truth))
     noiseless.steps["check"], noiseless.truth["check"] = quiet.step("check")

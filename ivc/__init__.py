@@ -1,18 +1,128 @@
 """ivc: interpolation-volume calibration for AC electromagnetic trackers.
 
+Metal near an AC electromagnetic tracker bends every pose it reports. ivc maps the
+secondary field of that metal with two cheap fixtures (an 8-sensor interpolation cube
+and a mapping wand) and corrects measurements with the map. The whole job in Python,
+on a simulated room::
+
+    import ivc
+
+    session = ivc.Simulator(ivc.load_scene("default"), seed=0).protocol({"wand_sweep": 20_000})
+    table = ivc.fit_lut(session, ivc.FitOptions(method="harmonic"))
+    check = session.steps["check"]
+    corrected = ivc.Corrector(table).batch(check.signal_matrices(), check.valid_mask)
+    report = ivc.evaluate(table, session)                 # errors against truth, mm and mrad
+    print(report["ivc"]["position_mm"]["p50"], report["dipole"]["position_mm"]["p50"])
+    ivc.write_lut(table, "room_lut.h5")
+    ivc.export_table(table, "vti", "room.vti")            # ParaView; also slicer, vrui, csv, npz, hdf5
+    ahead = ivc.predict.make("mmdq2", rate_hz=240.0).predict(corrected.quaternion, 0.05)
+
+A real tracker's recording enters as a session file (:func:`read_session`) or a
+recording CSV (:func:`ivc.collect.replay`). Docs: docs/python.md walks through the same
+job; docs/conventions.md gives units (metres, seconds, quaternions ``[w, x, y, z]``).
+
 The package is laid out as the pipeline it implements:
 
-``rotations``  quaternion and rotation-matrix conventions (MATH.md section 1)
+``rotations``  quaternion and rotation-matrix conventions
 ``dipole``     the AC dipole field model and the closed-form pose solver
 ``session``    the HDF5 session file every command reads and writes
+``sim``        a simulated tracker in a distorted room
+``collect``    recording protocol steps from the simulator or a tracker's recording
+``fixtures``   cube and wand calibration, the sweep solved through the cube
+``pose``       the batched pose solver with a known secondary field
+``lut``        the secondary-field look-up table: fit, grid, file
+``correct``    corrected poses from signals or reported poses; evaluation against truth
+``predict``    head-motion prediction filters
+``live``       live correction of OpenIGTLink streams
+``export``     the table for firmware, ParaView, 3D Slicer and Vrui
+``report``     figures and an HTML page on a table
+``demo``       the whole pipeline on a simulated room in one call
+``errors``     every deliberate error, under :class:`IvcError`
 ``cli``        the ``ivc`` command line
+
+The names below are loaded on first use, so ``import ivc`` stays cheap.
 """
 
+from __future__ import annotations
+
+import importlib
 from importlib.metadata import PackageNotFoundError, version
+
+from ivc.errors import (
+    CsvError,
+    ExportError,
+    InputError,
+    IvcError,
+    LiveError,
+    LutError,
+    PredictorError,
+    SceneError,
+    SessionError,
+)
 
 try:
     __version__ = version("ivc")
 except PackageNotFoundError:  # running from a source tree that was not installed
     __version__ = "0.0.0+unknown"
 
-__all__ = ["__version__"]
+#: public name -> (module, attribute); attribute None is the module itself
+_EXPORTS = {
+    # data
+    "Session": ("ivc.session", "Session"),
+    "Step": ("ivc.session", "Step"),
+    "Truth": ("ivc.session", "Truth"),
+    "read_session": ("ivc.session", "read"),
+    "write_session": ("ivc.session", "write"),
+    "replay": ("ivc.collect", "replay"),
+    # simulation
+    "Simulator": ("ivc.sim", "Simulator"),
+    "Scene": ("ivc.sim", "Scene"),
+    "load_scene": ("ivc.sim", "load_scene"),
+    # fixtures and the table
+    "FixtureModel": ("ivc.fixtures.mapping", "FixtureModel"),
+    "fit_lut": ("ivc.lut", "fit_lut"),
+    "FitOptions": ("ivc.lut", "FitOptions"),
+    "LookupTable": ("ivc.lut", "LookupTable"),
+    "read_lut": ("ivc.lut", "read"),
+    "write_lut": ("ivc.lut", "write"),
+    # correction and evaluation
+    "Corrector": ("ivc.correct", "Corrector"),
+    "Correction": ("ivc.correct", "Correction"),
+    "evaluate": ("ivc.correct.evaluate", "evaluate"),
+    # export
+    "export_table": ("ivc.export", "export"),
+    # subpackages a script uses by name
+    "collect": ("ivc.collect", None),
+    "correct": ("ivc.correct", None),
+    "export": ("ivc.export", None),
+    "demo": ("ivc.demo", None),
+    "dipole": ("ivc.dipole", None),
+    "fixtures": ("ivc.fixtures", None),
+    "live": ("ivc.live", None),
+    "lut": ("ivc.lut", None),
+    "pose": ("ivc.pose", None),
+    "predict": ("ivc.predict", None),
+    "report": ("ivc.report", None),
+    "rotations": ("ivc.rotations", None),
+    "session": ("ivc.session", None),
+    "sim": ("ivc.sim", None),
+}
+
+__all__ = ["CsvError", "ExportError", "InputError", "IvcError", "LiveError", "LutError", "PredictorError",
+           "SceneError", "SessionError", "__version__", *_EXPORTS]
+
+
+def __getattr__(name: str):
+    try:
+        module, attribute = _EXPORTS[name]
+    except KeyError:
+        raise AttributeError(f"module 'ivc' has no attribute {name!r}") from None
+    value = importlib.import_module(module)
+    if attribute is not None:
+        value = getattr(value, attribute)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

@@ -2,22 +2,21 @@
 
     python sample_data/make.py [--out DIR] [--only head|room]
 
-``room`` runs ``ivc demo`` on the default scene (seed 0, about a minute and a half) and keeps
-its fitted table plus a small slice of its session; ``head`` writes 10 s of synthetic
-aggressive head motion. Existing files are never replaced: remove them first.
+``room`` runs the demo (:func:`ivc.demo.run`, as ``ivc demo``) on the default scene (seed 0,
+about a minute and a half) and keeps its fitted table plus a small slice of its session;
+``head`` writes 10 s of synthetic aggressive head motion. Existing files are never replaced: remove them first.
 """
 
 from __future__ import annotations
 
 import argparse
 import shutil
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from ivc import demo
 from ivc import session as session_io
 from ivc.collect import write_csv
 from ivc.predict.motion import head_motion
@@ -55,8 +54,8 @@ def room(out: Path) -> None:
                                out / "default_room_check.csv")
     _refuse_existing(table, check, check_csv)
     with tempfile.TemporaryDirectory(prefix="ivc-samples-") as scratch:
-        subprocess.run([sys.executable, "-m", "ivc.cli", "demo", "--seed", "0", "--keep", scratch], check=True)
-        full = session_io.read(Path(scratch) / "demo.h5")
+        result = demo.run("default", seed=0, folder=scratch)  # what `ivc demo --seed 0 --keep DIR` writes
+        full = result.session
         kept = {"cube_survey": slice(0, SURVEY_FRAMES), "check": slice(0, CHECK_FRAMES)}
         steps = {name: full.steps[name].select(frames) for name, frames in kept.items()}
         truth = {name: session_io.Truth(full.truth[name].position[frames], full.truth[name].quaternion[frames])
@@ -65,7 +64,7 @@ def room(out: Path) -> None:
         with session_io.atomic_path(check_csv) as tmp:
             write_csv(steps["check"].select(slice(0, CHECK_CSV_FRAMES)), tmp)
         with session_io.atomic_path(table) as tmp:
-            shutil.copyfile(Path(scratch) / "demo_lut.h5", tmp)
+            shutil.copyfile(result.table_file, tmp)
 
 
 def main() -> None:

@@ -1,25 +1,18 @@
 import numpy as np
 import pytest
 
+from ivc.lut import Grid, LookupTable
+from tests.helpers import CENTRE, quadratic_field
+
 
 @pytest.fixture
 def rng():
     return np.random.default_rng(20261121)
 
 
-def random_positions(rng, n, low=0.05, high=2.0, hemisphere=None):
-    """Random positions with range uniform in [low, high] metres, directions uniform."""
-    d = rng.standard_normal((n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    if hemisphere is not None:
-        d *= np.where(d @ hemisphere < 0, -1.0, 1.0)[:, None]
-    return d * rng.uniform(low, high, (n, 1))
-
-
 @pytest.fixture(scope="session")
 def small_session():
     """A quick simulated protocol (short sweep, few check poses) next to one aluminium plate."""
-    from ivc.session import Session
     from ivc.sim import Simulator
     from ivc.sim.scene import scene_from_dict
 
@@ -27,8 +20,14 @@ def small_session():
                                             "material": "aluminium", "resolution_mm": 80}]})
     scene.tabulate = False
     simulator = Simulator(scene, seed=9)
-    session = Session()
-    for name, frames in (("cube_calibration", 1000), ("cube_survey", 200), ("wand_calibration", 200),
-                         ("wand_sweep", 3000), ("check", 300)):
-        session.steps[name], session.truth[name] = simulator.step(name, frames)
+    session = simulator.protocol({"cube_calibration": 1000, "cube_survey": 200, "wand_calibration": 200,
+                                  "wand_sweep": 3000, "check": 300})
     return simulator, session
+
+
+@pytest.fixture(scope="session")
+def exact_table():
+    """A table holding a field exactly quadratic in r, which cubic interpolation reproduces exactly."""
+    grid = Grid(CENTRE - 0.25, 0.025, (21, 21, 21))
+    values = quadratic_field(grid.nodes().reshape(-1, 3)).reshape(*grid.shape, 3, 3)
+    return LookupTable(grid, values, np.ones(grid.shape, bool), np.full(grid.shape, 100))

@@ -5,7 +5,7 @@ from click.testing import CliRunner
 
 from ivc import __version__, session
 from ivc.cli import cli
-from tests.test_session import full_session
+from tests.helpers import full_session
 
 
 def test_version_and_help():

@@ -12,22 +12,7 @@ from ivc.cli import cli
 from ivc.collect.replay import write_csv
 from ivc.correct import HIGH_RESIDUAL, INVALID_INPUT, OUTSIDE, Corrector
 from ivc.correct._kernels import quaternion_of
-from ivc.lut import Grid, LookupTable
-from tests.test_lut import CENTRE, ball, quadratic_field
-
-
-@pytest.fixture(scope="module")
-def exact_table():
-    """A table holding a field exactly quadratic in r, which cubic interpolation reproduces exactly."""
-    grid = Grid(CENTRE - 0.25, 0.025, (21, 21, 21))
-    values = quadratic_field(grid.nodes().reshape(-1, 3)).reshape(*grid.shape, 3, 3)
-    return LookupTable(grid, values, np.ones(grid.shape, bool), np.full(grid.shape, 100))
-
-
-def distorted(rng, n, radius=0.18):
-    r = ball(rng, n, radius)
-    T = rotations.to_matrix(rotations.random(n, rng))
-    return r, T, dipole.signal(r, T, quadratic_field(r))
+from tests.helpers import distorted, quadratic_field
 
 
 def test_correction_recovers_exact_poses_when_the_table_is_the_true_field(exact_table, rng):
@@ -87,6 +72,7 @@ def test_compiled_quaternion_equals_the_reference(rng):
     np.testing.assert_allclose(q, rotations.from_matrix(T), atol=1e-15)
 
 
+@pytest.mark.slow
 def test_cli_fit_correct_evaluate(small_session, tmp_path):
     _, session = small_session
     session_file, table_file = tmp_path / "s.h5", tmp_path / "lut.h5"

@@ -4,7 +4,7 @@ import pytest
 
 from ivc import dipole
 from ivc import rotations as R
-from tests.conftest import random_positions
+from tests.helpers import random_positions
 
 
 def reference_field(r):

@@ -15,7 +15,7 @@ from ivc.export import FORMATS, ExportError, distortion, export
 from ivc.lut import Grid, LookupTable
 from ivc.lut import write as write_lut
 from ivc.lut.table import COMPONENTS
-from tests.test_lut import CENTRE, quadratic_field
+from tests.helpers import CENTRE, quadratic_field
 
 MM = 1000.0
 

@@ -8,14 +8,7 @@ from ivc.fixtures import CUBE_BITS, CubeCalibration, CubePlacement, fit_cube, fi
 from ivc.session import Step
 from ivc.sim import Scene, Simulator
 from ivc.sim.scene import NoiseSpec, scene_from_dict
-from ivc.sim.tracker import measure
-
-
-def static_capture(fixture, position, quaternion, frames=50, noise=None, rng=0):
-    positions, quaternions = fixture.sensor_poses(np.asarray(position)[None], np.asarray(quaternion)[None])
-    positions, quaternions = np.repeat(positions, frames, 0), np.repeat(quaternions, frames, 0)
-    return measure(positions, quaternions, secondary=None, noise=noise or NoiseSpec.none(), rate_hz=240,
-                   hemisphere="+x", rng=np.random.default_rng(rng))
+from tests.helpers import static_capture
 
 
 @pytest.fixture

@@ -10,7 +10,7 @@ from ivc.fixtures.wand import WandCalibration
 from ivc.session import Session
 from ivc.sim import Scene, Simulator
 from ivc.sim.scene import NoiseSpec
-from tests.test_fixtures_cube import static_capture
+from tests.helpers import static_capture
 
 
 def test_propagation_follows_a_rigid_motion(rng):

@@ -17,7 +17,7 @@ from ivc.correct import Corrector
 from ivc.live import LiveCorrector, NDArrayMessage, TrackingDataMessage
 from ivc.live.igtl import Framer
 from ivc.lut import write as write_lut
-from tests.test_correct import distorted, exact_table  # noqa: F401  (fixture)
+from tests.helpers import distorted
 
 SENSORS = ("S0", "S1", "S2", "S3")
 
@@ -86,6 +86,7 @@ def _collect(client, frames_expected, timeout=10.0):
     return out
 
 
+@pytest.mark.slow
 def test_ivc_correct_live_matches_offline_and_survives_a_server_restart(exact_table, rng, tmp_path):  # noqa: F811
     lut_path = tmp_path / "map.h5"
     write_lut(exact_table, lut_path)

@@ -8,42 +8,9 @@ from ivc.lut import FitOptions, Grid, GridField, LookupTable, LutError, fit_lut,
 from ivc.lut.fit_harmonic import fit_harmonic
 from ivc.lut.fit_poly import fit_poly
 from ivc.lut.grid import fill_invalid
-from ivc.lut.samples import FieldSamples
 from ivc.lut.support import node_support
 from ivc.session import SessionError
-
-CENTRE = np.array([0.5, 0.0, 0.0])
-
-
-def external_dipole_field(r):
-    """A smooth harmonic 3x3 field, about 10 % of the primary: columns are fields of three dipoles 0.6 m
-    from the centre (outside the mapped ball)."""
-    sources = CENTRE + np.array([[0.6, 0, 0], [0, 0.6, 0], [0, 0, -0.6]])
-    moments = np.array([[0.06, 0.03, 0.0], [0.0, -0.05, 0.03], [0.03, 0.0, 0.06]])
-    G = np.zeros(np.shape(r)[:-1] + (3, 3))
-    for p, m in zip(sources, moments, strict=True):
-        G += dipole.field(r - p) @ np.diag(m) @ np.ones((3, 3)) / 3  # each source feeds every column
-    return G
-
-
-def quadratic_field(r):
-    """Columns = gradients of degree-3 harmonic potentials: a field exactly quadratic in r."""
-    x = r - CENTRE
-    basis = harmonics.gradients(x / 0.2, 3)  # (N, 15, 3)
-    coefficients = np.linspace(-1, 1, 45).reshape(15, 3) * 0.5  # about 10 % of the primary field
-    return np.einsum("nki,kj->nij", basis, coefficients)
-
-
-def ball(rng, n, radius, centre=CENTRE):
-    d = rng.standard_normal((n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return centre + d * radius * rng.random((n, 1)) ** (1 / 3)
-
-
-def samples_of(field, positions):
-    n = len(positions)
-    return FieldSamples(positions, field(positions), np.zeros(n), np.arange(n) // 8, np.arange(n) % 8)
-
+from tests.helpers import CENTRE, ball, external_dipole_field, quadratic_field, samples_of
 
 # --- harmonic basis -------------------------------------------------------------------------------------------
 
@@ -196,6 +163,7 @@ def test_fit_refuses_too_few_kept_samples_and_names_the_step_to_redo(small_sessi
         fit_lut(moved)
 
 
+@pytest.mark.slow
 def test_fit_and_refinement_on_a_simulated_session(small_session, tmp_path):
     simulator, session = small_session
     table = fit_lut(session, FitOptions(refine=True, max_refinements=2, min_support=5))

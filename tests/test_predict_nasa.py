@@ -97,6 +97,7 @@ def test_displacement_and_twist_of_a_two_degree_yaw():
     assert compensator.twist(error, -rotations.IDENTITY) == pytest.approx(np.radians(2.0))
 
 
+@pytest.mark.slow
 def test_optimised_designs_reproduce_the_papers_orderings():
     """Table 1's reading: the twist design is best on twist; the hybrid suppresses vertical noise (to about no
     prediction) where default and twist amplify it, and gives up twist accuracy to do so."""

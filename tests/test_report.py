@@ -9,6 +9,7 @@ import pytest
 from click.testing import CliRunner
 from matplotlib.image import imread
 
+from ivc import demo as ivc_demo
 from ivc import dipole, lut
 from ivc import session as session_io
 from ivc.cli import cli
@@ -16,19 +17,16 @@ from ivc.correct.evaluate import evaluate
 from ivc.fixtures.mapping import FixtureModel
 from ivc.lut import Grid
 from ivc.report import FIGURES, build_report
-from ivc.report.compute import _cell_counts, _layers, declared_cube, percent_of_measured
-from ivc.report.figures import _boundary
+from ivc.report.compute import cell_counts, declared_cube, mapped_layers, percent_of_measured
+from ivc.report.figures import mapped_boundary
 from ivc.session import Session
 
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
-    """A small `ivc demo` run, kept: the session and its table."""
-    folder = tmp_path_factory.mktemp("demo")
-    result = CliRunner().invoke(cli, ["demo", "--sweep-frames", "3000", "--check-frames", "300", "--keep",
-                                      str(folder)])
-    assert result.exit_code == 0, result.output
-    return folder / "demo.h5", folder / "demo_lut.h5"
+    """A small demo run (what `ivc demo --keep` writes): the session and its table."""
+    result = ivc_demo.run(sweep_frames=3000, check_frames=300, folder=tmp_path_factory.mktemp("demo"))
+    return result.session_file, result.table_file
 
 
 class _Images(HTMLParser):
@@ -53,6 +51,7 @@ def _embedded(page: str) -> dict[str, bytes]:
             for f, s in zip(parser.figures, parser.sources, strict=True)}
 
 
+@pytest.mark.slow
 def test_report_builds_from_the_demo_session_with_every_figure(demo, tmp_path):
     session_file, lut_file = demo
     out = tmp_path / "report"
@@ -86,6 +85,7 @@ def test_report_builds_from_the_demo_session_with_every_figure(demo, tmp_path):
     assert (out / "report.html").read_text() == page, "a refused run changes nothing"
 
 
+@pytest.mark.slow
 def test_report_without_truth_says_what_it_cannot_draw(demo, tmp_path):
     session_file, lut_file = demo
     full = session_io.read(session_file)
@@ -100,6 +100,7 @@ def test_report_without_truth_says_what_it_cannot_draw(demo, tmp_path):
     assert "missing" in report.numbers["check"]
 
 
+@pytest.mark.slow
 def test_a_check_file_without_the_step_is_named(demo, tmp_path):
     session_file, lut_file = demo
     full = session_io.read(session_file)
@@ -112,6 +113,7 @@ def test_a_check_file_without_the_step_is_named(demo, tmp_path):
     assert f"{check_file} has no 'check' step" in result.output
 
 
+@pytest.mark.slow
 def test_a_session_without_its_sweep_reports_the_table_and_check_poses_only(demo, tmp_path):
     session_file, lut_file = demo
     full = session_io.read(session_file)
@@ -145,6 +147,7 @@ def test_a_session_without_its_sweep_reports_the_table_and_check_poses_only(demo
         whole["check"]["distance_from_cube_mm"]["p50"], abs=5.0)
 
 
+@pytest.mark.slow
 def test_a_check_recording_without_a_cube_gets_no_distances(demo, tmp_path):
     session_file, lut_file = demo
     full = session_io.read(session_file)
@@ -171,7 +174,7 @@ def test_cell_counts_hold_every_sample_inside_the_grid(rng):
     from ivc.lut.table import LookupTable
 
     table = LookupTable(grid, np.zeros((*grid.shape, 3, 3)), np.ones(grid.shape, bool), np.zeros(grid.shape))
-    counts = _cell_counts(table, positions)
+    counts = cell_counts(table, positions)
     assert counts.shape == (4, 3, 5)
     assert counts.sum() == grid.contains(positions).sum()
     cell = np.floor((positions[0] - grid.origin) / grid.spacing).astype(int)
@@ -184,11 +187,11 @@ def test_mapped_volume_outline_and_slice_choice():
     X, Y = np.arange(4.0), np.arange(4.0)
     single = np.zeros((3, 3), bool)
     single[1, 1] = True
-    assert len(_boundary(single, X, Y)) == 4
+    assert len(mapped_boundary(single, X, Y)) == 4
     ell = single.copy()
     ell[1, 2] = ell[2, 1] = True  # three cells in an L: 8 edges on its outline
-    assert len(_boundary(ell, X, Y)) == 8
+    assert len(mapped_boundary(ell, X, Y)) == 8
     cells = np.zeros((2, 2, 20), bool)
     cells[:, :, 3:17] = True
-    layers = _layers(cells, keep=9)
+    layers = mapped_layers(cells, keep=9)
     assert len(layers) == 6 and 9 in layers and layers[0] == 3 and layers[-1] == 16

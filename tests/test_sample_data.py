@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from ivc import lut, rotations
@@ -79,6 +80,7 @@ def test_predict_the_shipped_head_recording(tmp_path):
     assert error.mean() < none.mean() / 3
 
 
+@pytest.mark.slow
 def test_the_maker_writes_a_head_recording_and_never_replaces_one(tmp_path):
     args = [sys.executable, str(SAMPLES / "make.py"), "--only", "head", "--out", str(tmp_path)]
     subprocess.run(args, check=True, capture_output=True)

@@ -5,41 +5,8 @@ import numpy as np
 import pytest
 
 from ivc import dipole, session
-from ivc import rotations as R
-from ivc.session import Session, SessionError, Step, Truth
-
-
-def make_step(rng, frames=20, sensors=8, with_signal=True, with_pose=True):
-    position = np.array([0.5, 0.0, 0.0]) + 0.05 * rng.standard_normal((frames, sensors, 3))
-    quaternion = R.random((frames, sensors), rng)
-    return Step(
-        time=np.arange(frames) / 240.0,
-        signal=dipole.signal_from_pose(position, quaternion) if with_signal else None,
-        position=position if with_pose else None,
-        quaternion=quaternion if with_pose else None,
-        valid=rng.random((frames, sensors)) > 0.1,
-        sample_rate_hz=240.0,
-        sensor_ids=[f"s{i}" for i in range(sensors)],
-        description="test data",
-    )
-
-
-def survey_attrs():
-    return {"declared_position": np.array([0.5, 0.01, -0.02]), "declared_quaternion": np.array([1.0, 0, 0, 0])}
-
-
-def full_session(rng):
-    survey = make_step(rng)
-    survey.attrs = survey_attrs()
-    steps = {
-        "cube_calibration": make_step(rng),
-        "cube_survey": survey,
-        "wand_calibration": make_step(rng, sensors=5),
-        "wand_sweep": make_step(rng, frames=50, sensors=5, with_pose=False),
-        "check": make_step(rng, frames=7, sensors=3, with_signal=False),
-    }
-    truth = {"check": Truth(steps["check"].position.copy(), steps["check"].quaternion.copy())}
-    return Session(hemisphere="+x", steps=steps, truth=truth)
+from ivc.session import Session, SessionError
+from tests.helpers import full_session, make_step, survey_attrs
 
 
 def digest(path):

@@ -106,6 +106,7 @@ def scene_field(request):
     return scene, scene.secondary_field()
 
 
+@pytest.mark.slow
 def test_secondary_field_is_divergence_and_curl_free(scene_field):
     scene, field = scene_field
     rng = np.random.default_rng(3)
@@ -132,6 +133,7 @@ def test_tabulated_field_matches_exact_sum(scene_field):
     assert error.max() < 1e-3  # relative to the primary field
 
 
+@pytest.mark.slow
 def test_mesh_refinement_changes_field_little():
     # the default scene's panel, meshed at 40 mm and at 20 mm (4x the triangles)
     scene = load_scene("default")

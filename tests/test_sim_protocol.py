@@ -65,6 +65,7 @@ def test_declared_pose_carries_a_placement_error(free_space):
     np.testing.assert_allclose(truth.position[0, 0], r0, atol=1e-15)
 
 
+@pytest.mark.slow
 def test_sweep_keeps_sensor0_in_the_cube_and_covers_the_sphere():
     scene = Scene()
     sim = Simulator(scene, seed=1)

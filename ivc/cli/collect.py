@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import click
@@ -40,7 +42,7 @@ def _parse_source(source: str) -> tuple[str, str | None]:
                              param_hint="--source")
 
 
-class _SimulatorProgress:
+class SimulatorProgress:
     """Builds the simulator once and shows what the slow parts are doing."""
 
     def __init__(self, scene_name: str | None, seed: int):
@@ -61,10 +63,26 @@ class _SimulatorProgress:
                     bar.total = total
                     bar.update(done - bar.n)
 
-                field.tabulate(progress=advance)
+                self.simulator.prepare(progress=advance)
 
 
-def _summary(name: str, step: Step, truth: Truth | None) -> str:
+    @contextmanager
+    def protocol_progress(self, hemisphere: str) -> Iterator[Callable[[str, Step, Session], None]]:
+        """An ``on_step`` for :meth:`Simulator.protocol`: a bar over the steps, each step's warnings on stderr,
+        and the eddy-current solve (with its own progress) before the first distorted step."""
+        with tqdm(total=len(STEPS), desc="protocol", unit="step") as bar:
+
+            def on_step(name: str, new: Step, collected: Session) -> None:
+                for warning in check_step(name, new, collected, hemisphere):
+                    click.echo(f"warning: {warning}", err=True)
+                bar.update()
+                if name == "cube_calibration":
+                    self.prepare(distorted=True)
+
+            yield on_step
+
+
+def summary(name: str, step: Step, truth: Truth | None) -> str:
     text = f"{name}: {step.n_frames} frames x {step.n_sensors} sensors, {100 * step.valid_mask.mean():.2f}% valid"
     if truth is not None and step.position is not None:
         ok = step.valid_mask
@@ -84,18 +102,23 @@ def _record(name, sim, kind, argument, frames, rate, declared_position, declared
         if frames is not None:
             raise click.BadParameter("--frames is for simulated sources; a replay keeps every frame")
     if name == "cube_survey":
-        if declared_position is not None:
-            step.attrs["declared_position"] = declared_position
-        if declared_quaternion is not None:
-            if abs(np.linalg.norm(declared_quaternion) - 1) > 1e-6:
-                raise click.BadParameter("must be a unit quaternion w,x,y,z", param_hint="--declared-quaternion")
-            step.attrs["declared_quaternion"] = rotations.canonical(declared_quaternion)
-        if "declared_position" not in step.attrs or "declared_quaternion" not in step.attrs:
-            raise click.UsageError(
-                "cube_survey needs the cube's declared pose: pass --declared-position x,y,z (metres) and "
-                "--declared-quaternion w,x,y,z (the cube fixture frame, origin at sensor 0, in the source frame)"
-            )
+        _declare(step, declared_position, declared_quaternion)
     return step, truth
+
+
+def _declare(step: Step, declared_position, declared_quaternion) -> None:
+    """Set the cube_survey's declared pose from the command line, where given; refuse a survey without one."""
+    if declared_position is not None:
+        step.attrs["declared_position"] = declared_position
+    if declared_quaternion is not None:
+        if abs(np.linalg.norm(declared_quaternion) - 1) > 1e-6:
+            raise click.BadParameter("must be a unit quaternion w,x,y,z", param_hint="--declared-quaternion")
+        step.attrs["declared_quaternion"] = rotations.canonical(declared_quaternion)
+    if "declared_position" not in step.attrs or "declared_quaternion" not in step.attrs:
+        raise click.UsageError(
+            "cube_survey needs the cube's declared pose: pass --declared-position x,y,z (metres) and "
+            "--declared-quaternion w,x,y,z (the cube fixture frame, origin at sensor 0, in the source frame)"
+        )
 
 
 @click.command()
@@ -121,7 +144,7 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
     (wand sensor 0 inside the cube, far end sweeping), check (independent poses).
     """
     kind, argument = _parse_source(source)
-    sim = _SimulatorProgress(argument, seed) if kind == "sim" else None
+    sim = SimulatorProgress(argument, seed) if kind == "sim" else None
     hemisphere = hemisphere or (sim.scene.hemisphere if sim else "+x")
     output = Path(output)
     if step == "protocol":
@@ -129,19 +152,14 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
             raise click.UsageError("`ivc collect protocol` simulates; replay a recording one step at a time")
         if output.exists() and not force:
             raise FileExistsError(f"{output}: exists; choose a new file or pass --force to replace it")
-        counts = {"wand_sweep": sweep_frames, "check": check_frames}
-        collected = Session(hemisphere=hemisphere, attrs={"scene": sim.scene.name, "seed": seed})
-        for name in tqdm(STEPS, desc="protocol", unit="step"):
-            new, truth = _record(name, sim, kind, argument, counts.get(name, frames), rate, declared_position,
-                                 declared_quaternion)
-            for warning in check_step(name, new, collected, hemisphere):
-                click.echo(f"warning: {warning}", err=True)
-            collected.steps[name] = new
-            if truth is not None:
-                collected.truth[name] = truth
+        counts = {name: frames for name in STEPS} | {"wand_sweep": sweep_frames, "check": check_frames}
+        with sim.protocol_progress(hemisphere) as on_step:
+            collected = sim.simulator.protocol(counts, on_step=on_step)
+        collected.hemisphere = hemisphere
+        _declare(collected.steps["cube_survey"], declared_position, declared_quaternion)
         session_io.write(collected, output, overwrite=force)
         for name in STEPS:
-            click.echo(_summary(name, collected.steps[name], collected.truth.get(name)))
+            click.echo(summary(name, collected.steps[name], collected.truth.get(name)))
         click.echo(f"wrote {output}")
         return
     existing = session_io.read(output) if output.exists() else None
@@ -154,5 +172,5 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
         session_io.add_step(output, step, new, truth, hemisphere=hemisphere, force=force)
     except SessionError as error:
         raise SessionError(f"{error} (nothing was written)") from None
-    click.echo(_summary(step, new, truth))
+    click.echo(summary(step, new, truth))
     click.echo(f"wrote {step} to {output}")

@@ -1,4 +1,4 @@
-"""``ivc demo``: the whole pipeline on a simulated distorted room, in one command."""
+"""``ivc demo``: the whole pipeline on a simulated distorted room, in one command (see :mod:`ivc.demo`)."""
 
 from __future__ import annotations
 
@@ -8,14 +8,13 @@ from pathlib import Path
 
 import click
 
+from ivc import demo as demo_run
 from ivc import lut
-from ivc import session as session_io
-from ivc.cli.collect import collect
+from ivc.cli.collect import SimulatorProgress, summary
 from ivc.cli.evaluate import render_table
 from ivc.cli.fit import render_fit
 from ivc.cli.progress import StageBars
-from ivc.correct.evaluate import evaluate
-from ivc.lut.build import FitOptions
+from ivc.session import STEPS
 
 
 @click.command()
@@ -27,34 +26,34 @@ from ivc.lut.build import FitOptions
 @click.option("--keep", "keep_dir", type=click.Path(file_okay=False),
               help="Keep the session and table in this directory (default: a temporary one, removed).")
 @click.option("--force", is_flag=True, help="With --keep: replace files from an earlier demo.")
-@click.pass_context
-def demo(ctx, scene, seed, sweep_frames, check_frames, method, keep_dir, force):
+def demo(scene, seed, sweep_frames, check_frames, method, keep_dir, force):
     """Simulate a distorted room, collect the protocol, fit the map, and compare corrected with uncorrected poses."""
     start = time.perf_counter()
+    sim = SimulatorProgress(scene, seed)
+
+    def stage(name: str, made: demo_run.DemoResult) -> None:
+        if name == "collect":
+            click.echo(f"1/3 collect: simulating scene {scene!r} (seed {seed}) into {made.session_file}", err=True)
+        elif name == "fit":
+            for step in STEPS:
+                click.echo(summary(step, made.session.steps[step], made.session.truth.get(step)))
+            click.echo(f"wrote {made.session_file}")
+            click.echo(f"2/3 fit: {method} look-up table", err=True)
+        else:
+            click.echo(render_fit(made.table, made.fit_seconds))
+            click.echo("3/3 evaluate: correcting the check poses", err=True)
+
     with tempfile.TemporaryDirectory(prefix="ivc-demo-") as scratch:
         folder = Path(keep_dir) if keep_dir else Path(scratch)
-        folder.mkdir(parents=True, exist_ok=True)
-        session_file, table_file = folder / "demo.h5", folder / "demo_lut.h5"
-        for existing in (session_file, table_file):
-            if existing.exists() and not force:
-                raise FileExistsError(f"{existing} exists; pass --force to replace it, or --keep another directory")
-        click.echo(f"1/3 collect: simulating scene {scene!r} (seed {seed}) into {session_file}", err=True)
-        ctx.invoke(collect, step="protocol", source=f"sim:{scene}", output=str(session_file), frames=None,
-                   sweep_frames=sweep_frames, check_frames=check_frames, seed=seed, hemisphere=None, rate=None,
-                   declared_position=None, declared_quaternion=None, force=force)
-        click.echo(f"2/3 fit: {method} look-up table", err=True)
-        data = session_io.read(session_file)
-        fit_start = time.perf_counter()
-        with StageBars("sample") as bars:
-            table = lut.fit_lut(data, FitOptions(method=method), source=session_file, progress=bars)
-        lut.write(table, table_file, overwrite=force)
-        click.echo(render_fit(table, time.perf_counter() - fit_start))
-        click.echo("3/3 evaluate: correcting the check poses", err=True)
-        report = evaluate(table, data)
+        with sim.protocol_progress(sim.scene.hemisphere) as on_step, StageBars("sample") as bars:
+            result = demo_run.run(simulator=sim.simulator, sweep_frames=sweep_frames, check_frames=check_frames,
+                                  method=method, folder=folder, force=force, on_step=on_step, fit_progress=bars,
+                                  on_stage=stage)
         click.echo("")
-        click.echo(render_table(report))
+        click.echo(render_table(result.report))
         click.echo("")
         where = f"; files kept in {folder}" if keep_dir else ""
         click.echo(f"ivc demo finished in {time.perf_counter() - start:.0f} s{where}")
         if keep_dir:
-            click.echo(f"figures and an HTML page: ivc report {session_file} {table_file} -o {folder / 'report'}")
+            click.echo(f"figures and an HTML page: ivc report {result.session_file} {result.table_file} "
+                       f"-o {folder / 'report'}")

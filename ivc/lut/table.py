@@ -1,4 +1,4 @@
-"""The look-up table of the room's secondary field, and its HDF5 file (docs/lut-format.md).
+"""The look-up table of the room's secondary field, and its HDF5 file (docs/lut.md, "The table file").
 
 A table holds, per node of a regular grid, the nine components of the source-frame
 secondary field ``G`` (same normalised units as ``f_D``, MATH.md §1), whether the node

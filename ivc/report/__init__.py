@@ -23,10 +23,10 @@ from ivc.report.compute import (
     THIN_SAMPLES,
     Progress,
     ReportData,
-    _no_progress,
     figures_missing,
     gather,
     lacks_sentence,
+    no_progress,
     summary,
 )
 from ivc.report.figures import FIGURES
@@ -82,7 +82,7 @@ def _write(path: Path, content: bytes) -> None:
 def build_report(session: Session, table: LookupTable, directory: str | os.PathLike, *, check: Session | None = None,
                  step: str = "check", thin: int = THIN_SAMPLES, max_frames: int | None = None,
                  overwrite: bool = False, names: dict[str, str] | None = None,
-                 progress: Progress = _no_progress) -> Report:
+                 progress: Progress = no_progress) -> Report:
     """Write the report into ``directory``; refuse to replace an earlier one unless ``overwrite``.
 
     ``names``: file names to print on the page (``session``, ``lut``, ``check``) and the

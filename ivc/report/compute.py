@@ -37,7 +37,7 @@ THIN_SAMPLES = MIN_SUPPORT
 Progress = Callable[[str, int], Callable[[int], None]]
 
 
-def _no_progress(description: str, total: int) -> Callable[[int], None]:
+def no_progress(description: str, total: int) -> Callable[[int], None]:
     return lambda n: None
 
 
@@ -118,14 +118,15 @@ def percent_of_measured(field_values: np.ndarray, positions: np.ndarray) -> np.n
     return 100.0 * np.linalg.norm(field_values, axis=(-2, -1)) / measured
 
 
-def _cell_counts(table: LookupTable, positions: np.ndarray) -> np.ndarray:
+def cell_counts(table: LookupTable, positions: np.ndarray) -> np.ndarray:
+    """Samples per grid cell (nx − 1, ny − 1, nz − 1) of ``positions`` (N, 3) m, source frame."""
     g = table.grid
     edges = [g.origin[a] + g.spacing * np.arange(g.shape[a]) for a in range(3)]
     counts, _ = np.histogramdd(positions, bins=edges)
     return counts.astype(np.int64)
 
 
-def _layers(mapped_cells: np.ndarray, keep: int | None = None) -> np.ndarray:
+def mapped_layers(mapped_cells: np.ndarray, keep: int | None = None) -> np.ndarray:
     """Up to MAX_SLICES cell layers (z) spread over those holding any mapped cell, with
     layer ``keep`` (the cube's) among them when it holds any."""
     filled = np.flatnonzero(mapped_cells.any(axis=(0, 1)))
@@ -147,7 +148,7 @@ def slices(table: LookupTable, field: GridField, cell_counts: np.ndarray | None,
     g = table.grid
     x_edges, y_edges, z_edges = (g.origin[a] + g.spacing * np.arange(g.shape[a]) for a in range(3))
     keep = None if cube_centre is None else int(np.floor((cube_centre[2] - g.origin[2]) / g.spacing))
-    layers = _layers(field.valid_cells, keep)
+    layers = mapped_layers(field.valid_cells, keep)
     z = z_edges[layers] + g.spacing / 2
     step = g.spacing / OVERSAMPLE
     x = np.arange(x_edges[0] + step / 2, x_edges[-1], step)
@@ -160,7 +161,7 @@ def slices(table: LookupTable, field: GridField, cell_counts: np.ndarray | None,
 
 
 def solve_sweep(session: Session, model: FixtureModel, table: LookupTable, cube_centre: np.ndarray,
-                max_frames: int | None = None, progress: Progress = _no_progress) -> SweepView:
+                max_frames: int | None = None, progress: Progress = no_progress) -> SweepView:
     """Solve the sweep in the cube with the gates and the frames the table was fitted with: at most
     ``max_frames`` (default: the table's own setting, else ``ivc fit``'s default), every k-th beyond."""
     parameters = table.provenance.get("parameters", {})
@@ -182,7 +183,7 @@ def solve_sweep(session: Session, model: FixtureModel, table: LookupTable, cube_
 
 def check_view(table: LookupTable, session: Session, check: Session | None, step: str,
                cube_centre: np.ndarray | None, source: str,
-               progress: Progress = _no_progress) -> tuple[CheckView | None, str | None]:
+               progress: Progress = no_progress) -> tuple[CheckView | None, str | None]:
     """Correct the check poses and judge them against truth; or why that cannot be done."""
     check = session if check is None else check
     if step not in check.steps:
@@ -215,7 +216,7 @@ def lacks_sentence(lacks: tuple[str, ...]) -> str:
 
 def gather(session: Session, table: LookupTable, check: Session | None = None, step: str = "check",
            thin: int = THIN_SAMPLES, max_frames: int | None = None, check_source: str = "the session",
-           progress: Progress = _no_progress) -> ReportData:
+           progress: Progress = no_progress) -> ReportData:
     """Everything the report draws. ``check``: a separate check recording (default: ``session``'s own).
 
     A session without the mapping steps (a check recording, say) gives the table's field and the
@@ -235,7 +236,7 @@ def gather(session: Session, table: LookupTable, check: Session | None = None, s
         model = FixtureModel.from_session(session, fixtures.get("vertices", "averaged"), interpolant)
         vertices = model.placement.positions
         sweep = solve_sweep(session, model, table, vertices.mean(axis=0), max_frames, progress)
-        counts = _cell_counts(table, sweep.mapping.positions[sweep.mapping.keep])
+        counts = cell_counts(table, sweep.mapping.positions[sweep.mapping.keep])
     centre = None if vertices is None else vertices.mean(axis=0)
     view, missing = check_view(table, session, check, step, centre, check_source, progress)
     return ReportData(table, model, slices(table, field, counts, centre), sweep, view, missing, thin, vertices,

@@ -93,7 +93,7 @@ def coverage(data: ReportData) -> Figure:
     mesh = None
     for ax, counts, mapped, z in zip(axes, s.counts, s.mapped, s.z, strict=True):
         mesh = ax.pcolormesh(X, Y, np.ma.masked_equal(counts, 0).T, norm=norm, cmap=cmap)
-        ax.add_collection(LineCollection(_boundary(mapped, X, Y), colors="red", linewidths=1.4))
+        ax.add_collection(LineCollection(mapped_boundary(mapped, X, Y), colors="red", linewidths=1.4))
         thin = mapped & (counts < data.thin)
         i, j = np.nonzero(thin)
         ax.plot(centres_x[i], centres_y[j], "x", color="red", markersize=6, markeredgewidth=1.5)
@@ -250,7 +250,7 @@ def _binned(ax, x: np.ndarray, y: np.ndarray, colour: str, label: str, bins: int
     ax.plot(centres, p95, ":", color=colour, label=f"{label} 95%")
 
 
-def _boundary(mapped: np.ndarray, X: np.ndarray, Y: np.ndarray) -> list:
+def mapped_boundary(mapped: np.ndarray, X: np.ndarray, Y: np.ndarray) -> list:
     """Line segments along the cell edges between mapped and unmapped cells (and the grid's edge)."""
     padded = np.pad(mapped, 1)
     segments = []

@@ -8,6 +8,7 @@ the same seed always gives the same session.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping, Sequence
 from functools import cached_property
 
 import numpy as np
@@ -15,7 +16,7 @@ import numpy as np
 from ivc import rotations
 from ivc.errors import InputError
 from ivc.fixtures import fixture_frame
-from ivc.session import STEP_DESCRIPTIONS, Step, Truth
+from ivc.session import STEP_DESCRIPTIONS, STEPS, Session, Step, Truth
 from ivc.sim import rig, tracker
 from ivc.sim.field import SecondaryField
 from ivc.sim.scene import Scene
@@ -49,6 +50,15 @@ class Simulator:
     def secondary(self) -> SecondaryField:
         """The scene's secondary field, solved on first use."""
         return self.scene.secondary_field()
+
+    def prepare(self, progress: Callable[[int, int], None] | None = None) -> SecondaryField:
+        """Solve the scene's eddy currents and tabulate their field now rather than at the first distorted step.
+
+        ``progress(done, total)`` follows the tabulation, slab by slab. Returns the field.
+        """
+        field = self.secondary
+        field.tabulate(progress=progress)
+        return field
 
     def true_cube_frame(self) -> tuple[np.ndarray, np.ndarray]:
         """True pose ``(r_0, T_I)`` of the cube fixture frame (MATH.md §5) during the survey."""
@@ -105,6 +115,29 @@ class Simulator:
         )
         step.attrs.update(attrs)
         return step, Truth(positions, quaternions)
+
+    def protocol(self, frames: Mapping[str, int | None] | None = None, *, steps: Sequence[str] = STEPS,
+                 on_step: Callable[[str, Step, Session], None] | None = None) -> Session:
+        """Simulate the protocol, every step of ``steps`` in recording order, into a new session.
+
+        ``frames`` maps step names to frame counts; a step left out (or ``None``) gets
+        its :data:`DEFAULT_FRAMES`. ``steps``: a subset of the protocol (default: all
+        five). ``on_step(name, step, session)`` is called after each step is added (for
+        progress or checks). The session records the scene's hemisphere and ``attrs``
+        ``scene`` and ``seed``; every step has its truth. A step equals the same step
+        simulated alone with :meth:`step`.
+        """
+        frames = dict(frames or {})
+        unknown = sorted((set(frames) | set(steps)) - set(STEPS))
+        if unknown:
+            raise InputError(f"unknown step {', '.join(map(repr, unknown))}; the steps are {', '.join(STEPS)}")
+        session = Session(hemisphere=self.scene.hemisphere, attrs={"scene": self.scene.name, "seed": self.seed})
+        for name in (s for s in STEPS if s in steps):
+            step, truth = self.step(name, frames.get(name))
+            session.steps[name], session.truth[name] = step, truth
+            if on_step is not None:
+                on_step(name, step, session)
+        return session
 
     @staticmethod
     def _static(fixture: rig.RigidFixture, position, quaternion, frames: int):

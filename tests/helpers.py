@@ -1,0 +1,99 @@
+"""Builders shared by the test modules (no test module imports another)."""
+
+import numpy as np
+
+from ivc import dipole, rotations
+from ivc import rotations as R
+from ivc.lut import harmonics
+from ivc.lut.samples import FieldSamples
+from ivc.session import Session, Step, Truth
+from ivc.sim.scene import NoiseSpec
+from ivc.sim.tracker import measure
+
+
+def random_positions(rng, n, low=0.05, high=2.0, hemisphere=None):
+    """Random positions with range uniform in [low, high] metres, directions uniform."""
+    d = rng.standard_normal((n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    if hemisphere is not None:
+        d *= np.where(d @ hemisphere < 0, -1.0, 1.0)[:, None]
+    return d * rng.uniform(low, high, (n, 1))
+
+
+def make_step(rng, frames=20, sensors=8, with_signal=True, with_pose=True):
+    position = np.array([0.5, 0.0, 0.0]) + 0.05 * rng.standard_normal((frames, sensors, 3))
+    quaternion = R.random((frames, sensors), rng)
+    return Step(
+        time=np.arange(frames) / 240.0,
+        signal=dipole.signal_from_pose(position, quaternion) if with_signal else None,
+        position=position if with_pose else None,
+        quaternion=quaternion if with_pose else None,
+        valid=rng.random((frames, sensors)) > 0.1,
+        sample_rate_hz=240.0,
+        sensor_ids=[f"s{i}" for i in range(sensors)],
+        description="test data",
+    )
+
+
+def survey_attrs():
+    return {"declared_position": np.array([0.5, 0.01, -0.02]), "declared_quaternion": np.array([1.0, 0, 0, 0])}
+
+
+def full_session(rng):
+    survey = make_step(rng)
+    survey.attrs = survey_attrs()
+    steps = {
+        "cube_calibration": make_step(rng),
+        "cube_survey": survey,
+        "wand_calibration": make_step(rng, sensors=5),
+        "wand_sweep": make_step(rng, frames=50, sensors=5, with_pose=False),
+        "check": make_step(rng, frames=7, sensors=3, with_signal=False),
+    }
+    truth = {"check": Truth(steps["check"].position.copy(), steps["check"].quaternion.copy())}
+    return Session(hemisphere="+x", steps=steps, truth=truth)
+
+
+CENTRE = np.array([0.5, 0.0, 0.0])
+
+
+def external_dipole_field(r):
+    """A smooth harmonic 3x3 field, about 10 % of the primary: columns are fields of three dipoles 0.6 m
+    from the centre (outside the mapped ball)."""
+    sources = CENTRE + np.array([[0.6, 0, 0], [0, 0.6, 0], [0, 0, -0.6]])
+    moments = np.array([[0.06, 0.03, 0.0], [0.0, -0.05, 0.03], [0.03, 0.0, 0.06]])
+    G = np.zeros(np.shape(r)[:-1] + (3, 3))
+    for p, m in zip(sources, moments, strict=True):
+        G += dipole.field(r - p) @ np.diag(m) @ np.ones((3, 3)) / 3  # each source feeds every column
+    return G
+
+
+def quadratic_field(r):
+    """Columns = gradients of degree-3 harmonic potentials: a field exactly quadratic in r."""
+    x = r - CENTRE
+    basis = harmonics.gradients(x / 0.2, 3)  # (N, 15, 3)
+    coefficients = np.linspace(-1, 1, 45).reshape(15, 3) * 0.5  # about 10 % of the primary field
+    return np.einsum("nki,kj->nij", basis, coefficients)
+
+
+def ball(rng, n, radius, centre=CENTRE):
+    d = rng.standard_normal((n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return centre + d * radius * rng.random((n, 1)) ** (1 / 3)
+
+
+def samples_of(field, positions):
+    n = len(positions)
+    return FieldSamples(positions, field(positions), np.zeros(n), np.arange(n) // 8, np.arange(n) % 8)
+
+
+def static_capture(fixture, position, quaternion, frames=50, noise=None, rng=0):
+    positions, quaternions = fixture.sensor_poses(np.asarray(position)[None], np.asarray(quaternion)[None])
+    positions, quaternions = np.repeat(positions, frames, 0), np.repeat(quaternions, frames, 0)
+    return measure(positions, quaternions, secondary=None, noise=noise or NoiseSpec.none(), rate_hz=240,
+                   hemisphere="+x", rng=np.random.default_rng(rng))
+
+
+def distorted(rng, n, radius=0.18):
+    r = ball(rng, n, radius)
+    T = rotations.to_matrix(rotations.random(n, rng))
+    return r, T, dipole.signal(r, T, quadratic_field(r))
