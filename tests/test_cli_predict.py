@@ -159,7 +159,8 @@ def test_predict_tune_from_another_recording(tmp_path):
     slow.write_text("\n".join([text[0]] + [",".join([f"{float(r[0]) * 2:.9f}"] + r[1:]) for r in rows]) + "\n")
     for args, message in ((["--tune-from", str(slow)], "recording at 60 Hz"),
                           (["--tune", "--tune-from", str(csv_tune)], "not both")):
-        refused = runner.invoke(cli, ["predict", str(csv_in), *args, "-o", str(tmp_path / "x.csv")])
+        refused = runner.invoke(cli, ["predict", str(csv_in), "--filter", "mmdq2", *args, "-o",
+                                      str(tmp_path / "x.csv")])
         assert refused.exit_code != 0 and message in refused.output, refused.output
     refused = runner.invoke(cli, ["predict", "--benchmark", "--tune-from", str(csv_tune)])
     assert refused.exit_code != 0 and "synthetic" in refused.output

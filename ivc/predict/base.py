@@ -152,16 +152,18 @@ class Predictor(ABC):
 class _Clock:
     """A live stream's time keeping: the frame's dt, and the last time each sensor had a valid sample."""
 
-    def __init__(self, tau: float, n_sensors: int):
-        self.tau, self.now = tau, None
+    def __init__(self, rate_hz: float, n_sensors: int):
+        self.rate_hz, self.now, self.frames = rate_hz, None, 0
         self.last_valid = np.full(n_sensors, -np.inf)
 
     def tick(self, time: float | None) -> float:
-        """dt (s) since the previous frame; refuses a time that does not move forward."""
+        """dt (s) since the previous frame; refuses a time that does not move forward. Without a time stamp,
+        frame n is at n / rate_hz, as :func:`ivc.predict.timing.check_time` has it for a batch."""
+        self.frames += 1
         if time is None:
-            dt = 0.0 if self.now is None else self.tau
-            self.now = dt if self.now is None else self.now + dt
-            return dt
+            before = self.now
+            self.now = (self.frames - 1) / self.rate_hz
+            return 0.0 if before is None else self.now - before
         t = float(time)
         if not np.isfinite(t) or (self.now is not None and t <= self.now):
             raise PredictorError(f"frame time {t!r} s does not come after the previous frame's ({self.now!r} s): "
@@ -211,7 +213,7 @@ class FixedRateStream(Stream):
     def __init__(self, predictor: FixedRatePredictor, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.inner = predictor._stream_uniform(n_sensors)
-        self.clock = _Clock(predictor.tau, n_sensors)
+        self.clock = _Clock(predictor.rate_hz, n_sensors)
         self.previous = np.full((self.n_sensors, 4), np.nan)  # each sensor's last valid sample
         self.restarts = 0
 

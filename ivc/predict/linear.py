@@ -237,7 +237,7 @@ class PolynomialStream(Stream):
         super().__init__(predictor, n_sensors)
         w = predictor.K.size
         self.window = w
-        self.clock = _Clock(predictor.tau, n_sensors)
+        self.clock = _Clock(predictor.rate_hz, n_sensors)
         self.theta = np.zeros((n_sensors, w, 3))  # newest first
         self.times = np.zeros((n_sensors, w))
         self.count = np.zeros(n_sensors, np.int64)  # accepted samples since the start or the last gap
