@@ -175,16 +175,17 @@ class DQStream(Stream):
         self.state = predictor._state(self.n_sensors)
         self.ready = np.zeros(self.n_sensors, bool)
         self._all = np.ones(self.n_sensors, bool)
-        self.now: float | None = None  # the last frame's time (s)
+        self.now: float | None = None  # the last frame's time (s), when frames come with time stamps
+        self._step = 0.0  # dt of the next frame fed without a time stamp (0 for the first)
 
     def update(self, q, valid=None, time=None):
         q = np.array(q, dtype=float, order="C")  # a copy: normalised in place by the kernel
         if q.shape != (self.n_sensors, 4):
             raise PredictorError(f"a frame has shape ({self.n_sensors}, 4), got {q.shape}")
         ok = self._all if valid is None else np.asarray(valid, dtype=bool).reshape(self.n_sensors)
-        if time is None:
-            dt = 0.0 if self.now is None else self.predictor.tau
-            self.now = dt if self.now is None else self.now + dt
+        if time is None:  # the live path's default: one nominal period, no clock kept
+            dt = self._step
+            self._step = self.predictor.tau
         else:
             t = float(time)
             if self.now is not None and not t > self.now:
@@ -192,6 +193,7 @@ class DQStream(Stream):
                                      "feed frames in time order, without repeated time stamps")
             dt = 0.0 if self.now is None else t - self.now
             self.now = t
+            self._step = self.predictor.tau
         kinds, qvar, R, cfg, _, _ = self.predictor._config
         bad = K.update_frame(q, ok, dt, *self.state, kinds, qvar, R, cfg, self.ready)
         if bad >= 0:
