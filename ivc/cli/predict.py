@@ -82,8 +82,12 @@ def check_tuning_rate(tuning: Tuning, rate_hz: float, what: str) -> None:
 
 def echo_timing(label: str, step: Step, valid: np.ndarray | None = None) -> None:
     """The stream's rate, jitter, repeats and gaps, as the predictors will see them."""
-    if step.quaternion is not None and step.n_frames > 1:
-        click.echo(f"{label}: " + steps_lib.step_timing(step, valid).summary().replace("\n", "\n  "))
+    if step.quaternion is None or step.n_frames < 2:
+        return
+    if not np.all(np.diff(step.time) > 0):
+        click.echo(f"{label}: the time stamps do not increase; frames are taken 1 / {step.sample_rate_hz:g} Hz apart")
+        return
+    click.echo(f"{label}: " + steps_lib.step_timing(step, valid).summary().replace("\n", "\n  "))
 
 
 def predicted_quaternions(step: Step, name: str, horizon: float, valid: np.ndarray | None = None,

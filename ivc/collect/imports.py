@@ -18,7 +18,7 @@ from pathlib import Path
 from ivc.errors import CsvError
 from ivc.session import Step
 
-#: format name -> the words its header line starts with
+#: the formats :func:`sniff` recognises by their first line
 FORMATS = ("head-trace", "polhemus-liberty")
 
 
