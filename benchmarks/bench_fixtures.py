@@ -16,9 +16,9 @@ import numpy as np
 from benchmarks.harness import Figure
 from ivc import rotations
 from ivc.fixtures.mapping import FixtureModel, solve_sensor0
-from ivc.fixtures.report import declared_frame_map
 from ivc.session import FIT_STEPS
 from ivc.sim import Simulator, load_scene
+from ivc.truth import declared_frame_map
 
 FRAMES = 100_000
 TABLE_18 = {"p50": (0.27, 1.50), "p75": (0.50, 2.40), "max": (4.9, 23.4)}

@@ -24,6 +24,7 @@ job; docs/conventions.md gives units (metres, seconds, quaternions ``[w, x, y, z
 The package is laid out as the pipeline it implements:
 
 ``rotations``  quaternion and rotation-matrix conventions
+``truth``      evaluation against truth: percentiles, pose errors, the declared-frame map
 ``dipole``     the AC dipole field model and the closed-form pose solver
 ``session``    the HDF5 session file every command reads and writes
 ``sim``        a simulated tracker in a distorted room
@@ -106,6 +107,7 @@ _EXPORTS = {
     "rotations": ("ivc.rotations", None),
     "session": ("ivc.session", None),
     "sim": ("ivc.sim", None),
+    "truth": ("ivc.truth", None),
 }
 
 __all__ = ["CsvError", "ExportError", "InputError", "IvcError", "LiveError", "LutError", "PredictorError",

@@ -86,7 +86,7 @@ def test_predict_benchmark_prints_the_tables(tmp_path):
 
 
 def test_compensators_prints_table1_and_the_designs_it_scored():
-    from ivc.predict import compensator
+    from ivc.predict.studies import compensator
 
     result = CliRunner().invoke(cli, ["predict", "--compensators", "--evaluations", "15", "--json"])
     assert result.exit_code == 0, result.output

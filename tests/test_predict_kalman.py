@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter as FilterPyKF
 
-from ivc.predict import ExtendedKalmanFilter, KalmanFilter
+from tests.kalman_reference import ExtendedKalmanFilter, KalmanFilter
 
 # notes/kalman_basics_scaat.md §3, deterministic vectors: (R, k) -> (P_k⁻, K_k, P_k); x̂₀ = 0, P₀ = 1, Q = 1e-5
 RANDOM_CONSTANT = {

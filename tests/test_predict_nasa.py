@@ -6,8 +6,9 @@ from scipy import signal
 from scipy.linalg import expm
 
 from ivc import rotations
-from ivc.predict import compensator, make
+from ivc.predict import make
 from ivc.predict.nasa import DEFAULT_W, N, NasaEKF, expm_taylor, jacobian, omega_matrix, q_matrix
+from ivc.predict.studies import compensator
 
 
 def _kinematics(x):

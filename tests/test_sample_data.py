@@ -14,7 +14,7 @@ from ivc import session as session_io
 from ivc.cli import cli
 from ivc.collect.replay import read_csv
 from ivc.correct.evaluate import evaluate
-from ivc.fixtures.report import DECLARED_FRAME
+from ivc.truth import DECLARED_FRAME
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_data"
 RECORDINGS = SAMPLES / "recordings"

@@ -146,8 +146,8 @@ def run_compensators(seed: int, evaluations: int, as_json: bool) -> None:
     """Seed 003's designs (default, twist, hybrid) on synthetic 20 s yaw records; Table 1."""
     from tqdm import tqdm
 
-    from ivc.predict import compensator
     from ivc.predict.nasa import DEFAULT_W
+    from ivc.predict.studies import compensator
 
     records = compensator.yaw_records(seed=seed)
     designs, counts = {"default": np.array(DEFAULT_W)}, {}

@@ -18,14 +18,9 @@ import numpy as np
 from ivc import rotations
 from ivc.correct.solver import FLAG_NAMES, Corrector
 from ivc.dipole import closed_form_pose
-from ivc.fixtures.report import DECLARED_FRAME, RAW_FRAME, declared_frame_map, percentiles
 from ivc.lut.table import LookupTable
 from ivc.session import Session, SessionError
-
-
-def _errors(position, rotation, true_position, true_rotation):
-    return (1000 * np.linalg.norm(position - true_position, axis=-1),
-            1000 * rotations.angle_between_matrices(rotation, true_rotation))
+from ivc.truth import DECLARED_FRAME, RAW_FRAME, declared_frame_map, percentiles, pose_errors
 
 
 @dataclass
@@ -78,14 +73,14 @@ def check_errors(table: LookupTable | Corrector, check: Session, step: str = "ch
         frame_map = None if found is None else found[:2]
     ok = out.flags == 0
     T_ivc = rotations.to_matrix(np.where(ok[..., None], out.quaternion, rotations.IDENTITY))
-    raw_p, raw_a = _errors(out.position, T_ivc, true_p, true_T)
+    raw_p, raw_a = pose_errors(out.position, T_ivc, true_p, true_T)
     r_dip, T_dip = closed_form_pose(S, check.hemisphere)
-    dip_p, dip_a = _errors(r_dip, T_dip, true_p, true_T)
+    dip_p, dip_a = pose_errors(r_dip, T_dip, true_p, true_T)
     p, a, placement, judged = raw_p, raw_a, None, true_p
     if frame_map is not None:
         D_R, D_t = frame_map
         judged = true_p @ D_R.T + D_t
-        p, a = _errors(out.position, T_ivc, judged, D_R @ true_T)
+        p, a = pose_errors(out.position, T_ivc, judged, D_R @ true_T)
         placement = float(1000 * np.linalg.norm(D_t + (D_R - np.eye(3)) @ np.mean(true_p[valid], axis=0)))
     return CheckErrors(valid, ok, out.flags, out.iterations, p, a, raw_p, raw_a, dip_p, dip_a, judged, frame_map,
                        placement)

@@ -13,7 +13,6 @@ from ivc.predict.auto import AutoPredictor
 from ivc.predict.base import Predictor, PredictorError, Stream
 from ivc.predict.dq import DQPredictor, dqekf_ca, dqekf_cv, mmdq2, mmdq3
 from ivc.predict.evaluate import NoPrediction
-from ivc.predict.kalman import ExtendedKalmanFilter, KalmanFilter
 from ivc.predict.linear import LinearPredictor, alpha_beta, kinematic, polynomial
 from ivc.predict.mmae import MMAE
 from ivc.predict.nasa import NasaEKF
@@ -65,6 +64,5 @@ def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Pre
     return FILTERS[name](rate_hz, sigma_w=tuning.sigma_w, sigma_v=tuple(tuning.sigma_v_dq))
 
 
-__all__ = ["AutoPredictor", "DEFAULT_FILTER", "DQPredictor", "ExtendedKalmanFilter", "FILTERS", "KalmanFilter",
-           "LinearPredictor", "MMAE", "NasaEKF", "NoPrediction", "Predictor", "PredictorError", "QEKF", "Stream",
-           "TUNABLE", "Tuning", "make"]
+__all__ = ["AutoPredictor", "DEFAULT_FILTER", "DQPredictor", "FILTERS", "LinearPredictor", "MMAE", "NasaEKF",
+           "NoPrediction", "Predictor", "PredictorError", "QEKF", "Stream", "TUNABLE", "Tuning", "make"]

@@ -13,7 +13,7 @@ rate when used to propagate):
 Measurement z = q + v, H = [I₄ 0], V_r = diag(1e-4) (the paper's). W_r is diagonal, the design
 parameter (10 entries: q_w, q_x, q_y, q_z, ω_x, ω_y, ω_z, α_x, α_y, α_z). A&B94's default W_r is
 not in the seeds: :data:`DEFAULT_W` is ours, chosen on the synthetic yaw record of
-:mod:`ivc.predict.compensator` (a placeholder for it).
+:mod:`ivc.predict.studies.compensator` (a placeholder for it).
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from ivc.predict.qekf import quaternion_update
 #: V_r of the paper: variance of each measured quaternion component
 V_QUATERNION = 1e-4
 #: our default W_r (A&B94's is not in the seeds): q, ω, α process variances per step. Chosen on the
-#: synthetic yaw record of :mod:`ivc.predict.compensator` so that, like the paper's default, it tracks
+#: synthetic yaw record of :mod:`ivc.predict.studies.compensator` so that, like the paper's default, it tracks
 #: the yaw well (twist ratio 0.21 against the paper's 0.181) and amplifies tremor (noise gain ~2)
 DEFAULT_W = (1e-9, 1e-9, 1e-9, 1e-9, 1e-6, 1e-6, 1e-6, 1.0, 1.0, 1.0)
 #: terms of the Taylor series of expm(hF); ‖hF‖ < 0.1 for head motion at 120 Hz, error < 1e-12

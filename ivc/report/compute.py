@@ -20,12 +20,13 @@ from ivc.errors import InputError
 from ivc.fixtures.cube import CUBE_BITS, NOMINAL_EDGE, declared_pose, placed_vertices
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import FixtureModel, Gates, SweepMapping, map_sweep
-from ivc.fixtures.report import SweepErrors, declared_frame_map, percentiles, sweep_errors
+from ivc.fixtures.report import SweepErrors, sweep_errors
 from ivc.lut.build import FitOptions
 from ivc.lut.grid import GridField
 from ivc.lut.support import MIN_SUPPORT
 from ivc.lut.table import LookupTable
 from ivc.session import Session
+from ivc.truth import declared_frame_map, percentiles
 
 #: horizontal slices drawn at most
 MAX_SLICES = 6

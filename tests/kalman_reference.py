@@ -1,4 +1,7 @@
-"""Discrete Kalman and extended Kalman filters in the Welch & Bishop form (seed 002 §4; notes/kalman_basics_scaat.md).
+"""Reference discrete Kalman and extended Kalman filters in the Welch & Bishop form (Welch & Bishop 2001, §4).
+
+Test code: the textbook filter against which Welch & Bishop 2001's worked example is checked
+(tests/test_predict_kalman.py); the product's filters live in ivc/predict.
 
 The attribute surface follows FilterPy's (``x``, ``P``, ``F``, ``Q``, ``R``, ``H``, ``B``) so
 that code written against it reads the same, without depending on it. ``F`` is the seed's
