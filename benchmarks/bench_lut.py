@@ -4,7 +4,12 @@ Targets (10,000 random check poses with random orientations in the mapped volume
 4.5.4): IVC position median <= 1.0 mm, 95th <= 3 mm, max <= 10 mm; orientation median <= 5
 mrad, 95th <= 15 mrad. Errors in the declared cube frame (MATH.md §5; docs/lut.md): the
 frame every sample and correction lives in. ``ivc fit`` <= 60 s on the 100,000-frame sweep;
-correction >= 100,000 sensor-frames/s batched; streaming median latency <= 100 µs.
+``ivc fit`` with its default options (refinement on) <= 30 s, as accurate as before issue 25
+(``BEFORE``: its CV score and check-pose percentiles, measured on this session with the code of
+that time, may not grow by more than 2 %); correction >= 250,000 sensor-frames/s batched;
+streaming median latency <= 50 µs. What limits the correction is printed beside it: the rate
+with every frame warm-started at its answer (no seed search, one or two iterations) and the
+mean number of iterations.
 
 Baselines in the same run: the uncorrected dipole solution (Table 24's other column), the
 seed's local polynomial fit, and the batched NumPy Levenberg-Marquardt of ``ivc.pose``.
@@ -30,6 +35,9 @@ from ivc.session import Session
 from ivc.sim import Simulator, load_scene
 from ivc.sim.scene import NoiseSpec
 
+#: the default fit (refinement on) of this session before issue 25: CV (mm) and check-pose percentiles
+BEFORE = {"cv_rms_mm": 0.024772, ("position_mm", "p50"): 0.04276, ("position_mm", "p95"): 0.2509,
+          ("orientation_mrad", "p50"): 0.1772, ("orientation_mrad", "p95"): 0.9376}
 TARGETS = {("position_mm", "p50"): 1.0, ("position_mm", "p95"): 3.0, ("position_mm", "max"): 10.0,
            ("orientation_mrad", "p50"): 5.0, ("orientation_mrad", "p95"): 15.0}
 
@@ -76,9 +84,22 @@ def run() -> list[Figure]:
                           - reports["poly"]["corrected"], higher_is_better=False))
     figures.append(Figure("ivc fit, harmonic, 100k x 8 sweep", seconds["harmonic"], "s", "poly fit",
                           seconds["poly"], "<= 60 s", passed=seconds["harmonic"] <= 60, higher_is_better=False))
-    figures.append(Figure("ivc fit, harmonic + refinement", seconds["harmonic refined"], "s", "harmonic",
-                          seconds["harmonic"], "<= 60 s", passed=seconds["harmonic refined"] <= 60,
+    figures.append(Figure("ivc fit, default (refinement on), 100k x 8", seconds["harmonic refined"], "s",
+                          "harmonic alone", seconds["harmonic"], "<= 30 s", passed=seconds["harmonic refined"] <= 30,
                           higher_is_better=False))
+    refined = tables["harmonic refined"].fit
+    print(f"refinement: {len(refined['refinement'])} iteration(s), stopped: {refined['refinement_stopped']}; kept "
+          f"iteration {next((h['iteration'] for h in refined['refinement'] if h['kept']), 0)}")
+    figures.append(Figure("default fit CV score", refined["cv_rms_mm"], "mm", "harmonic alone",
+                          tables["harmonic"].fit["cv_rms_mm"], f"<= {1.02 * BEFORE['cv_rms_mm']:.4g} mm (before +2%)",
+                          passed=refined["cv_rms_mm"] <= 1.02 * BEFORE["cv_rms_mm"], higher_is_better=False))
+    for kind, key in (("position_mm", "p50"), ("position_mm", "p95"), ("orientation_mrad", "p50"),
+                      ("orientation_mrad", "p95")):
+        value, unit = reports["harmonic refined"]["ivc"][kind][key], kind.split("_")[1]
+        limit = 1.02 * BEFORE[(kind, key)]
+        figures.append(Figure(f"default fit check {kind.split('_')[0]} {key}", value, unit, "harmonic alone",
+                              main["ivc"][kind][key], f"<= {limit:.4g} {unit} (before +2%)", passed=value <= limit,
+                              higher_is_better=False))
 
     table = tables["harmonic"]
     corrector = Corrector(table)
@@ -89,7 +110,15 @@ def run() -> list[Figure]:
     seeds = dipole.closed_form_pose(S[:20_000], session.hemisphere)[0]
     numpy_rate = 20_000 / best_time(lambda: solve_pose(S[:20_000], model, seeds), repeat=1)
     figures.append(Figure("correction, batched", batch, "frames/s", "NumPy LM (ivc.pose)", numpy_rate,
-                          ">= 100,000 /s", passed=batch >= 100_000))
+                          ">= 250,000 /s", passed=batch >= 250_000))
+    cold = corrector.batch(S)
+    answers = np.where(np.isfinite(cold.position), cold.position, np.nan)
+    warm = len(S) / best_time(lambda: corrector.batch(S, seeds=answers), repeat=3)
+    figures.append(Figure("correction, batched, warm-started at answer", warm, "frames/s", "cold (seed search)", batch,
+                          "(reference: the seed's cost)"))
+    figures.append(Figure("correction iterations per frame, mean", float(cold.iterations.mean()), "iterations",
+                          "warm-started", float(corrector.batch(S, seeds=answers).iterations.mean()), "(reference)",
+                          higher_is_better=False))
     latencies, numpy_latencies = [], []
     streamed = S[:5000]
     corrector.update(streamed[:1])
@@ -103,6 +132,6 @@ def run() -> list[Figure]:
         numpy_latencies.append(time.perf_counter() - start)
     latency = 1e6 * np.median(latencies)
     figures.append(Figure("streaming latency, median per frame", latency, "µs", "NumPy LM one frame",
-                          1e6 * np.median(numpy_latencies), "<= 100 µs", passed=latency <= 100,
+                          1e6 * np.median(numpy_latencies), "<= 50 µs", passed=latency <= 50,
                           higher_is_better=False))
     return figures

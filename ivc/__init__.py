@@ -39,6 +39,7 @@ The package is laid out as the pipeline it implements:
 ``report``     figures and an HTML page on a table
 ``demo``       the whole pipeline on a simulated room in one call
 ``errors``     every deliberate error, under :class:`IvcError`
+``warmup``     the compiled kernels built ahead of their first use (``ivc warmup``)
 ``cli``        the ``ivc`` command line
 
 The names below are loaded on first use, so ``import ivc`` stays cheap.
@@ -47,7 +48,10 @@ The names below are loaded on first use, so ``import ivc`` stays cheap.
 from __future__ import annotations
 
 import importlib
+import os as _os
+import sys as _sys
 from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path as _Path
 
 from ivc.errors import (
     CsvError,
@@ -60,6 +64,24 @@ from ivc.errors import (
     SceneError,
     SessionError,
 )
+
+
+def _numba_cache_dir() -> None:
+    """Compiled kernels are cached beside the sources; when the installed package directory is
+    read-only (a system or shared site-packages), under the user's cache directory instead:
+    ``$XDG_CACHE_HOME/ivc/numba`` (default ``~/.cache/ivc/numba``; ``%LOCALAPPDATA%`` on Windows).
+    An explicit ``NUMBA_CACHE_DIR`` always wins. Set before numba is imported (or on its
+    config, when it already is) so that every kernel's cache uses it."""
+    if _os.environ.get("NUMBA_CACHE_DIR") or _os.access(_Path(__file__).parent, _os.W_OK):
+        return
+    base = _os.environ.get("XDG_CACHE_HOME") or _os.environ.get("LOCALAPPDATA") or _Path.home() / ".cache"
+    location = str(_Path(base) / "ivc" / "numba")
+    _os.environ["NUMBA_CACHE_DIR"] = location
+    if "numba" in _sys.modules:
+        _sys.modules["numba"].config.CACHE_DIR = location
+
+
+_numba_cache_dir()
 
 try:
     __version__ = version("ivc")
@@ -108,6 +130,7 @@ _EXPORTS = {
     "session": ("ivc.session", None),
     "sim": ("ivc.sim", None),
     "truth": ("ivc.truth", None),
+    "warmup": ("ivc.warmup", None),
 }
 
 __all__ = ["CsvError", "ExportError", "InputError", "IvcError", "LiveError", "LutError", "PredictorError",

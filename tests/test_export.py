@@ -1,6 +1,7 @@
 """Every export format read back by a reader that is not ivc's, and the pose-domain distortion it rests on."""
 
 import csv
+import json
 import re
 
 import h5py
@@ -11,7 +12,7 @@ from click.testing import CliRunner
 from ivc import dipole, rotations
 from ivc.cli import cli
 from ivc.dipole.pose import closed_form_pose
-from ivc.export import FORMATS, ExportError, distortion, export
+from ivc.export import FORMATS, VRUI_MARGIN, ExportError, csv_sidecar, distortion, export
 from ivc.lut import Grid, LookupTable
 from ivc.lut import write as write_lut
 from ivc.lut.table import COMPONENTS
@@ -73,13 +74,12 @@ def test_npz_read_by_numpy(table, tmp_path):
 def test_csv_read_by_the_csv_module_in_eq105_order(table, tmp_path):
     path = export(table, "csv", tmp_path / "t.csv", unit="mm")
     lines = path.read_text().splitlines()
-    header = {k.strip(): v.strip() for k, v in (line[2:].split(":", 1) for line in lines if line.startswith("# ")
-                                                 and ":" in line and "," not in line.split(":", 1)[0])}
-    assert [int(n) for n in header["counts"].split()] == list(table.grid.shape)
-    assert np.allclose([float(v) for v in header["origin_mm"].split()], table.grid.origin * MM)
-    assert float(header["spacing_mm"]) == pytest.approx(table.grid.spacing * MM)
-    columns = lines[[i for i, line in enumerate(lines) if line.startswith("# i,j,k")][0]][2:].split(",")
-    rows = list(csv.DictReader((line for line in lines if not line.startswith("#")), fieldnames=columns))
+    meta = json.loads(csv_sidecar(path).read_text())
+    assert meta["counts"] == list(table.grid.shape) and meta["length_unit"] == "mm"
+    assert np.allclose(meta["origin_mm"], table.grid.origin * MM)
+    assert meta["spacing_mm"] == pytest.approx(table.grid.spacing * MM)
+    assert "f_D(r) = (3 r r^T" in meta["field_unit"] and "MATH" not in meta["field_unit"]
+    rows = list(csv.DictReader(lines))  # a plain header row, nothing else
     assert len(rows) == table.grid.size
     nx, ny, nz = table.grid.shape
     for n in (0, 1, nz, ny * nz, table.grid.size - 1):  # row = i*ny*nz + j*nz + k
@@ -88,6 +88,17 @@ def test_csv_read_by_the_csv_module_in_eq105_order(table, tmp_path):
         assert np.allclose([float(rows[n][c]) for c in COMPONENTS], table.values[i, j, k].ravel(), rtol=1e-11)
         assert np.allclose([float(rows[n][c]) for c in ("x_mm", "y_mm", "z_mm")], table.grid.nodes()[i, j, k] * MM)
         assert int(rows[n]["valid"]) == table.valid[i, j, k]
+
+
+def test_csv_read_by_pandas_and_numpy_with_their_defaults(table, tmp_path):
+    pd = pytest.importorskip("pandas")
+    path = export(table, "csv", tmp_path / "t.csv")
+    frame = pd.read_csv(path)
+    assert len(frame) == table.grid.size and list(frame.columns[:6]) == ["i", "j", "k", "x_m", "y_m", "z_m"]
+    np.testing.assert_allclose(frame[list(COMPONENTS)].to_numpy(), table.values.reshape(-1, 9), rtol=1e-11)
+    array = np.genfromtxt(path, names=True, delimiter=",")
+    assert array.shape == (table.grid.size,) and array.dtype.names[:3] == ("i", "j", "k")
+    np.testing.assert_array_equal(array["valid"].astype(bool), table.valid.reshape(-1))
 
 
 def _vtk_array(image, name):
@@ -113,7 +124,46 @@ def test_vti_read_by_vtk(table, tmp_path):
     primary = np.linalg.norm(dipole.field(table.grid.nodes()), axis=(-2, -1))
     assert np.allclose(_vtk_array(image, "secondary_percent_of_primary"),
                        100 * np.linalg.norm(table.values, axis=(-2, -1)) / primary)
-    assert np.allclose(_vtk_array(image, "position_distortion_mm"), distortion.forward(table).displacement * MM)
+    assert np.allclose(_vtk_array(image, "position_distortion_m"), distortion.forward(table).displacement)
+    fields = image.GetFieldData()
+    assert fields.GetAbstractArray("length_unit").GetValue(0) == "m"
+    assert "f_D(r)" in fields.GetAbstractArray("field_unit").GetValue(0)
+
+
+def test_vti_geometry_and_distortion_share_the_asked_unit(table, tmp_path):
+    vtk = pytest.importorskip("vtk")
+    reader = vtk.vtkXMLImageDataReader()
+    reader.SetFileName(str(export(table, "vti", tmp_path / "t.vti", unit="mm")))
+    reader.Update()
+    image = reader.GetOutput()
+    assert np.allclose(image.GetOrigin(), table.grid.origin * MM)
+    assert np.allclose(image.GetSpacing(), table.grid.spacing * MM)
+    shift = _vtk_array(image, "position_distortion_mm")
+    assert np.allclose(shift, distortion.forward(table).displacement * MM)
+    assert image.GetFieldData().GetAbstractArray("length_unit").GetValue(0) == "mm"
+    # Warp By Vector: node + distortion, both in the file's unit, is where the tracker reports the node
+    d = distortion.forward(table)
+    assert np.allclose((table.grid.nodes() * MM + shift)[d.valid], d.target[d.valid] * MM)
+    for name, (a, b) in zip(COMPONENTS, np.ndindex(3, 3), strict=True):  # the field values are unitless
+        assert np.array_equal(_vtk_array(image, name), table.values[..., a, b])
+
+
+def test_unit_is_honoured_or_refused_by_every_format(table, tmp_path):
+    with np.load(export(table, "npz", tmp_path / "t.npz", unit="mm")) as data:
+        assert str(data["length_unit"]) == "mm" and np.allclose(data["origin"], table.grid.origin * MM)
+        assert float(data["spacing"]) == pytest.approx(table.grid.spacing * MM)
+    with pytest.raises(ExportError, match="hdf5 files are in m only"):
+        export(table, "hdf5", tmp_path / "t.h5", unit="mm")
+    with pytest.raises(ExportError, match="slicer files are in mm only"):
+        export(table, "slicer", tmp_path / "t.nrrd", unit="m")
+    export(table, "slicer", tmp_path / "t.nrrd", unit="mm")
+    with pytest.raises(ExportError, match="--unit in for Vrui's Polhemus"):
+        export(table, "vrui", tmp_path / "t.grid")
+    assert not (tmp_path / "t.grid").exists() and not (tmp_path / "t.h5").exists()
+    lut_path = tmp_path / "map.h5"
+    write_lut(table, lut_path)
+    refused = CliRunner().invoke(cli, ["export", str(lut_path), "--format", "slicer", "--unit", "in"])
+    assert refused.exit_code == 1 and "mm only" in refused.output and "Traceback" not in refused.output
 
 
 def test_slicer_displacement_field_read_by_simpleitk(table, tmp_path):
@@ -178,10 +228,31 @@ def _read_vrui(text):
     return base, cell, offset, rotvec, valid
 
 
+def _vrui_apply(base, cell, offset, rotvec, valid, p):
+    """ForwardGridCalibrator's lookup: the cell index clamped to the grid (so a point outside it is
+    extrapolated from the boundary cell), raw pose untouched if any corner is invalid, else trilinear."""
+    size = np.array(valid.shape)
+    x = (p - base) / cell
+    index = np.clip(np.floor(x).astype(int), 0, size - 2)
+    w = x - index
+    corners = [tuple(index + np.array(c)) for c in np.ndindex(2, 2, 2)]
+    if not all(valid[c] for c in corners):
+        return p
+    weights = [np.prod([w[a] if c[a] else 1 - w[a] for a in range(3)]) for c in np.ndindex(2, 2, 2)]
+    o = sum(wt * offset[c] for wt, c in zip(weights, corners, strict=True))
+    r = sum(wt * rotvec[c] for wt, c in zip(weights, corners, strict=True))
+    return o + rotations.to_matrix(rotations.from_rotvec(r)) @ p
+
+
 def test_vrui_grid_read_as_vrui_does_corrects_at_the_vertices(table, tmp_path):
-    base, cell, offset, rotvec, valid = _read_vrui(export(table, "vrui", tmp_path / "t.grid").read_text())
+    base, cell, offset, rotvec, valid = _read_vrui(export(table, "vrui", tmp_path / "t.grid", unit="m").read_text())
     c = distortion.correction(table)
-    assert np.array_equal(valid, c.valid)
+    m = VRUI_MARGIN
+    inner = (slice(m, -m),) * 3
+    assert not valid[0].any() and not valid[-1].any() and not valid[:, 0].any() and not valid[:, :, -1].any()
+    assert np.array_equal(valid[inner], c.valid)
+    offset, rotvec, valid = offset[inner], rotvec[inner], valid[inner]
+    base = base + m * cell
     assert np.allclose(base, table.grid.origin) and np.allclose(cell, table.grid.spacing)
     # Vrui applies (offset, R) on the left: p' = offset + R p, T' = R T
     R = rotations.to_matrix(rotations.from_rotvec(rotvec[valid]))
@@ -191,6 +262,18 @@ def test_vrui_grid_read_as_vrui_does_corrects_at_the_vertices(table, tmp_path):
     assert np.allclose(R, c.turn[valid], atol=1e-8)
 
 
+def test_vrui_leaves_poses_outside_the_grid_alone(table, tmp_path):
+    grid_file = export(table, "vrui", tmp_path / "t.grid", unit="mm")
+    base, cell, offset, rotvec, valid = _read_vrui(grid_file.read_text())
+    g = table.grid
+    centre = (g.origin + g.spacing * (np.array(g.shape) - 1) / 2) * MM
+    below = centre - [0, 0, 180.0 + g.spacing * MM * (g.shape[2] - 1) / 2]  # 180 mm below the grid
+    assert np.array_equal(_vrui_apply(base, cell, offset, rotvec, valid, below), below)
+    inside = centre + 0.3 * g.spacing * MM
+    assert not np.allclose(_vrui_apply(base, cell, offset, rotvec, valid, inside), inside)  # still corrects
+    assert np.allclose(base, (g.origin - VRUI_MARGIN * g.spacing) * MM) and np.allclose(cell, g.spacing * MM)
+
+
 def test_cli_export_every_format_and_refuse_to_overwrite(table, tmp_path):
     lut_path = tmp_path / "map.h5"
     write_lut(table, lut_path)
@@ -198,12 +281,13 @@ def test_cli_export_every_format_and_refuse_to_overwrite(table, tmp_path):
     for fmt, (_, ext, _) in FORMATS.items():
         if fmt == "hdf5":
             continue
-        result = runner.invoke(cli, ["export", str(lut_path), "--format", fmt])
+        result = runner.invoke(cli, ["export", str(lut_path), "--format", fmt, *(["--unit", "in"] if fmt == "vrui"
+                                                                                 else [])])
         assert result.exit_code == 0, result.output
         assert (tmp_path / f"map{ext}").stat().st_size > 0
     again = runner.invoke(cli, ["export", str(lut_path), "--format", "csv"])
     assert again.exit_code != 0 and "exists" in again.output
     same = runner.invoke(cli, ["export", str(lut_path), "--format", "hdf5", "-o", str(lut_path), "--force"])
-    assert same.exit_code != 0 and "must not be the table" in same.output
+    assert same.exit_code != 0 and "never overwritten" in same.output
     with pytest.raises(ExportError, match="unknown export format"):
         export(table, "stl", tmp_path / "x.stl")

@@ -191,11 +191,12 @@ def test_bad_input_is_dropped_and_logged_once_and_slow_clients_do_not_block(exac
     stats = live.stats
     assert names.count("S0_ivc") == 6 and names.count("S2_ivc") == 7 and "Needle_ivc" not in names
     assert stats.unknown == 6 and stats.out_of_order == 1 and stats.garbage_bytes >= 3000
-    assert stats.received == 6 * 4 + 2  # the NaN pose is received, flagged, and not published
+    assert stats.received == 6 * 4 + 1 and stats.rejected == 1  # the NaN pose is dropped, logged, not published
     assert stats.flagged >= 1
     warnings = [r.getMessage() for r in caplog.records]
     assert sum("unknown sensor 'Needle'" in w for w in warnings) == 1
     assert sum("malformed bytes" in w for w in warnings) == 1
+    assert sum("'S1': dropped a TRANSFORM message: it holds NaN" in w for w in warnings) == 1
 
 
 def test_live_prediction_matches_offline_correct_then_predict(exact_table, rng):  # noqa: F811

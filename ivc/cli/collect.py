@@ -12,6 +12,9 @@ from tqdm import tqdm
 
 from ivc import rotations
 from ivc import session as session_io
+from ivc.cli.options import POSITIVE, SIM_FRAMES
+from ivc.cli.paths import refuse_inputs_as_outputs
+from ivc.cli.progress import ON_TERMINAL
 from ivc.collect import check_step, replay
 from ivc.session import STEPS, Session, SessionError, Step, Truth
 from ivc.sim import Simulator, load_scene
@@ -57,7 +60,7 @@ class SimulatorProgress:
         click.echo(f"Solving eddy currents in scene {self.scene.name!r} ...", err=True)
         field = self.simulator.secondary
         if field.dipoles is not None and field.roi is not None:
-            with tqdm(desc="tabulating the secondary field", unit="slab", leave=False) as bar:
+            with tqdm(desc="tabulating the secondary field", unit="slab", leave=False, disable=ON_TERMINAL) as bar:
 
                 def advance(done: int, total: int) -> None:
                     bar.total = total
@@ -70,7 +73,7 @@ class SimulatorProgress:
     def protocol_progress(self, hemisphere: str) -> Iterator[Callable[[str, Step, Session], None]]:
         """An ``on_step`` for :meth:`Simulator.protocol`: a bar over the steps, each step's warnings on stderr,
         and the eddy-current solve (with its own progress) before the first distorted step."""
-        with tqdm(total=len(STEPS), desc="protocol", unit="step") as bar:
+        with tqdm(total=len(STEPS), desc="protocol", unit="step", disable=ON_TERMINAL) as bar:
 
             def on_step(name: str, new: Step, collected: Session) -> None:
                 for warning in check_step(name, new, collected, hemisphere):
@@ -126,12 +129,12 @@ def _declare(step: Step, declared_position, declared_quaternion) -> None:
 @click.option("--source", default="sim", show_default=True, help="sim, sim:SCENE (name or .toml), or replay:FILE "
               "(a session .h5 or a recording .csv).")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Session file to add to.")
-@click.option("--frames", type=int, help="Frames to simulate (default: the step's protocol default).")
-@click.option("--sweep-frames", type=int, help="protocol: frames of the wand sweep (default 100,000).")
-@click.option("--check-frames", type=int, help="protocol: check poses (default 10,000).")
+@click.option("--frames", type=SIM_FRAMES, help="Frames to simulate (default: the step's protocol default).")
+@click.option("--sweep-frames", type=SIM_FRAMES, help="protocol: frames of the wand sweep (default 100,000).")
+@click.option("--check-frames", type=SIM_FRAMES, help="protocol: check poses (default 10,000).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Simulator seed.")
 @click.option("--hemisphere", help="Hemisphere of a replayed recording (default +x; a scene declares its own).")
-@click.option("--rate", type=float, help="Sample rate (Hz) of a replayed CSV (default: inferred from its times).")
+@click.option("--rate", type=POSITIVE, help="Sample rate (Hz) of a replayed CSV (default: inferred from its times).")
 @click.option("--declared-position", callback=_floats(3), help="cube_survey: declared cube position x,y,z in m.")
 @click.option("--declared-quaternion", callback=_floats(4), help="cube_survey: declared cube orientation w,x,y,z.")
 @click.option("--force", is_flag=True, help="Replace a step that is already in the session file.")
@@ -144,6 +147,8 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
     (wand sensor 0 inside the cube, far end sweeping), check (independent poses).
     """
     kind, argument = _parse_source(source)
+    if kind == "replay" or argument is not None:
+        refuse_inputs_as_outputs({"--output": output}, {"the --source file": argument})
     sim = SimulatorProgress(argument, seed) if kind == "sim" else None
     hemisphere = hemisphere or (sim.scene.hemisphere if sim else "+x")
     output = Path(output)

@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
+import time
+
 import click
 import h5py
 import numpy as np
 
 from ivc import lut
 from ivc import session as session_io
+from ivc.cli.options import POSITIVE
 from ivc.cli.paths import input_and_output
 from ivc.cli.predict import check_tuning_rate, echo_timing, parse_horizon, predicted_quaternions, requested_tuning
-from ivc.collect.replay import read_csv, write_csv
+from ivc.collect.checks import rate_warning
+from ivc.collect.plus import is_plus_sequence, read_plus, write_plus
+from ivc.collect.replay import read_csv_columns, write_csv
 from ivc.correct import Corrector, describe
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, MAX_RESIDUAL, NOT_CONVERGED, OUTSIDE, Correction
 from ivc.lut.build import file_digest
@@ -20,6 +25,8 @@ from ivc.predict.steps import prediction_attrs
 from ivc.session import Session, Step
 from ivc.units import LENGTH_UNITS
 
+#: the name of the corrected transforms added to a PLUS sequence
+PLUS_CORRECTED = "{tool}To{tracker}Ivc"
 #: free-space steps: nothing to correct there
 _FREE_SPACE = ("cube_calibration", "wand_calibration")
 
@@ -41,6 +48,20 @@ def _predicted(step: Step, out: Correction, name: str, horizon: float, tune: boo
     quaternion = predicted_quaternions(step, name, horizon, out.ok, tune=tune, tuning=tuning)
     return Step(step.time, step.signal, step.position, quaternion, step.valid_mask, step.sample_rate_hz,
                 step.sensor_ids, step.description, prediction_attrs(step, name, horizon, tune, tuning_file))
+
+
+def csv_output_columns(kept: dict[str, np.ndarray], added: dict[str, np.ndarray]) -> tuple[dict, dict[str, str]]:
+    """The extra columns of a corrected CSV: the input's own (``kept``) then ivc's (``added``); an input
+    column whose name ivc uses is kept as ``input_<name>``. Returns (columns, {old name: new name})."""
+    out, renamed = {}, {}
+    for name, values in kept.items():
+        new = name
+        while new in added or new in out:
+            new = f"input_{new}"
+        if new != name:
+            renamed[name] = new
+        out[new] = values
+    return {**out, **added}, renamed
 
 
 def _summary(name: str, out: Correction) -> str:
@@ -86,7 +107,7 @@ def _advice(out: Correction, max_residual: float) -> str | None:
 @click.option("--step", "steps", multiple=True, help="Session input: step(s) to correct (default: every step "
               "recorded in the distorted volume).")
 @click.option("--interpolation", type=click.Choice(INTERPOLATIONS), default="cubic", show_default=True)
-@click.option("--max-residual", type=float, default=MAX_RESIDUAL, show_default=True,
+@click.option("--max-residual", type=POSITIVE, default=MAX_RESIDUAL, show_default=True,
               help="Flag corrections whose rms(M − T S)/rms(S) exceeds this.")
 @click.option("--hemisphere", help="Hemisphere of a CSV input (default: the table's).")
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists (never the input).")
@@ -107,12 +128,16 @@ def _advice(out: Correction, max_residual: float) -> str | None:
               help="With --live: length unit of the stream's translations (PLUS and Slicer use mm).")
 @click.option("--sensor", "sensors", multiple=True, help="With --live: correct only these device names "
               "(default: every device that sends TRANSFORM or NDARRAY messages).")
-@click.option("--rate-hz", type=float, default=240.0, show_default=True,
+@click.option("--rate-hz", type=POSITIVE, default=240.0, show_default=True,
               help="With --live --predict: the stream's sample rate.")
-@click.option("--duration", type=float, help="With --live: stop after this many seconds (default: until Ctrl-C).")
+@click.option("--duration", type=POSITIVE, help="With --live: stop after this many seconds (default: until Ctrl-C).")
 def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, force, predictor, horizon,
             tune, tune_from, live_url, publish, length_unit, sensors, rate_hz, duration):
-    """Correct the poses in INPUT_FILE (session .h5 or recording .csv) with LUT_FILE.
+    """Correct the poses in INPUT_FILE (session .h5, recording .csv or PLUS sequence .igs.mha) with LUT_FILE.
+
+    A PLUS sequence (.igs.mha, .seq.mha, .igs.nrrd) is written back with each
+    <Tool>To<Tracker>Transform's correction added as <Tool>To<Tracker>IvcTransform, its
+    status (OK = trusted) and <Tool>To<Tracker>IvcFlags, for Slicer's Sequences module.
 
     Every output sample carries flags: 0 = trusted; 1 outside the mapped volume, 2 not
     converged, 4 residual too high, 8 invalid input (bits combine). Signals are used when
@@ -139,22 +164,32 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         return
     if not input_file or not output:
         raise click.UsageError("give INPUT_FILE and -o OUTPUT (or --live igtl://HOST:PORT)")
-    input_path, output_path = input_and_output(input_file, output, force)
+    input_path, output_path = input_and_output(input_file, output, force,
+                                               [("LUT_FILE", lut_file), ("--tune-from", tune_from)])
     delta = parse_horizon(horizon) if predictor else None
     tuning = requested_tuning(predictor, tune, tune_from)
     table = lut.read(lut_file)
+    if is_plus_sequence(input_path):
+        _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpolation, max_residual, predictor,
+                      delta, tune, tuning, tune_from)
+        return
     if session_io.is_recording_csv(input_path):
         if not session_io.is_recording_csv(output_path):
             raise click.UsageError("a CSV input is corrected into a CSV output (-o FILE.csv)")
-        step = read_csv(input_path)
+        step, columns = read_csv_columns(input_path)
+        _warn(rate_warning(step))
         corrector = Corrector(table, hemisphere or table.hemisphere, interpolation, max_residual)
         out = corrector.batch(step.signal_matrices(), step.valid_mask)
         fixed = corrected_step(step, out, lut_file)
         fixed.signal = None
+        fixed.valid = out.flags == 0  # valid: the corrected pose is trusted (flags say why not)
         if predictor:
             fixed = _predicted(fixed, out, predictor, delta, tune, tuning, tune_from)
+        extra, renamed = csv_output_columns(columns.extra, {"flags": out.flags, "residual": out.residual})
+        for old, new in renamed.items():
+            _warn(f"the input's column {old!r} is written as {new!r} (ivc writes its own {old!r})")
         with session_io.atomic_path(output_path) as tmp:
-            write_csv(fixed, tmp, {"flags": out.flags, "residual": out.residual})
+            write_csv(fixed, tmp, extra, length_unit=columns.length_unit)
         click.echo(_summary(input_path.name, out))
         _warn(_advice(out, max_residual))
         click.echo(f"wrote {output_path}")
@@ -188,6 +223,34 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     click.echo(f"wrote {output_path}")
 
 
+def _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpolation, max_residual, predictor, delta,
+                  tune, tuning, tune_from) -> None:
+    """A PLUS sequence in; the same sequence with ``<Tool>To<Tracker>Ivc`` transforms added out (or a CSV, mm)."""
+    same_format = output_path.suffix.lower() == input_path.suffix.lower()
+    if not (same_format or session_io.is_recording_csv(output_path)):
+        raise click.UsageError(f"a PLUS sequence is corrected into a sequence of the same format (-o "
+                               f"FILE{input_path.suffix}) or a CSV (-o FILE.csv)")
+    sequence = read_plus(input_path)
+    step = sequence.step
+    _warn(rate_warning(step))
+    corrector = Corrector(table, hemisphere or table.hemisphere, interpolation, max_residual)
+    out = corrector.batch(step.signal_matrices(), step.valid_mask)
+    fixed = corrected_step(step, out, lut_file)
+    fixed.valid = out.flags == 0
+    if predictor:
+        fixed = _predicted(fixed, out, predictor, delta, tune, tuning, tune_from)
+    with session_io.atomic_path(output_path) as tmp:
+        if session_io.is_recording_csv(output_path):
+            write_csv(fixed, tmp, {"flags": out.flags, "residual": out.residual}, length_unit="mm")
+        else:
+            write_plus(sequence, tmp, {PLUS_CORRECTED: (fixed.position, fixed.quaternion, out.flags)})
+    click.echo(_summary(input_path.name, out))
+    _warn(_advice(out, max_residual))
+    if sequence.other_transforms:
+        _warn(f"not corrected (not to the {sequence.tracker} frame): {', '.join(sequence.other_transforms)}")
+    click.echo(f"wrote {output_path}")
+
+
 def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor, horizon,
           rate_hz, duration, tuning=None) -> None:
     import logging
@@ -201,17 +264,22 @@ def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_resid
     host, _, port = publish.rpartition(":")
     if not host or not port.isdigit():
         raise click.UsageError(f"--publish wants HOST:PORT, got {publish!r}")
+    click.echo("preparing the compiled correction (compiled once after an install, then loaded from the cache; "
+               "`ivc warmup` does it ahead)", err=True)
+    start = time.perf_counter()
     live = LiveCorrector(corrector, source, (host, int(port)), length_unit=LENGTH_UNITS[length_unit],
                          predictor=predictor, horizon=parse_horizon(horizon) if predictor else 0.0, rate_hz=rate_hz,
                          tuning=tuning,
                          sensors=list(sensors) or None)
-    click.echo(f"correcting {url} -> serving on {live.publish_address[0]}:{live.publish_address[1]}", err=True)
+    click.echo(f"ready in {time.perf_counter() - start:.1f} s: correcting {url} -> serving on "
+               f"{live.publish_address[0]}:{live.publish_address[1]}", err=True)
     try:
         stats = live.run(duration)
     except KeyboardInterrupt:
         stats = live.stats
     latency = np.median(stats.latency_s) * 1e3 if stats.latency_s else float("nan")
     click.echo(f"received {stats.received}, corrected {stats.corrected}, flagged {stats.flagged}, out of order "
-               f"{stats.out_of_order}, unknown {stats.unknown}, malformed bytes {stats.garbage_bytes}, dropped for "
+               f"{stats.out_of_order}, unknown {stats.unknown}, unusable {stats.rejected}, malformed bytes "
+               f"{stats.garbage_bytes}, dropped for "
                f"slow clients {stats.dropped_for_slow_clients}, connections {stats.connections}; median processing "
                f"{latency:.3f} ms per batch", err=True)

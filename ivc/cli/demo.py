@@ -13,6 +13,7 @@ from ivc import lut
 from ivc.cli.collect import SimulatorProgress, summary
 from ivc.cli.evaluate import render_table
 from ivc.cli.fit import render_fit
+from ivc.cli.options import SIM_FRAMES
 from ivc.cli.progress import StageBars
 from ivc.session import STEPS
 
@@ -20,8 +21,8 @@ from ivc.session import STEPS
 @click.command()
 @click.option("--scene", default="default", show_default=True, help="Built-in scene name or a scene .toml file.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Simulator seed.")
-@click.option("--sweep-frames", type=int, default=100_000, show_default=True, help="Frames of the wand sweep.")
-@click.option("--check-frames", type=int, default=10_000, show_default=True, help="Random check poses.")
+@click.option("--sweep-frames", type=SIM_FRAMES, default=100_000, show_default=True, help="Frames of the wand sweep.")
+@click.option("--check-frames", type=SIM_FRAMES, default=10_000, show_default=True, help="Random check poses.")
 @click.option("--method", type=click.Choice(lut.METHODS), default="harmonic", show_default=True)
 @click.option("--keep", "keep_dir", type=click.Path(file_okay=False),
               help="Keep the session and table in this directory (default: a temporary one, removed).")
@@ -33,11 +34,12 @@ def demo(scene, seed, sweep_frames, check_frames, method, keep_dir, force):
 
     def stage(name: str, made: demo_run.DemoResult) -> None:
         if name == "collect":
-            click.echo(f"1/3 collect: simulating scene {scene!r} (seed {seed}) into {made.session_file}", err=True)
+            into = f" into {made.session_file}" if keep_dir else ""  # a temporary file is deleted: no path to print
+            click.echo(f"1/3 collect: simulating scene {scene!r} (seed {seed}){into}", err=True)
         elif name == "fit":
             for step in STEPS:
                 click.echo(summary(step, made.session.steps[step], made.session.truth.get(step)))
-            click.echo(f"wrote {made.session_file}")
+            click.echo(f"wrote {made.session_file}" if keep_dir else "collected the protocol (temporary session)")
             click.echo(f"2/3 fit: {method} look-up table", err=True)
         else:
             click.echo(render_fit(made.table, made.fit_seconds))

@@ -8,6 +8,7 @@ import click
 
 from ivc import lut
 from ivc import session as session_io
+from ivc.cli.options import POSITIVE
 from ivc.correct import Corrector
 from ivc.correct.evaluate import evaluate as evaluate_table
 from ivc.correct.solver import MAX_RESIDUAL
@@ -46,7 +47,7 @@ def render_table(report: dict) -> str:
 @click.option("--step", default="check", show_default=True, help="Step of CHECK_FILE holding the check poses.")
 @click.option("--interpolation", type=click.Choice(INTERPOLATIONS), default="cubic", show_default=True,
               help="Between grid nodes: Catmull-Rom cubic, or trilinear (the seed's).")
-@click.option("--max-residual", type=float, default=MAX_RESIDUAL, show_default=True,
+@click.option("--max-residual", type=POSITIVE, default=MAX_RESIDUAL, show_default=True,
               help="Flag corrections whose rms(M − T S)/rms(S) exceeds this.")
 @click.option("--json", "as_json", is_flag=True, help="Print the table as JSON.")
 def evaluate(lut_file, check_file, step, interpolation, max_residual, as_json):

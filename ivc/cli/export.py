@@ -7,7 +7,8 @@ from pathlib import Path
 import click
 
 from ivc import lut
-from ivc.export import FORMATS
+from ivc.cli.paths import check_output
+from ivc.export import FORMATS, csv_sidecar, resolve_unit
 from ivc.export import export as export_table
 from ivc.units import LENGTH_UNITS
 
@@ -19,15 +20,19 @@ _HELP = "; ".join(f"{name}: {text}" for name, (_, _, text) in FORMATS.items())
 @click.option("--format", "fmt", type=click.Choice(list(FORMATS)), required=True, help=_HELP)
 @click.option("-o", "--output", type=click.Path(dir_okay=False),
               help="File to write (default: LUT_FILE's name with the format's extension).")
-@click.option("--unit", type=click.Choice(list(LENGTH_UNITS)), default="m", show_default=True,
-              help="Length unit of the csv and vrui files (Vrui's calibrator works in the tracker's own unit).")
+@click.option("--unit", type=click.Choice(list(LENGTH_UNITS)),
+              help="Length unit of the file: npz, csv, vti (default m); hdf5 is in m and slicer in mm only; vrui "
+              "needs it: the tracker driver's unit (in for Vrui's Polhemus drivers).")
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists.")
 def export(lut_file, fmt, output, unit, force):
     """Write LUT_FILE in another format; docs/export.md says what each holds and which direction it maps."""
-    table = lut.read(lut_file)
     path = Path(output) if output else Path(lut_file).with_suffix(FORMATS[fmt][1])
-    if path.resolve() == Path(lut_file).resolve():
-        raise click.UsageError("OUTPUT must not be the table itself")
+    unit = resolve_unit(fmt, unit)
+    check_output(path, force, {"LUT_FILE": lut_file})
+    if fmt == "csv":
+        check_output(csv_sidecar(path), force, {"LUT_FILE": lut_file}, "the CSV's JSON sidecar")
+    table = lut.read(lut_file)
     written = export_table(table, fmt, path, unit=unit, overwrite=force)
-    click.echo(f"wrote {written} ({fmt}; {table.grid.shape[0]}x{table.grid.shape[1]}x{table.grid.shape[2]} nodes, "
-               f"{table.valid.sum()} mapped)")
+    also = f" and its grid and units in {csv_sidecar(written)}" if fmt == "csv" else ""
+    click.echo(f"wrote {written}{also} ({fmt}, {unit}; {table.grid.shape[0]}x{table.grid.shape[1]}x"
+               f"{table.grid.shape[2]} nodes, {table.valid.sum()} mapped)")

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import json
 import time
-from pathlib import Path
 
 import click
 import numpy as np
 
 from ivc import lut
 from ivc import session as session_io
+from ivc.cli.options import POSITIVE
+from ivc.cli.paths import check_output
 from ivc.cli.progress import StageBars
 from ivc.lut.build import FitOptions
 
@@ -26,7 +27,7 @@ def parse_grid(value: str | None) -> dict:
         if len(parts) == 3:
             origin = tuple(float(v) / 1000 for v in parts[0].split(","))
             shape = tuple(int(v) for v in parts[1].split(","))
-            if len(origin) == 3 and len(shape) == 3:
+            if len(origin) == 3 and len(shape) == 3 and min(shape) >= 2:
                 return {"origin": origin, "shape": shape, "spacing": float(parts[2]) / 1000}
     except ValueError:
         pass
@@ -51,6 +52,10 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
         lines.append(f"  refinement {step['iteration']}: {step['frames_converged']} frames re-solved as rigid "
                      f"wands, sensor 0 moved {step['sensor0_moved_median_mm']:.4f} mm (median), map changed "
                      f"{step['map_change_mm']:.4f} mm, CV {step['cv_rms_mm']:.4f} mm")
+    if fit["refinement"]:
+        kept = next((step["iteration"] for step in fit["refinement"] if step.get("kept")), 0)
+        lines.append(f"  refinement stopped: {fit.get('refinement_stopped', 'done')}; kept "
+                     + (f"refinement {kept}" if kept else "the first fit") + " (lowest CV)")
     extent = (grid.origin, grid.origin + grid.spacing * (np.array(grid.shape) - 1))
     lines.append(f"Grid: {grid.shape[0]} x {grid.shape[1]} x {grid.shape[2]} nodes at {1000 * grid.spacing:.1f} mm "
                  f"from ({', '.join(f'{1000 * v:.1f}' for v in extent[0])}) to "
@@ -69,25 +74,25 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
               help="harmonic: curl/div-free solid-harmonic fit; poly: the seed's local polynomial regression.")
 @click.option("--grid", "grid_spec", help="SPACING, or X0,Y0,Z0:NX,NY,NZ:SPACING, in mm (default: 38.1 mm around "
               "the data with a one-cell margin).")
-@click.option("--degree", type=int, help="harmonic: fixed degree (default: cross-validated); poly: degree (2).")
+@click.option("--degree", type=click.IntRange(1, 40),
+              help="harmonic: fixed degree (default: cross-validated); poly: degree (2).")
 @click.option("--refine/--no-refine", default=True, show_default=True,
               help="Re-solve the wand frames as rigid bodies against the map and refit until it settles.")
-@click.option("--max-refinements", type=int, default=FitOptions.max_refinements, show_default=True)
-@click.option("--max-frames", type=int, default=FitOptions.max_frames, show_default=True,
+@click.option("--max-refinements", type=click.IntRange(0, 100), default=FitOptions.max_refinements, show_default=True)
+@click.option("--max-frames", type=click.IntRange(1), default=FitOptions.max_frames, show_default=True,
               help="Decimate the sweep to at most this many frames.")
-@click.option("--min-support", type=int, default=FitOptions.min_support, show_default=True,
+@click.option("--min-support", type=click.IntRange(1), default=FitOptions.min_support, show_default=True,
               help="Samples needed around a node for it to count as mapped.")
-@click.option("--max-residual", type=float, default=FitOptions.max_residual, show_default=True,
+@click.option("--max-residual", type=POSITIVE, default=FitOptions.max_residual, show_default=True,
               help="Gate: largest rms(Λ)/rms(S) of sensor 0's solve in the cube.")
-@click.option("--max-error-mm", type=float, default=1000 * FitOptions.max_error, show_default=True,
+@click.option("--max-error-mm", type=POSITIVE, default=1000 * FitOptions.max_error, show_default=True,
               help="Gate: largest estimated sample error (eq. 101), mm.")
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists.")
 @click.option("--json", "as_json", is_flag=True, help="Print the fit report as JSON.")
 def fit(session_file, output, method, grid_spec, degree, refine, max_refinements, max_frames, min_support,
         max_residual, max_error_mm, force, as_json):
     """Fit the secondary-field look-up table of SESSION_FILE and write it to OUTPUT."""
-    if not force and Path(output).exists():
-        raise FileExistsError(f"{output} exists; pass --force to replace it")
+    check_output(output, force, {"SESSION_FILE": session_file})
     options = FitOptions(method=method, degree=degree, refine=refine, max_refinements=max_refinements,
                          max_frames=max_frames, min_support=min_support, max_residual=max_residual,
                          max_error=max_error_mm / 1000, **parse_grid(grid_spec))

@@ -8,6 +8,8 @@ import click
 from tqdm import tqdm
 
 from ivc import session as session_io
+from ivc.cli.options import POSITIVE
+from ivc.cli.progress import ON_TERMINAL
 from ivc.fixtures import VERTEX_CHOICES
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import Gates
@@ -75,18 +77,20 @@ def render(report: dict) -> str:
               help="Field inside the cube: harmonic (curl/div-free, follows curvature) or trilinear (the seed's).")
 @click.option("--method", type=click.Choice(METHODS), default="joint", show_default=True,
               help="Pose solve in the cube: joint 6-DOF, or the seed's two-stage (eq. 92 then 93).")
-@click.option("--max-residual", type=float, default=Gates.max_residual, show_default=True,
+@click.option("--max-residual", type=POSITIVE, default=Gates.max_residual, show_default=True,
               help="Gate: largest rms(Λ)/rms(S) of sensor 0's solve.")
-@click.option("--max-error-mm", type=float, default=1000 * Gates.max_error, show_default=True,
+@click.option("--max-error-mm", type=POSITIVE, default=1000 * Gates.max_error, show_default=True,
               help="Gate: largest estimated sample error (eq. 101), mm.")
-@click.option("--compare-cubes", type=int, default=0, help="Also compare the cube vertex choices on this many frames.")
+@click.option("--compare-cubes", type=click.IntRange(0), default=0,
+              help="Also compare the cube vertex choices on this many frames.")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 def fixtures(session_file, vertices, interpolant, method, max_residual, max_error_mm, compare_cubes, as_json):
     """Calibrate the cube and wand of SESSION_FILE, solve the sweep, and report what a map would be built from."""
     data = session_io.read(session_file)
     frames = data.steps["wand_sweep"].n_frames if "wand_sweep" in data.steps else 0
     gates = Gates(max_residual=max_residual, max_error=max_error_mm / 1000)
-    with tqdm(total=frames, desc="solving the sweep", unit="frame", leave=False, disable=as_json) as bar:
+    with tqdm(total=frames, desc="solving the sweep", unit="frame", leave=False,
+              disable=True if as_json else ON_TERMINAL) as bar:
         report = fixture_report(data, vertices, method, gates, compare_cubes, progress=bar.update,
                                 interpolant=interpolant)
     click.echo(json.dumps(report, indent=2) if as_json else render(report))

@@ -11,6 +11,7 @@ import numpy as np
 from ivc import lut
 from ivc import session as session_io
 from ivc.collect.imports import read_recording, sniff
+from ivc.collect.plus import is_plus_sequence, read_plus
 from ivc.predict.timing import stream_timing
 from ivc.session import STEPS, Session, Step
 
@@ -92,8 +93,11 @@ def info(file: str, as_json: bool) -> None:
                    f"\nmade by ivc {table.provenance.get('ivc_version')} on {table.provenance.get('created_utc')}"
                    f" from {table.provenance.get('input', 'an unnamed session')}")
         return
-    if session_io.is_recording_csv(file) or sniff(file) is not None:
-        step, report = read_recording(file)
+    if session_io.is_recording_csv(file) or sniff(file) is not None or is_plus_sequence(file):
+        if is_plus_sequence(file):
+            step, report = read_plus(file).step, None
+        else:
+            step, report = read_recording(file)
         summary = summarise_recording(step)
         if report is not None:
             summary["import_report"] = report.text()
@@ -120,7 +124,8 @@ def render_recording(path: str, summary: dict) -> str:
     if summary["data"] == "pose":
         uses = "`ivc predict FILE ...`; without signal matrices, `ivc correct` solves from the reported poses"
     lines = [
-        f"{path}: recording CSV, {summary['frames']} frames x {count} sensors ({named})",
+        f"{path}: {'PLUS sequence' if is_plus_sequence(path) else 'recording CSV'}, {summary['frames']} frames x "
+        f"{count} sensors ({named})",
         f"  {summary['sample_rate_hz']:.1f} Hz, {summary['duration_s']:.2f} s, {100 * summary['valid_fraction']:.2f}% "
         f"valid, data: {summary['data']}",
     ]

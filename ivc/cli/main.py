@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib
+
 import click
 
 from ivc import __version__
@@ -16,6 +18,15 @@ class IvcGroup(click.Group):
     Anything else is a bug in ivc and keeps its traceback; ``--debug`` shows the
     traceback of the one-line errors too.
     """
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(set(COMMANDS) | set(self.commands))
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        """A sub-command, its module imported on first use (see COMMANDS)."""
+        if name in COMMANDS and name not in self.commands:
+            self.add_command(getattr(importlib.import_module(f"ivc.cli.{COMMANDS[name]}"), name))
+        return self.commands.get(name)
 
     def invoke(self, ctx: click.Context):
         try:
@@ -52,15 +63,11 @@ def cli(ctx: click.Context, debug: bool) -> None:
     ctx.meta["ivc.debug"] = debug
 
 
-def _register() -> None:
-    from ivc.cli import collect, correct, demo, evaluate, export, fit, fixtures, info, predict, report
-
-    for command in (collect.collect, correct.correct, demo.demo, evaluate.evaluate, export.export, fit.fit,
-                    fixtures.fixtures, info.info, predict.predict, report.report):
-        cli.add_command(command)
-
-
-_register()
+#: every sub-command and the module that defines it, imported only when the command runs (or
+#: ``ivc --help`` lists it): ``ivc correct`` need not load matplotlib, the simulator or the report
+COMMANDS = {"collect": "collect", "correct": "correct", "demo": "demo", "evaluate": "evaluate", "export": "export",
+            "fit": "fit", "fixtures": "fixtures", "info": "info", "predict": "predict", "report": "report",
+            "warmup": "warmup"}
 
 
 def main() -> None:

@@ -11,9 +11,13 @@ import click
 import numpy as np
 
 from ivc import session as session_io
+from ivc.cli.options import POSITIVE
 from ivc.cli.paths import input_and_output
+from ivc.cli.progress import ON_TERMINAL
+from ivc.collect.checks import rate_warning
 from ivc.collect.imports import read_recording, sniff
-from ivc.collect.replay import write_csv
+from ivc.collect.plus import is_plus_sequence, read_plus, write_plus
+from ivc.collect.replay import CsvColumns, read_csv_columns, write_csv
 from ivc.predict import DEFAULT_FILTER, FILTERS, TUNABLE, make
 from ivc.predict import steps as steps_lib
 from ivc.predict.base import MAX_HORIZON
@@ -37,8 +41,11 @@ BENCHMARK_FILTERS = ("none", "auto", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "
 
 
 def parse_horizon(text: str) -> float:
-    """'50ms', '0.05s' or '50' (ms) -> seconds."""
+    """'50ms' or '0.05s' -> seconds; a bare number is refused (0.05 read as ms would be 50 µs)."""
     match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(ms|s)?\s*", str(text))
+    if match and not match.group(2):
+        raise click.BadParameter(f"{text!r} has no unit: write {text.strip()}ms or {text.strip()}s",
+                                 param_hint="--horizon")
     if not match:
         raise click.BadParameter(f"{text!r}: give a horizon like 50ms or 0.05s")
     value = float(match.group(1)) * (1.0 if match.group(2) == "s" else 1e-3)
@@ -142,6 +149,26 @@ def run_evaluation(path, step: Step, names: list[str], horizons: list[float], pl
         click.echo(f"wrote {plot}")
 
 
+def _predict_plus(input_path, output_path, name, delta, tune, tuning, tune_from, rate) -> None:
+    """A PLUS sequence in; the sequence with ``<Tool>To<Tracker>Predicted`` transforms added (or a CSV, mm)."""
+    if not (output_path.suffix.lower() == input_path.suffix.lower() or session_io.is_recording_csv(output_path)):
+        raise click.UsageError(f"a PLUS sequence is predicted into a sequence of the same format (-o "
+                               f"FILE{input_path.suffix}) or a CSV (-o FILE.csv)")
+    sequence = read_plus(input_path)
+    step = sequence.step
+    if rate:
+        step.sample_rate_hz = rate
+    out = predicted_step(step, name, delta, tune, tuning, tune_from)
+    with session_io.atomic_path(output_path) as tmp:
+        if session_io.is_recording_csv(output_path):
+            write_csv(out, tmp, length_unit="mm")
+        else:
+            write_plus(sequence, tmp, {"{tool}To{tracker}Predicted": (out.position, out.quaternion, None)})
+    click.echo(f"{input_path.name}: {step.n_frames} frames x {step.n_sensors} sensors predicted "
+               f"{delta * 1e3:g} ms ahead with {name}")
+    click.echo(f"wrote {output_path}")
+
+
 def run_compensators(seed: int, evaluations: int, as_json: bool) -> None:
     """Seed 003's designs (default, twist, hybrid) on synthetic 20 s yaw records; Table 1."""
     from tqdm import tqdm
@@ -152,7 +179,8 @@ def run_compensators(seed: int, evaluations: int, as_json: bool) -> None:
     records = compensator.yaw_records(seed=seed)
     designs, counts = {"default": np.array(DEFAULT_W)}, {}
     for name in ("twist", "hybrid"):
-        with tqdm(total=evaluations, desc=f"Powell: {name} design", unit="cost", leave=False) as bar:
+        with tqdm(total=evaluations, desc=f"Powell: {name} design", unit="cost", leave=False,
+                  disable=ON_TERMINAL) as bar:
             designs[name], result = compensator.optimise(name, records, max_evaluations=evaluations,
                                                          progress=bar.update)
         counts[name] = int(result.nfev)
@@ -175,7 +203,7 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
     tuning = synthetic(frames, rate, seed) if tune else None
     if tuning is not None and not as_json:
         click.echo(tuning.summary() + "\n")
-    for motion, name in tqdm(runs, desc="benchmark", unit="run", leave=False):
+    for motion, name in tqdm(runs, desc="benchmark", unit="run", leave=False, disable=ON_TERMINAL):
         if motion not in recordings:
             recordings[motion] = head_motion(motion, frames, rate, seed=seed)
         h = recordings[motion]
@@ -205,7 +233,7 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
               help=f"Predictor (default {DEFAULT_FILTER}: the filter that lately predicted each sensor's own stream "
               "best, see docs/predict.md). With --benchmark or --evaluate: repeat to choose several (default: all "
               "but nasa-ekf; --evaluate always adds none and poly1).")
-@click.option("--horizon", default="50ms", show_default=True, help="How far ahead: 50ms, 0.05s, or ms; "
+@click.option("--horizon", default="50ms", show_default=True, help="How far ahead, with its unit: 50ms or 0.05s; "
               "with --evaluate a list, 50ms,100ms.")
 @click.option("--evaluate", is_flag=True, help="Score the predictors on INPUT_FILE against its own later samples "
               "(slerp) and print median, p95 and RMS error per horizon (--plot: error against horizon as PNG).")
@@ -213,7 +241,7 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
               help="Position unit of a Polhemus Liberty logger CSV (the file does not say; a Liberty reports inches).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), help="Output: session .h5 or .csv, as the input.")
 @click.option("--step", "steps", multiple=True, help="Session input: step(s) to predict (default: all).")
-@click.option("--rate", type=float, help="Sample rate (Hz) of a CSV without a usable time column.")
+@click.option("--rate", type=POSITIVE, help="Sample rate (Hz) of a CSV without a usable time column.")
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists (never the input).")
 @click.option("--benchmark", is_flag=True, help="Evaluate predictors on synthetic head motion and print the "
               "thesis's tables (horizons 0-117 ms).")
@@ -282,18 +310,27 @@ def predict(input_file, filters, horizon, evaluate, import_unit, output, steps, 
         raise click.UsageError("predict a stream with one --filter")
     name = filters[0] if filters else DEFAULT_FILTER
     delta = parse_horizon(horizon)
-    input_path, output_path = input_and_output(input_file, output, force)
+    input_path, output_path = input_and_output(input_file, output, force, [("--tune-from", tune_from)])
     tuning = requested_tuning(name, tune, tune_from)
+    if is_plus_sequence(input_path):
+        _predict_plus(input_path, output_path, name, delta, tune, tuning, tune_from, rate)
+        return
     if session_io.is_recording_csv(input_path) or sniff(input_path) is not None:
         if not session_io.is_recording_csv(output_path):
             raise click.UsageError("a recording is predicted into a recording CSV (-o FILE.csv)")
-        step, report = read_recording(input_path, rate, import_unit)
-        if report is not None:
+        if sniff(input_path) is not None:  # another program's format: its import report, positions in metres
+            step, report = read_recording(input_path, rate, import_unit)
             click.echo(report.text())
+            columns = CsvColumns()
+        else:
+            step, columns = read_csv_columns(input_path, rate)
+            warning = rate_warning(step) if rate is None else None
+            if warning:
+                click.echo(f"warning: {warning}", err=True)
         echo_timing(input_path.name, step)
         out = predicted_step(step, name, delta, tune, tuning, tune_from)
         with session_io.atomic_path(output_path) as tmp:
-            write_csv(out, tmp)
+            write_csv(out, tmp, columns.extra, length_unit=columns.length_unit)
         click.echo(f"{input_path.name}: {step.n_frames} frames x {step.n_sensors} sensors predicted "
                    f"{delta * 1e3:g} ms ahead with {name}")
         click.echo(f"wrote {output_path}")

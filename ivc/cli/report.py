@@ -8,9 +8,10 @@ import click
 
 from ivc import lut
 from ivc import session as session_io
+from ivc.cli.paths import refuse_inputs_as_outputs
 from ivc.cli.progress import StageBars
 from ivc.lut.build import file_digest
-from ivc.report import build_report
+from ivc.report import REPORT_FILES, build_report
 from ivc.report.compute import THIN_SAMPLES
 
 
@@ -22,9 +23,10 @@ from ivc.report.compute import THIN_SAMPLES
               help="Directory for report.html, report.json and the PNG figures (made if missing).")
 @click.option("--step", default="check", show_default=True,
               help="Step holding the check poses (of CHECK_FILE, else of SESSION_FILE).")
-@click.option("--thin", type=int, default=THIN_SAMPLES, show_default=True,
+@click.option("--thin", type=click.IntRange(1), default=THIN_SAMPLES, show_default=True,
               help="A mapped cell with fewer kept wand samples than this is marked thin.")
-@click.option("--max-frames", type=int, help="Solve at most this many sweep frames, every k-th beyond (default: "
+@click.option("--max-frames", type=click.IntRange(1),
+              help="Solve at most this many sweep frames, every k-th beyond (default: "
               "as the table was fitted).")
 @click.option("--force", is_flag=True, help="Replace an earlier report in the directory.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
@@ -38,6 +40,9 @@ def report(session_file, lut_file, check_file, directory, step, thin, max_frames
     """
     if max_frames is not None and max_frames < 1:
         raise click.BadParameter("must be at least 1", param_hint="--max-frames")
+    inputs = {"SESSION_FILE": session_file, "LUT_FILE": lut_file, "CHECK_FILE": check_file}
+    refuse_inputs_as_outputs({"--output": directory}, inputs)
+    refuse_inputs_as_outputs({f"--output's {name}": Path(directory) / name for name in REPORT_FILES}, inputs)
     table = lut.read(lut_file)
     data = session_io.read(session_file)
     check = session_io.read(check_file) if check_file else None

@@ -21,9 +21,28 @@ STATIC_ANGLE_SPREAD = 0.02  # rad
 INVALID_FRACTION_WARNING = 0.01
 
 
+#: sample rates outside this range (Hz) are warned about: a time column in another unit
+MIN_PLAUSIBLE_RATE_HZ, MAX_PLAUSIBLE_RATE_HZ = 1.0, 100_000.0
+
+
+def rate_warning(step: Step) -> str | None:
+    """Plain words when a recording's sample rate is implausible for a tracker (times in ms under ``time``?)."""
+    rate = step.sample_rate_hz
+    if rate < MIN_PLAUSIBLE_RATE_HZ:
+        return (f"the sample rate inferred from the times is {rate:.3g} Hz: trackers sample at 10-1000 Hz. If the "
+                "times are in milliseconds, name the column time_ms (or pass --rate)")
+    if rate > MAX_PLAUSIBLE_RATE_HZ:
+        return (f"the sample rate inferred from the times is {rate:.3g} Hz: trackers sample at 10-1000 Hz. Are the "
+                "times in seconds?")
+    return None
+
+
 def check_step(name: str, step: Step, session: Session | None = None, hemisphere: str = "+x") -> list[str]:
     """Warnings, in plain words, about a step about to be added to ``session``."""
     warnings = []
+    rate = rate_warning(step)
+    if rate:
+        warnings.append(f"{name}: {rate}")
     minimum = MIN_FRAMES.get(name, DEFAULT_MIN_FRAMES)
     if name != "check" and step.n_frames < minimum:
         warnings.append(f"{name} has {step.n_frames} frames; the method wants at least {minimum}")

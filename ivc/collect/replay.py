@@ -22,6 +22,7 @@ converted to seconds, metres and quaternions on reading.
 from __future__ import annotations
 
 import csv
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -29,9 +30,11 @@ from scipy.spatial.transform import Rotation
 
 from ivc import rotations
 from ivc.collect.imports import read_recording, sniff
+from ivc.collect.plus import is_plus_sequence, read_plus
 from ivc.errors import CsvError
 from ivc.session import SessionError, Step, Truth, is_recording_csv
 from ivc.session import read as read_session
+from ivc.session.model import QUATERNION_NORM_TOLERANCE
 from ivc.units import LENGTH_UNITS
 
 POSE_COLUMNS = ["x", "y", "z", "qw", "qx", "qy", "qz"]
@@ -44,18 +47,26 @@ TIME_COLUMNS = {"time": 1.0, "time_ms": 1e-3}
 #: a median sensor range beyond this (m) means the positions are not in metres: AC trackers reach a few metres
 MAX_MEDIAN_RANGE = 10.0
 REPLAY_DESCRIPTION = "replayed tracker recording"
+#: a valid sample further than this from the source (m) is refused: AC trackers reach a few metres
+MAX_RANGE = 100.0
+#: largest |‖q‖ − 1| of a valid quaternion (trackers print 4-6 decimals); within it quaternions are normalised
+QUATERNION_TOLERANCE = 1e-3
 _MAX_REPORTED = 10
 
 
-def write_csv(step: Step, path: str | Path, extra: dict[str, np.ndarray] | None = None) -> None:
+def write_csv(step: Step, path: str | Path, extra: dict[str, np.ndarray] | None = None,
+              length_unit: str = "m") -> None:
     """Write a step as a recording CSV (floats with 17 significant digits: exact round trip).
 
     ``extra``: more columns after ``valid``, each an (F, N) array (written with ``str``).
+    ``length_unit``: the positions' unit, named in their columns (``x_in``; metres: ``x``).
     """
     extra = extra or {}
+    if length_unit not in LENGTH_UNITS:
+        raise CsvError(f"unknown length unit {length_unit!r}; use one of {', '.join(LENGTH_UNITS)}")
     columns = ["time", "sensor"]
     if step.position is not None:
-        columns += POSE_COLUMNS
+        columns += _position_columns(length_unit) + QUATERNION_COLUMNS
     if step.signal is not None:
         columns += SIGNAL_COLUMNS
     columns.append("valid")
@@ -64,7 +75,7 @@ def write_csv(step: Step, path: str | Path, extra: dict[str, np.ndarray] | None 
     F, N = step.n_frames, step.n_sensors
     blocks = [np.repeat(step.time, N)[:, None]]
     if step.position is not None:
-        blocks += [step.position.reshape(-1, 3), step.quaternion.reshape(-1, 4)]
+        blocks += [step.position.reshape(-1, 3) / LENGTH_UNITS[length_unit], step.quaternion.reshape(-1, 4)]
     if step.signal is not None:
         blocks.append(step.signal.reshape(-1, 9))
     numbers = np.concatenate(blocks, axis=1)
@@ -79,20 +90,52 @@ def write_csv(step: Step, path: str | Path, extra: dict[str, np.ndarray] | None 
 
 
 def read_csv(path: str | Path, sample_rate_hz: float | None = None) -> Step:
-    """Read a recording CSV into a :class:`Step`; raise :class:`CsvError` listing bad lines."""
+    """Read a recording CSV into a :class:`Step`; raise :class:`CsvError` listing bad lines.
+
+    UTF-8 text, with or without the byte-order mark Excel's "CSV UTF-8" writes."""
+    return read_csv_columns(path, sample_rate_hz)[0]
+
+
+@dataclass
+class CsvColumns:
+    """What a recording CSV held besides the step: ``length_unit`` of its position columns (a key of
+    LENGTH_UNITS), ``extra``: its other columns, {name: (F, N) strings, as written}."""
+
+    length_unit: str = "m"
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def read_csv_columns(path: str | Path, sample_rate_hz: float | None = None) -> tuple[Step, CsvColumns]:
+    """:func:`read_csv`, and the file's position unit and extra columns (kept by ``ivc correct``)."""
     path = Path(path)
-    with open(path, newline="") as handle:
+    try:
+        return _read_csv(path, sample_rate_hz)
+    except UnicodeDecodeError as error:
+        raise CsvError(f"{path}: not UTF-8 text (byte 0x{error.object[error.start]:02x} at offset {error.start} "
+                       "cannot be decoded): save the file as UTF-8 (Excel: \"CSV UTF-8\")") from None
+    except csv.Error as error:
+        raise CsvError(f"{path}: not a readable CSV ({error})") from None
+
+
+def _read_csv(path: Path, sample_rate_hz: float | None) -> tuple[Step, CsvColumns]:
+    with open(path, newline="", encoding="utf-8-sig") as handle:
         reader = csv.reader(handle)
         try:
             header = [h.strip() for h in next(reader)]
         except StopIteration:
             raise CsvError(f"{path}: empty file") from None
+        repeated = sorted({c for c in header if header.count(c) > 1})
+        if repeated:
+            raise CsvError(f"{path}: line 1: column {', '.join(repeated)} appears more than once")
         layout = _layout(path, header)
         wanted = layout.columns
+        extra_names = [c for c in header if c not in wanted and c not in ("sensor", "valid")]
+        extra_index = [header.index(c) for c in extra_names]
+        extras = []
         index = [header.index(c) for c in wanted]
         sensor_col = header.index("sensor")
         valid_col = header.index("valid") if "valid" in header else None
-        errors, numbers, sensors, valid = [], [], [], []
+        errors, numbers, sensors, valid, rows = [], [], [], [], []
         for line, row in enumerate(reader, start=2):
             if not row or all(not cell.strip() for cell in row):
                 continue
@@ -116,6 +159,8 @@ def read_csv(path: str | Path, sample_rate_hz: float | None = None) -> Step:
                 errors.append(f"line {line}: NaN or inf in a valid sample (set valid to 0 for a dropout)")
                 continue
             numbers.append(values)
+            extras.append([row[i] for i in extra_index])
+            rows.append(line)
             sensors.append(row[sensor_col].strip())
             valid.append(flag)
             if len(errors) > _MAX_REPORTED:
@@ -125,10 +170,17 @@ def read_csv(path: str | Path, sample_rate_hz: float | None = None) -> Step:
         raise CsvError(f"{path}: malformed rows, nothing imported{more}:\n  " + "\n  ".join(errors[:_MAX_REPORTED]))
     if not numbers:
         raise CsvError(f"{path}: no data rows")
-    step = _assemble(path, layout.standard(np.array(numbers)), sensors, np.array(valid), layout.has_pose,
-                     layout.has_signal, sample_rate_hz)
+    numbers = np.array(numbers)
+    with np.errstate(all="ignore"):  # checked row by row below
+        standard = layout.standard(numbers)
+    valid = np.array(valid)
+    if layout.has_pose:
+        standard[:, 4:8] = _checked_quaternions(path, standard[:, 4:8], valid, rows, layout)
+        _check_positions(path, standard[:, 1:4], valid, rows)
+    step = _assemble(path, standard, sensors, valid, layout.has_pose, layout.has_signal, sample_rate_hz, rows)
     _check_range(path, step, layout)
-    return step
+    table = np.array(extras, dtype=object).reshape(step.n_frames, step.n_sensors, len(extra_names))
+    return step, CsvColumns(layout.unit, {name: table[:, :, k] for k, name in enumerate(extra_names)})
 
 
 class _Layout:
@@ -169,6 +221,13 @@ def _layout(path: Path, header: list[str]) -> _Layout:
     orientations = [c for c in (QUATERNION_COLUMNS, EULER_COLUMNS) if all(n in header for n in c)]
     has_signal = all(c in header for c in SIGNAL_COLUMNS)
     problems = []
+    partial = [(name, [c for c in group if c not in header]) for name, group in
+               (("signal", SIGNAL_COLUMNS), ("quaternion", QUATERNION_COLUMNS), ("Euler angle", EULER_COLUMNS),
+                *((f"position ({u})", _position_columns(u)) for u in LENGTH_UNITS))]
+    for name, missing in partial:
+        group_size = {"signal": 9, "quaternion": 4}.get(name, 3)
+        if 0 < len(missing) < group_size:
+            problems.append(f"the whole set of {name} columns (missing {','.join(missing)})")
     if len(times) != 1:
         problems.append("one time column: time (s) or time_ms" + (" (not both)" if times else ""))
     if "sensor" not in header:
@@ -206,6 +265,32 @@ def _check_range(path: Path, step: Step, layout: _Layout) -> None:
             "the header: x_mm,y_mm,z_mm, x_cm,... or x_in,... (a Polhemus reports inches by default)")
 
 
+def _checked_quaternions(path: Path, q: np.ndarray, valid: np.ndarray, rows: list[int], layout: _Layout) -> np.ndarray:
+    """Valid samples' quaternions normalised (when off by more than the session format's tolerance); a norm
+    off by more than QUATERNION_TOLERANCE (a zero quaternion, a column in the wrong place) is refused."""
+    if layout.orientation == EULER_COLUMNS:
+        return q
+    norm = np.linalg.norm(q, axis=1)
+    bad = valid & ~(np.abs(norm - 1) <= QUATERNION_TOLERANCE)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise CsvError(f"{path}: line {rows[k]}: the quaternion qw,qx,qy,qz has norm {norm[k]:.6g}; it must be a unit "
+                       f"quaternion [w, x, y, z] ({int(bad.sum())} valid rows are not; set valid to 0 for a dropout)")
+    rescale = valid & (np.abs(norm - 1) > QUATERNION_NORM_TOLERANCE)  # unit ones are kept bit for bit
+    return np.where(rescale[:, None], q / np.where(rescale, norm, 1.0)[:, None], q)
+
+
+def _check_positions(path: Path, position: np.ndarray, valid: np.ndarray, rows: list[int]) -> None:
+    """Refuse a valid sample further than MAX_RANGE from the source: no AC tracker reaches it."""
+    distance = np.linalg.norm(position, axis=1)
+    bad = valid & ~(distance <= MAX_RANGE)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise CsvError(f"{path}: line {rows[k]}: the position is {distance[k]:.3g} m from the source (more than "
+                       f"{MAX_RANGE:g} m): a corrupt row, or positions in another unit than the header's "
+                       "(name it: x_mm, x_cm, x_in)")
+
+
 def _is_float(text: str) -> bool:
     try:
         float(text)
@@ -214,7 +299,7 @@ def _is_float(text: str) -> bool:
     return True
 
 
-def _assemble(path, numbers, sensors, valid, has_pose, has_signal, sample_rate_hz) -> Step:
+def _assemble(path, numbers, sensors, valid, has_pose, has_signal, sample_rate_hz, rows) -> Step:
     names = list(dict.fromkeys(sensors))
     N = len(names)
     if len(numbers) % N:
@@ -226,14 +311,21 @@ def _assemble(path, numbers, sensors, valid, has_pose, has_signal, sample_rate_h
     if len(mismatch):
         k = mismatch[0]
         raise CsvError(
-            f"{path}: line {k + 2}: sensor {got[k]!r} where {expected[k]!r} was expected; every frame must "
+            f"{path}: line {rows[k]}: sensor {got[k]!r} where {expected[k]!r} was expected; every frame must "
             f"list the sensors {', '.join(names)} once, in the same order"
         )
     numbers = numbers.reshape(F, N, -1)
     time = numbers[:, 0, 0]
     changes = np.flatnonzero(np.any(numbers[:, :, 0] != time[:, None], axis=1))
     if len(changes):
-        raise CsvError(f"{path}: line {changes[0] * N + 2}: the sensors of one frame must share one time")
+        raise CsvError(f"{path}: line {rows[changes[0] * N]}: the sensors of one frame must share one time")
+    repeated = np.flatnonzero(~(np.diff(time) > 0))
+    if len(repeated):
+        f = int(repeated[0]) + 1
+        what = "repeats" if time[f] == time[f - 1] else "is earlier than"
+        raise CsvError(f"{path}: line {rows[f * N]}: time {float(time[f])!r} s {what} the previous frame's "
+                       f"({float(time[f - 1])!r} s): frames must be in time order, each time once (sort the file, "
+                       "or remove the duplicates)")
     column = 1
     position = quaternion = signal = None
     if has_pose:
@@ -259,7 +351,8 @@ def _assemble(path, numbers, sensors, valid, has_pose, has_signal, sample_rate_h
 
 
 def replay(path: str | Path, step_name: str, sample_rate_hz: float | None = None) -> tuple[Step, Truth | None]:
-    """A recorded step from a session file (with its truth, if any) or a recording CSV."""
+    """A recorded step from a session file (with its truth, if any), a recording CSV or a PLUS sequence
+    (``.igs.mha``, ``.seq.nrrd``, ...: :mod:`ivc.collect.plus`)."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such recording")
@@ -267,6 +360,11 @@ def replay(path: str | Path, step_name: str, sample_rate_hz: float | None = None
         return read_recording(path, sample_rate_hz)[0], None
     if is_recording_csv(path):
         return read_csv(path, sample_rate_hz), None
+    if is_plus_sequence(path):
+        step = read_plus(path).step
+        if sample_rate_hz is not None:
+            step.sample_rate_hz = sample_rate_hz
+        return step, None
     source = read_session(path)
     if step_name not in source.steps:
         have = ", ".join(source.steps) or "no steps"

@@ -18,8 +18,18 @@ from ivc.lut._kernels import grid_point
 
 FIXED_POINT_STEPS = 2
 
+# The helpers below are plain (not numba-inlined) functions: LLVM still inlines what pays, but numba
+# no longer copies their IR into every call site, which made the first compile of the correction
+# kernels take minutes (the cold start of `ivc correct`).
 
-@numba.njit(inline="always")
+
+@numba.njit
+def _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K):
+    """ivc.dipole's closed-form pose of one frame, compiled once here rather than inlined at each use."""
+    closed_form_one(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
+
+
+@numba.njit
 def _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz):
     """M = f_D(r) + g(r) (3, 3) and ∂M/∂r (3, 3, 3); returns whether r is in the mapped volume."""
     x, y, z = r[0], r[1], r[2]
@@ -47,7 +57,7 @@ def _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, 
     return mapped
 
 
-@numba.njit(inline="always")
+@numba.njit
 def _residual(S, M, dM, T, e, J):
     """e = S − Tᵀ M (9,) and its Jacobian (9, 6) in (δr, ω)."""
     for i in range(3):
@@ -92,7 +102,7 @@ def _solve6(A, b, x):
     return True
 
 
-@numba.njit(inline="always")
+@numba.njit
 def _rotate_increment(T, w, out):
     """out = T exp([w]×) (Rodrigues: exp([w]×) = I + a [w]× + b [w]×²)."""
     angle2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
@@ -137,14 +147,15 @@ def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape
         for a in range(3):
             r[a] = seed[a]
     else:
-        closed_form_one(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
+        _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
         for _ in range(FIXED_POINT_STEPS):  # MATH.md §9: subtract Tᵀ g(r), re-solve the dipole pose
             grid_point(padded, valid_cells, origin, spacing, shape, r, cubic, g, dg, wx, wy, wz, dx, dy, dz)
             for i in range(3):
                 for j in range(3):
                     Sc[i, j] = S[i, j] - (T[0, i] * g[j] + T[1, i] * g[3 + j] + T[2, i] * g[6 + j])
-            closed_form_one(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
-    _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
+            _closed_form(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
+    mapped = _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
+    Ma = M.copy()  # the model at the accepted position, and whether it is mapped: no re-evaluation at the end
     for i in range(3):
         for j in range(3):
             K[i, j] = M[i, 0] * S[j, 0] + M[i, 1] * S[j, 1] + M[i, 2] * S[j, 2]
@@ -188,11 +199,16 @@ def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape
         for a in range(3):
             rt[a] = r[a] + step[a]
         _rotate_increment(T, step[3:], Tt)
-        _model(rt, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
+        trial_mapped = _model(rt, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx,
+                              dy, dz)
         _residual(S, M, dM, Tt, et, Jt)
         trial = _cost(et)
         small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance
         if trial <= cost:
+            mapped = trial_mapped
+            for i in range(3):
+                for j in range(3):
+                    Ma[i, j] = M[i, j]
             for a in range(3):
                 r[a] = rt[a]
             for i in range(3):
@@ -212,13 +228,12 @@ def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape
             if damping > 1e8:  # no step lowers the cost: at the numerical minimum
                 converged = True
                 break
-    mapped = _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
     lam = 0.0
     s2 = 0.0
     for i in range(3):
         for j in range(3):
             p = T[i, 0] * S[0, j] + T[i, 1] * S[1, j] + T[i, 2] * S[2, j]
-            lam += (M[i, j] - p) ** 2
+            lam += (Ma[i, j] - p) ** 2
             s2 += S[i, j] ** 2
     return converged, iterations, np.sqrt(lam / s2), mapped
 

@@ -5,7 +5,7 @@ Every result carries per-sample flags; a pose is never returned without them:
 ``OUTSIDE``        the corrected position is outside the mapped volume (the table says nothing there)
 ``NOT_CONVERGED``  the solve did not converge
 ``HIGH_RESIDUAL``  the model explains the signal poorly: rms(M − T S)/rms(S) above the threshold
-``INVALID_INPUT``  the signal (or reported pose) is not finite, or the sample was marked invalid
+``INVALID_INPUT``  the signal (or reported pose) is not finite or is all zeros, or the sample was marked invalid
 
 Flags combine bitwise; 0 means the pose is trusted.
 """
@@ -76,7 +76,9 @@ class Corrector:
         r, T, q = np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 4))
         converged, iterations = np.empty(n, dtype=bool), np.empty(n, dtype=np.int64)
         residual, mapped = np.empty(n), np.empty(n, dtype=bool)
-        finite = np.all(np.isfinite(S.reshape(n, 9)), axis=1)
+        flat = S.reshape(n, 9)
+        # an all-zero matrix (what a dropout can produce) carries no pose: invalid, not a kernel division by zero
+        finite = np.all(np.isfinite(flat), axis=1) & np.any(flat != 0, axis=1)
         S = np.where(finite[:, None, None], S, np.eye(3))
         kernel = _kernels.correct_serial if serial else _kernels.correct_kernel
         kernel(S, seeds, self._h, f._padded, f.valid_cells, f._origin, f.grid.spacing, f._shape,

@@ -3,6 +3,6 @@
 ``export(table, fmt, path)`` writes one format atomically; :data:`FORMATS` names them all.
 """
 
-from ivc.export.formats import FORMATS, ExportError, export
+from ivc.export.formats import FORMATS, UNITS, VRUI_MARGIN, ExportError, csv_sidecar, export, resolve_unit
 
-__all__ = ["FORMATS", "ExportError", "export"]
+__all__ = ["FORMATS", "UNITS", "VRUI_MARGIN", "ExportError", "csv_sidecar", "export", "resolve_unit"]

@@ -4,17 +4,23 @@
 ``hdf5``               the canonical table (docs/lut.md), as ``ivc fit`` writes it
 ``npz``                NumPy arrays: origin, spacing, shape, values, valid, support
 ``csv``                one row per node in the seed's order (eq. 105: X slowest, Z fastest)
-                       under a ``#`` header that a firmware loader can parse
+                       under one plain header row; the grid and units in a JSON sidecar
 ``vti``                VTK image data for ParaView: the nine components, |G| as % of |f_D|,
-                       the position distortion (mm), validity and support
+                       the position distortion, validity and support; geometry and
+                       distortion in one length unit, named in the file's FieldData
 ``slicer``             the position distortion as a displacement field (NRRD, LPS, mm)
                        that 3D Slicer loads as a grid transform
-``vrui``               the grid file of Vrui's ForwardGridCalibrator
+``vrui``               the grid file of Vrui's ForwardGridCalibrator, in the tracker's unit,
+                       ringed by invalid vertices so Vrui does not extrapolate
 =====================  =====================================================================
+
+``unit`` is honoured by every format that can carry it and refused by the others (hdf5: the
+canonical table is in metres; slicer: Slicer works in millimetres); vrui requires it.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import tempfile
@@ -26,12 +32,17 @@ import numpy as np
 from ivc import __version__, dipole
 from ivc.errors import ExportError
 from ivc.export import distortion
-from ivc.lut.table import COMPONENTS, LookupTable
+from ivc.lut.table import COMPONENTS, FIELD_UNIT, LookupTable
 from ivc.lut.table import write as write_hdf5
 from ivc.session import atomic_path
 from ivc.units import LENGTH_UNITS
 
-FIELD_UNIT = "normalised dipole units (f_D of MATH.md §2)"
+#: units each format can be written in (None: any of LENGTH_UNITS), and the default
+UNITS = {"hdf5": (("m",), "m"), "npz": (None, "m"), "csv": (None, "m"), "vti": (None, "m"),
+         "slicer": (("mm",), "mm"), "vrui": (None, None)}
+#: invalid vertices added around a Vrui grid: Vrui clamps a pose outside the grid to the boundary cell and
+#: extrapolates its corrections, unless a corner of that cell is invalid
+VRUI_MARGIN = 1
 
 
 def _hdf5(table: LookupTable, path: Path, unit: str) -> None:
@@ -39,36 +50,47 @@ def _hdf5(table: LookupTable, path: Path, unit: str) -> None:
 
 
 def _npz(table: LookupTable, path: Path, unit: str) -> None:
+    scale = 1.0 / LENGTH_UNITS[unit]
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.savez_compressed(f, origin=table.grid.origin, spacing=table.grid.spacing, shape=np.array(table.grid.shape),
+        np.savez_compressed(f, origin=table.grid.origin * scale, spacing=table.grid.spacing * scale,
+                            shape=np.array(table.grid.shape),
                             values=table.values, valid=table.valid, support=table.support,
-                            components=np.array(COMPONENTS), hemisphere=table.hemisphere, length_unit="m",
+                            components=np.array(COMPONENTS), hemisphere=table.hemisphere, length_unit=unit,
                             field_unit=FIELD_UNIT, index_order="x slowest, z fastest (seed eq. 105)")
+
+
+def csv_sidecar(path: str | os.PathLike) -> Path:
+    """The JSON file beside a CSV export that holds its grid and units: ``<name>.csv.json``."""
+    path = Path(path)
+    return path.with_name(path.name + ".json")
 
 
 def _csv(table: LookupTable, path: Path, unit: str) -> None:
     scale = 1.0 / LENGTH_UNITS[unit]
     g = table.grid
     nodes = g.nodes().reshape(-1, 3) * scale
-    header = [
-        "ivc secondary-field look-up table",
-        f"ivc_version: {__version__}",
-        f"origin_{unit}: {' '.join(f'{v:.9g}' for v in g.origin * scale)}",
-        f"spacing_{unit}: {g.spacing * scale:.9g}",
-        f"counts: {' '.join(str(n) for n in g.shape)}",
-        "index_order: x slowest, z fastest (seed eq. 105): row = i*ny*nz + j*nz + k",
-        f"hemisphere: {table.hemisphere}",
-        f"field_unit: {FIELD_UNIT}; G[a, b] = field component a of source coil b, source frame",
-        "valid: 1 where data support the node, 0 where the values are filled in and must not be used",
-    ]
+    meta = {
+        "format": "ivc secondary-field look-up table", "ivc_version": __version__, "csv": path.name,
+        "length_unit": unit, f"origin_{unit}": (g.origin * scale).tolist(), f"spacing_{unit}": g.spacing * scale,
+        "counts": list(g.shape), "index_order": "x slowest, z fastest (seed eq. 105): row = i*ny*nz + j*nz + k",
+        "hemisphere": table.hemisphere, "field_unit": FIELD_UNIT,
+        "components": "G[a, b] = field component a of source coil b, source frame",
+        "valid": "1 where data support the node, 0 where the values are filled in and must not be used",
+    }
     columns = ["i", "j", "k", f"x_{unit}", f"y_{unit}", f"z_{unit}", "valid", "support", *COMPONENTS]
     i, j, k = np.unravel_index(np.arange(g.size), g.shape)
     rows = np.column_stack([i, j, k, nodes, table.valid.reshape(-1), table.support.reshape(-1),
                             table.values.reshape(-1, 9)])
     formats = ["%d"] * 3 + ["%.9g"] * 3 + ["%d"] * 2 + ["%.12g"] * 9
-    with atomic_path(path) as tmp:
-        np.savetxt(tmp, rows, fmt=formats, delimiter=",", comments="# ",
-                   header="\n".join(header) + "\n" + ",".join(columns))
+    sidecar = csv_sidecar(path)
+    with atomic_path(path) as tmp, atomic_path(sidecar) as tmp_meta:
+        np.savetxt(tmp, rows, fmt=formats, delimiter=",", comments="", header=",".join(columns))
+        tmp_meta.write_text(json.dumps(meta, indent=2) + "\n")
+
+
+def _vtk_string_array(name: str, value: str) -> str:
+    codes = " ".join(str(c) for c in value.encode()) + " 0"
+    return f'<Array type="String" Name="{name}" NumberOfTuples="1" format="ascii">{codes}</Array>'
 
 
 def _vti(table: LookupTable, path: Path, unit: str) -> None:
@@ -76,18 +98,27 @@ def _vti(table: LookupTable, path: Path, unit: str) -> None:
 
     primary = np.linalg.norm(dipole.field(table.grid.nodes()), axis=(-2, -1))
     secondary = np.linalg.norm(table.values, axis=(-2, -1))
-    shift = distortion.forward(table).displacement * 1000.0
+    scale = 1.0 / LENGTH_UNITS[unit]
+    shift = distortion.forward(table).displacement * scale
     data = {name: np.ascontiguousarray(table.values[..., a, b]) for name, (a, b) in
             zip(COMPONENTS, np.ndindex(3, 3), strict=True)}
     data["secondary_percent_of_primary"] = 100.0 * secondary / primary
-    data["position_distortion_mm"] = tuple(np.ascontiguousarray(shift[..., a]) for a in range(3))
+    data[f"position_distortion_{unit}"] = tuple(np.ascontiguousarray(shift[..., a]) for a in range(3))
     data["valid"] = table.valid.astype(np.uint8)
     data["support"] = table.support.astype(np.int32)
     g = table.grid
     with tempfile.TemporaryDirectory(dir=path.parent, prefix=f".{path.name}.") as tmp:
         # plain floats: pyevtk writes str() of each, and a NumPy 2 scalar prints as "np.float64(...)"
-        written = imageToVTK(os.path.join(tmp, "table"), origin=tuple(g.origin.tolist()),
-                             spacing=(float(g.spacing),) * 3, pointData=data)
+        written = imageToVTK(os.path.join(tmp, "table"), origin=tuple((g.origin * scale).tolist()),
+                             spacing=(float(g.spacing * scale),) * 3, pointData=data)
+        # the units, as FieldData string arrays ParaView shows in its Information panel; inserted in the XML
+        # part before the appended binary data, whose offsets are relative to its own start
+        raw = Path(written).read_bytes()
+        at = raw.index(b"<Piece")
+        fields = "<FieldData>\n" + "\n".join(_vtk_string_array(n, v) for n, v in (
+            ("length_unit", unit), ("position_distortion_unit", unit), ("field_unit", FIELD_UNIT),
+            ("ivc_version", __version__))) + "\n</FieldData>\n"
+        Path(written).write_bytes(raw[:at] + fields.encode() + raw[at:])
         shutil.move(written, path)  # same directory: an atomic rename
 
 
@@ -126,10 +157,14 @@ def _vrui(table: LookupTable, path: Path, unit: str) -> None:
     angle = np.linalg.norm(rv, axis=-1)
     axis = np.where(angle[..., None] > 0, rv / np.where(angle > 0, angle, 1.0)[..., None], [1.0, 0.0, 0.0])
     g = table.grid
-    lines = [" ".join(str(n) for n in g.shape), " ".join(f"{x:.9g}" for x in g.origin * scale),
+    m = VRUI_MARGIN
+    shape = tuple(n + 2 * m for n in g.shape)
+    lines = [" ".join(str(n) for n in shape), " ".join(f"{x:.9g}" for x in (g.origin - m * g.spacing) * scale),
              " ".join(f"{g.spacing * scale:.9g}" for _ in range(3))]
-    for idx in np.ndindex(g.shape):
-        if c.valid[idx]:
+    for padded in np.ndindex(shape):
+        idx = tuple(i - m for i in padded)
+        inside = all(0 <= i < n for i, n in zip(idx, g.shape, strict=True))
+        if inside and c.valid[idx]:
             tx, ty, tz = translation[idx]
             ax, ay, az = axis[idx]
             lines.append(f"V {{({tx:.9g}, {ty:.9g}, {tz:.9g}), {{({ax:.9g}, {ay:.9g}, {az:.9g}), {angle[idx]:.9g}}}}}")
@@ -142,26 +177,49 @@ def _vrui(table: LookupTable, path: Path, unit: str) -> None:
 FORMATS: dict[str, tuple[Callable[[LookupTable, Path, str], None], str, str]] = {
     "hdf5": (_hdf5, ".h5", "the canonical table (ivc's own format)"),
     "npz": (_npz, ".npz", "NumPy arrays"),
-    "csv": (_csv, ".csv", "one row per node, seed eq. 105 order, header with grid and units"),
+    "csv": (_csv, ".csv", "one row per node, seed eq. 105 order, under a plain header row; grid and units in "
+                          "FILE.csv.json"),
     "vti": (_vti, ".vti", "VTK image data for ParaView"),
     "slicer": (_slicer, ".nrrd", "displacement-field transform (LPS, mm) for 3D Slicer"),
-    "vrui": (_vrui, ".grid", "Vrui ForwardGridCalibrator grid"),
+    "vrui": (_vrui, ".grid", "Vrui ForwardGridCalibrator grid, in the --unit of the tracker driver, ringed by "
+                             "invalid vertices"),
 }
 
 
-def export(table: LookupTable, fmt: str, path: str | os.PathLike, *, unit: str = "m", overwrite: bool = False) -> Path:
+def export(table: LookupTable, fmt: str, path: str | os.PathLike, *, unit: str | None = None,
+           overwrite: bool = False) -> Path:
     """Write ``table`` as ``fmt`` (a key of :data:`FORMATS`) to ``path``; returns the path written.
 
-    ``unit``: length unit of the csv and vrui files (m, cm, mm, in); the others have fixed units.
+    ``unit``: length unit of the file (m, cm, mm, in; default: the format's, :data:`UNITS`). hdf5 is in
+    metres and slicer in millimetres only; vrui needs it (Vrui corrects in the tracker driver's unit:
+    inches for Polhemus).
     """
-    if fmt not in FORMATS:
-        raise ExportError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
-    if unit not in LENGTH_UNITS:
-        raise ExportError(f"unknown length unit {unit!r}; choose one of {', '.join(LENGTH_UNITS)}")
+    unit = resolve_unit(fmt, unit)
     path = Path(path)
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} exists; pass --force to replace it")
+    written = [path, csv_sidecar(path)] if fmt == "csv" else [path]
+    for p in written:
+        if p.exists() and not overwrite:
+            raise FileExistsError(f"{p} exists; pass --force to replace it")
     path.parent.mkdir(parents=True, exist_ok=True)
     FORMATS[fmt][0](table, path, unit)
     return path
+
+
+def resolve_unit(fmt: str, unit: str | None) -> str:
+    """The length unit ``fmt`` is written in for the asked ``unit`` (None: the format's default), or an
+    :class:`ExportError` saying why it cannot be."""
+    if fmt not in FORMATS:
+        raise ExportError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
+    allowed, default = UNITS[fmt]
+    unit = default if unit is None else unit
+    if unit is None:
+        raise ExportError("vrui: give the length unit of the tracker driver's poses (--unit in for Vrui's Polhemus "
+                          "drivers, which report inches; m, cm or mm for others): Vrui applies the grid in that "
+                          "unit and a mismatch corrects nothing")
+    if unit not in LENGTH_UNITS:
+        raise ExportError(f"unknown length unit {unit!r}; choose one of {', '.join(LENGTH_UNITS)}")
+    if allowed is not None and unit not in allowed:
+        why = "the canonical table" if fmt == "hdf5" else "3D Slicer works in millimetres"
+        raise ExportError(f"{fmt} files are in {allowed[0]} only ({why}); drop --unit {unit}")
+    return unit
 

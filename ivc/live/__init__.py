@@ -6,6 +6,6 @@ and serves the result to any number of OpenIGTLink clients (3D Slicer, PLUS, you
 """
 
 from ivc.live.igtl import NDArrayMessage, TrackingDataMessage, parse_url
-from ivc.live.loop import LiveCorrector, LiveStats
+from ivc.live.loop import LiveCorrector, LiveStats, output_device_name
 
-__all__ = ["LiveCorrector", "LiveStats", "NDArrayMessage", "TrackingDataMessage", "parse_url"]
+__all__ = ["LiveCorrector", "LiveStats", "NDArrayMessage", "TrackingDataMessage", "output_device_name", "parse_url"]

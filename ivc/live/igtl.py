@@ -11,7 +11,9 @@ pyigtl's generic objects they cost more than the correction itself (benchmarks/b
 from __future__ import annotations
 
 import math
+import re
 import struct
+import time
 from dataclasses import dataclass
 from urllib.parse import urlparse
 
@@ -22,9 +24,21 @@ from ivc.errors import InputError
 
 HEADER = struct.Struct("> H 12s 20s II Q Q")
 HEADER_SIZE = HEADER.size  # 58
-#: larger bodies are taken as garbage: a tracking message is a few hundred bytes
-MAX_BODY = 1 << 20
+#: the largest body of each small message type (bytes): a header claiming more is taken as garbage. A
+#: tracking message is a few hundred bytes; 64 KiB leaves room for any v2 metadata.
+BODY_LIMITS = {kind: 1 << 16 for kind in ("TRANSFORM", "NDARRAY", "TDATA", "QTDATA", "POSITION", "QTRANS",
+                                          "STATUS", "STT_TDATA", "STP_TDATA", "RTS_TDATA", "GET_TDATA", "CAPABILITY",
+                                          "GET_TRANS", "GET_STATUS", "STRING", "COMMAND", "RTS_COMMAND")}
+#: the largest body of any other type (IMAGE, VIDEO, POLYDATA, ...): a 4K RGBA video frame is 33 MB
+MAX_BODY = 1 << 28
+#: seconds a header may wait for its body before the framer looks past it for the next whole, CRC-valid message
+BODY_TIMEOUT_S = 0.1
 DEFAULT_PORT = 18944
+#: bodies at least this long (bytes) have their CRC computed piecewise as they arrive
+INCREMENTAL_CRC_BYTES = 1 << 16
+_CRC_START = CRC64(b"")
+#: where a header may start: version 1-3, then a type name's first character
+_CANDIDATE = re.compile(rb"\x00[\x01-\x03][0-9:;<=>?@A-Z_]")
 
 
 def parse_url(url: str) -> tuple[str, int]:
@@ -84,58 +98,157 @@ _DECODERS = {"TRANSFORM": decode_transform, "NDARRAY": decode_ndarray}
 class Framer:
     """Feed bytes with :meth:`feed`; take whole, CRC-checked messages from :meth:`messages`.
 
-    TRANSFORM and NDARRAY contents are decoded here (the hot path; other types are passed on
-    undecoded). ``garbage`` counts the bytes skipped to find the next valid header; ``bad`` the
-    messages whose content could not be decoded.
+    TRANSFORM and NDARRAY contents are decoded here (the hot path; other types, IMAGE included,
+    are passed on undecoded after their body, of the size the header declares, has passed its
+    CRC). One header cannot stall the stream: a small type's body is bounded (``BODY_LIMITS``)
+    and a header whose body has not arrived within ``timeout_s`` while a whole, CRC-valid
+    message follows it is dropped as garbage and the framer resynchronises on that message.
+    ``garbage`` counts the bytes skipped to find the next valid header; ``bad`` the messages
+    whose content could not be decoded.
     """
 
-    def __init__(self):
+    def __init__(self, timeout_s: float = BODY_TIMEOUT_S):
         self.buffer = bytearray()
         self.garbage = 0
         self.bad = 0
+        self.timeout_s = float(timeout_s)
+        self._waiting_since: float | None = None  # when the header at the buffer's start began to wait
+        self._resync_from = 1  # where the search past a waiting header resumes (nothing before it can start one)
+        self._partial: tuple[int, int] | None = None  # (CRC so far, body bytes covered) of the header at 0
 
     def feed(self, data: bytes) -> None:
         self.buffer += data
 
+    @property
+    def waiting(self) -> bool:
+        """Whether a header waits for its body (call :meth:`messages` again later: its timeout may resync)."""
+        return self._waiting_since is not None
+
+    def clear(self) -> None:
+        """Forget any partial message (after a reconnection)."""
+        self.buffer.clear()
+        self._waiting_since = None
+        self._resync_from = 1
+        self._partial = None
+
     def _header_at(self, at: int):
         version, kind, device, seconds, fraction, size, crc = HEADER.unpack_from(self.buffer, at)
-        if version not in (1, 2, 3) or size > MAX_BODY:
+        if version not in (1, 2, 3):
             return None
         kind = kind.rstrip(b"\0")
         if not kind or not all(48 <= c < 91 or c == 95 for c in kind):  # 0-9, :;<=>?@, A-Z, _
             return None
-        return version, kind.decode(), device, seconds, fraction, size, crc
+        kind = kind.decode()
+        if size > BODY_LIMITS.get(kind, MAX_BODY) or (version >= 2 and size < _EXTENDED.size):
+            return None
+        return version, kind, device, seconds, fraction, size, crc
 
-    def messages(self) -> list[Frame]:
+    def _advance_crc(self) -> None:
+        """Extend the running CRC of a large body waiting at the buffer's start over the bytes that arrived,
+        so that a video frame's CRC costs nothing extra when its last bytes come (and tracking messages
+        behind it do not wait for it)."""
+        header = self._header_at(0)
+        if header is None or header[5] < INCREMENTAL_CRC_BYTES:
+            return
+        running, done = self._partial or (_CRC_START, 0)
+        available = min(len(self.buffer) - HEADER_SIZE, header[5])
+        if available > done:
+            with memoryview(self.buffer) as view, view[HEADER_SIZE + done:HEADER_SIZE + available] as part:
+                running = CRC64(part, running)
+            self._partial = (running, available)
+
+    def _next_candidate(self, start: int) -> int:
+        """Position of the next possible header at or after ``start`` (or where scanning may resume)."""
+        match = _CANDIDATE.search(self.buffer, start)
+        if match is None:  # keep the last two bytes: a header may begin there
+            return max(start, len(self.buffer) - 2)
+        return match.start()
+
+    def _whole_message_at(self, at: int) -> bool:
+        header = self._header_at(at)
+        if header is None:
+            return False
+        end = at + HEADER_SIZE + header[5]
+        return end <= len(self.buffer) and CRC64(bytes(self.buffer[at + HEADER_SIZE:end])) == header[6]
+
+    def _resync_past_stalled_header(self) -> int | None:
+        """Where the first whole, CRC-valid message after the header at 0 starts, or None. The search resumes
+        where the last one left off (at the first header still waiting for its body), so a large body
+        arriving slowly is scanned once, not once per read."""
+        at = self._resync_from
+        while len(self.buffer) - at >= HEADER_SIZE:
+            at = self._next_candidate(at)
+            if len(self.buffer) - at < HEADER_SIZE:
+                break
+            header = self._header_at(at)
+            if header is not None:
+                end = at + HEADER_SIZE + header[5]
+                if end > len(self.buffer):  # may be whole later: resume here next time
+                    self._resync_from = at
+                    return None
+                if CRC64(bytes(self.buffer[at + HEADER_SIZE:end])) == header[6]:
+                    return at
+            at += 1
+        self._resync_from = max(1, len(self.buffer) - HEADER_SIZE + 1)
+        return None
+
+    def messages(self, now: float | None = None) -> list[Frame]:
+        """The whole messages in the buffer, in order; ``now`` (time.monotonic) for the body timeout."""
         out = []
         at = 0
         buf = self.buffer
         while len(buf) - at >= HEADER_SIZE:
             header = self._header_at(at)
             if header is None:
-                at += 1
-                self.garbage += 1
+                skip = self._next_candidate(at + 1)
+                self.garbage += skip - at
+                at = skip
                 continue
             version, kind, device, seconds, fraction, size, crc = header
             end = at + HEADER_SIZE + size
             if len(buf) < end:
                 break  # wait for the rest of the body
-            body = bytes(buf[at + HEADER_SIZE:end])
-            if CRC64(body) != crc:
-                at += 1
-                self.garbage += 1
+            if at == 0 and self._partial is not None:  # the CRC of the body's start, computed as it arrived
+                running, done = self._partial
+            else:
+                running, done = _CRC_START, 0
+            with memoryview(buf) as view, view[at + HEADER_SIZE + done:end] as rest:
+                running = CRC64(rest, running)
+            self._partial = None
+            if running != crc:
+                skip = self._next_candidate(at + 1)
+                self.garbage += skip - at
+                at = skip
                 continue
             payload = None
             decoder = _DECODERS.get(kind)
-            if decoder is not None:
+            if decoder is not None:  # the small tracking messages: a copy of the body to decode
                 try:
-                    payload = decoder(_content(version, body))
+                    payload = decoder(_content(version, bytes(buf[at + HEADER_SIZE:end])))
                 except (struct.error, ValueError):
                     self.bad += 1
             name = device.rstrip(b"\0").decode(errors="replace")
             out.append(Frame(kind, name, seconds + fraction / 2.0**32, payload))
             at = end
-        del buf[:at]
+        if at:
+            del buf[:at]
+            self._waiting_since = None
+            self._resync_from = 1
+            self._partial = None
+        if len(buf) >= HEADER_SIZE:  # a header waits for its body
+            self._advance_crc()
+            now = time.monotonic() if now is None else now
+            if self._waiting_since is None:
+                self._waiting_since = now
+            elif now - self._waiting_since > self.timeout_s:
+                resume = self._resync_past_stalled_header()
+                if resume is not None:
+                    self.garbage += resume
+                    del buf[:resume]
+                    self._partial = None
+                    self._waiting_since = None
+                    self._resync_from = 1
+                    out += self.messages(now)
         return out
 
 

@@ -41,9 +41,48 @@ DEVICE_NAME_BYTES = 20
 LATENCY_HISTORY = 1 << 16
 
 
+#: a TRANSFORM translation beyond this (m) is no tracker's: AC trackers reach a few metres
+MAX_RANGE_M = 100.0
+#: largest |RᵀR − I| of a TRANSFORM's rotation (float32 matrices are orthonormal to ~1e-6)
+MAX_ORTHONORMALITY_ERROR = 1e-2
+
+
+def _unusable(frames, length_unit: float) -> dict[int, str]:
+    """{index in ``frames``: why that decoded TRANSFORM or NDARRAY cannot be corrected}, checked for all the
+    frames of a read at once (NaN or inf, a translation beyond MAX_RANGE_M, a rotation part that is not a
+    rotation, an all-zero signal matrix)."""
+    problems: dict[int, str] = {}
+    transforms = [k for k, f in enumerate(frames) if f.message_type == "TRANSFORM" and f.payload is not None]
+    if transforms:
+        m = np.array([frames[k].payload for k in transforms])
+        with np.errstate(all="ignore"):
+            finite = np.all(np.isfinite(m.reshape(len(m), 16)), axis=1)
+            distance = np.linalg.norm(m[:, :3, 3], axis=1) * length_unit
+            R = m[:, :3, :3]
+            off = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
+            determinant = np.linalg.det(np.where(finite[:, None, None], R, np.eye(3)))
+            rotation = (off <= MAX_ORTHONORMALITY_ERROR) & (determinant > 0)
+        for n, k in enumerate(transforms):
+            if not finite[n]:
+                problems[k] = "it holds NaN or inf"
+            elif not distance[n] <= MAX_RANGE_M:
+                problems[k] = f"its translation is {distance[n]:.3g} m from the source (more than {MAX_RANGE_M:g} m)"
+            elif not rotation[n]:
+                problems[k] = "its rotation part is not a rotation matrix"
+    for k, f in enumerate(frames):
+        if f.message_type == "NDARRAY" and f.payload is not None:
+            if not np.all(np.isfinite(f.payload)):
+                problems[k] = "it holds NaN or inf"
+            elif f.payload.shape == (3, 3) and not np.any(f.payload):
+                problems[k] = "the signal matrix is all zeros (a dropout?)"
+    return problems
+
+
 @dataclass
 class LiveStats:
-    """Counters of a run; ``latency_s``: per batch (the latest LATENCY_HISTORY), seconds from its bytes arriving to
+    """Counters of a run (``rejected``: decoded messages that cannot be corrected: NaN, all-zero signals,
+    translations beyond MAX_RANGE_M, rotations that are not rotations);
+    ``latency_s``: per batch (the latest LATENCY_HISTORY), seconds from its bytes arriving to
     its results being sent."""
 
     received: int = 0
@@ -54,6 +93,7 @@ class LiveStats:
     unknown: int = 0
     garbage_bytes: int = 0
     bad_messages: int = 0
+    rejected: int = 0
     dropped_for_slow_clients: int = 0
     connections: int = 0
     latency_s: deque = field(default_factory=lambda: deque(maxlen=LATENCY_HISTORY))
@@ -92,11 +132,6 @@ class LiveCorrector:
         self.sensors = set(sensors) if sensors else None
         self.retry_s = retry_s
         self.stats = LiveStats()
-        self._selector = selectors.DefaultSelector()
-        self._listener = socket.create_server(publish, reuse_port=False)
-        self._listener.setblocking(False)
-        self._selector.register(self._listener, selectors.EVENT_READ, "listen")
-        self.publish_address = self._listener.getsockname()[:2]
         self._upstream: socket.socket | None = None
         self._framer = Framer()
         self._next_connect = 0.0
@@ -104,7 +139,12 @@ class LiveCorrector:
         self._last_time: dict[str, float] = {}
         self._streams: dict = {}
         self._logged: set = set()
-        self._warm_up()
+        self._warm_up()  # compiled (or loaded from the cache) before the publish port accepts anyone
+        self._selector = selectors.DefaultSelector()
+        self._listener = socket.create_server(publish, reuse_port=False)
+        self._listener.setblocking(False)
+        self._selector.register(self._listener, selectors.EVENT_READ, "listen")
+        self.publish_address = self._listener.getsockname()[:2]
 
     def _warm_up(self) -> None:
         """Run every compiled step once, so the first frames do not wait for it."""
@@ -134,7 +174,7 @@ class LiveCorrector:
         sock.setblocking(False)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._upstream = sock
-        self._framer.buffer.clear()  # a partial message from the last connection is not continued by this one
+        self._framer.clear()  # a partial message from the last connection is not continued by this one
         self._selector.register(sock, selectors.EVENT_READ, "upstream")
         self.stats.connections += 1
         self.corrector.reset()
@@ -152,7 +192,7 @@ class LiveCorrector:
 
     def _read_upstream(self) -> None:
         try:
-            data = self._upstream.recv(1 << 16)
+            data = self._upstream.recv(1 << 20)  # a video frame arrives in a few reads
         except (BlockingIOError, InterruptedError):
             return
         except OSError as error:
@@ -161,8 +201,11 @@ class LiveCorrector:
         if not data:
             self._disconnect("connection closed")
             return
-        arrived = time.perf_counter()
         self._framer.feed(data)
+        self._drain(time.perf_counter())
+
+    def _drain(self, arrived: float) -> None:
+        """Process the whole messages the framer holds (also while a header waits for its body: its timeout)."""
         frames = self._framer.messages()
         if self._framer.garbage > self.stats.garbage_bytes:  # the framer counts over the whole run
             self._once(("garbage", self.stats.connections), "skipped malformed bytes from the tracking server "
@@ -179,7 +222,8 @@ class LiveCorrector:
         """(device, timestamp, signal matrix (3, 3)) of the usable tracking messages, in arrival order."""
         names, times, signals = [], [], []
         poses, positions, rotations_ = [], [], []  # the TRANSFORM samples: index, position (m), rotation
-        for f in frames:
+        problems = _unusable(frames, self.length_unit)
+        for k, f in enumerate(frames):
             if f.message_type not in ("TRANSFORM", "NDARRAY"):
                 self._once(("type", f.message_type), f"ignoring {f.message_type} messages (expected TRANSFORM poses "
                            "or NDARRAY 3x3 signal matrices)", logging.INFO)
@@ -196,6 +240,12 @@ class LiveCorrector:
                 self.stats.out_of_order += 1
                 self._once(("order", name), f"sensor {name!r}: dropped a message older than (or as old as) the last "
                            "one; this and later ones are counted, not logged")
+                continue
+            problem = problems.get(k)
+            if problem:
+                self.stats.rejected += 1
+                self._once(("rejected", name), f"sensor {name!r}: dropped a {f.message_type} message: {problem}; "
+                           "later ones are counted, not logged")
                 continue
             self._last_time[name] = f.timestamp
             if f.message_type == "TRANSFORM":
@@ -264,13 +314,22 @@ class LiveCorrector:
         index = np.flatnonzero(sent)
         metadata = [{"ivc_flags": str(int(out.flags[n])), "ivc_predicted": "1" if predicted[n] else "0"}
                     for n in index]
-        messages = encode_transforms([_device(names[n] + self.suffix) for n in index], [stamps[n] for n in index],
+        messages = encode_transforms([self._published_name(names[n]) for n in index], [stamps[n] for n in index],
                                      m[index], metadata)
         tools = {names[n]: m[n] for n in np.flatnonzero(ok & sent)}
         if tools:
             messages.append(TrackingDataMessage(tools, timestamp=stamps[-1], device_name="ivc").pack())
         self._send_all(messages)
         self.stats.published_batches += 1
+
+    def _published_name(self, name: str) -> str:
+        """``<name><suffix>`` within OpenIGTLink's 20 bytes: a long name loses the end of its base, never the
+        suffix (else it would collide with the raw stream's node); said once per name."""
+        published = output_device_name(name, self.suffix)
+        if published != name + self.suffix:
+            self._once(("renamed", name), f"sensor {name!r} is published as {published!r}: OpenIGTLink device "
+                       f"names hold {DEVICE_NAME_BYTES} bytes, so its name was shortened to keep {self.suffix!r}")
+        return published
 
     # ---- downstream ---------------------------------------------------------------------------
     def _accept(self) -> None:
@@ -356,6 +415,8 @@ class LiveCorrector:
                             self._read_upstream()
                     else:
                         self._client_event(key.data, mask)
+                if self._upstream is not None and self._framer.waiting:
+                    self._drain(time.perf_counter())
         finally:
             self.close()
         return self.stats
@@ -375,6 +436,9 @@ class LiveCorrector:
         self._selector.close()
 
 
-def _device(name: str) -> str:
-    """OpenIGTLink device names hold 20 bytes."""
-    return name.encode()[:DEVICE_NAME_BYTES].decode(errors="ignore")
+def output_device_name(name: str, suffix: str = "_ivc") -> str:
+    """The device name ``name`` is published under: ``name + suffix`` in at most DEVICE_NAME_BYTES bytes of
+    UTF-8, the base shortened (on a character boundary) when it is too long, the suffix kept whole."""
+    room = DEVICE_NAME_BYTES - len(suffix.encode())
+    base = name.encode()[:max(room, 0)].decode(errors="ignore")
+    return (base + suffix).encode()[:DEVICE_NAME_BYTES].decode(errors="ignore")

@@ -59,7 +59,7 @@ def _weights(t, cubic, w, dw):
         dw[3] = 0.0
 
 
-@numba.njit(inline="always")
+@numba.njit
 def grid_point(padded, valid_cells, origin, spacing, shape, p, cubic, value, gradient, wx, wy, wz, dx, dy, dz):
     """Value (C,) and gradient (C, 3) of the table at one point p; returns whether p is in a valid cell."""
     i, tx, in_x = _cell(p[0], origin[0], spacing, shape[0])
@@ -113,3 +113,62 @@ def grid_kernel(padded, valid_cells, origin, spacing, shape, points, cubic, valu
         dz = np.empty(4)
         inside[n] = grid_point(padded, valid_cells, origin, spacing, shape, points[n], cubic, values[n],
                                gradients[n], wx, wy, wz, dx, dy, dz)
+
+
+@numba.njit(inline="always")
+def _regular(re, im, l, m):  # noqa: E741 - l is the degree, as in the literature
+    """R_l^m for any m (zero outside |m| <= l), from the m >= 0 table: R_l^{-m} = (-1)^m conj(R_l^m)."""
+    if m > l or -m > l:
+        return 0.0, 0.0
+    if m >= 0:
+        return re[l, m], im[l, m]
+    sign = 1.0 if (-m) % 2 == 0 else -1.0
+    return sign * re[l, -m], -sign * im[l, -m]
+
+
+@numba.njit(**_OPTS)
+def harmonic_gradient_rows(x, degree, out):  # pragma: no cover - compiled
+    """Gradients of the real solid harmonics of degree 1..degree at x (N, 3) into out (N, 3, K):
+    ``out[n, i, k] = ∂_i Φ_k(x_n)``, the same functions and order as ``ivc.lut.harmonics.gradients``
+    (which returns them as (N, K, 3)), built by the same recurrences one point at a time."""
+    top = degree - 1
+    blocks = (x.shape[0] + 255) // 256
+    for block in numba.prange(blocks):  # scratch tables allocated once per block of points
+        re = np.zeros((top + 1, top + 1))
+        im = np.zeros((top + 1, top + 1))
+        for n in range(256 * block, min(256 * block + 256, x.shape[0])):
+            _gradient_row(x[n, 0], x[n, 1], x[n, 2], degree, re, im, out[n])
+
+
+@numba.njit(inline="always")
+def _gradient_row(X, Y, Z, degree, re, im, out):
+    """One point of :func:`harmonic_gradient_rows`: R_l^m (l < degree) into re, im, then out (3, K)."""
+    top = degree - 1
+    r2 = X * X + Y * Y + Z * Z
+    re[0, 0] = 1.0
+    im[0, 0] = 0.0
+    for l in range(1, top + 1):  # noqa: E741
+        a, b = re[l - 1, l - 1], im[l - 1, l - 1]
+        re[l, l] = -(X * a - Y * b) / (2 * l)
+        im[l, l] = -(X * b + Y * a) / (2 * l)
+        for m in range(l):
+            pr, pi = (re[l - 2, m], im[l - 2, m]) if l >= 2 else (0.0, 0.0)
+            d = (l + m) * (l - m)
+            re[l, m] = ((2 * l - 1) * Z * re[l - 1, m] - r2 * pr) / d
+            im[l, m] = ((2 * l - 1) * Z * im[l - 1, m] - r2 * pi) / d
+    k = 0
+    for l in range(1, degree + 1):  # noqa: E741
+        for m in range(l + 1):
+            ur, ui = _regular(re, im, l - 1, m + 1)
+            dr, di = _regular(re, im, l - 1, m - 1)
+            zr, zi = _regular(re, im, l - 1, m)
+            # ∂x = (up − down) / 2, ∂y = −i (down + up) / 2, ∂z = R_{l−1}^m
+            out[0, k] = 0.5 * (ur - dr)
+            out[1, k] = 0.5 * (di + ui)
+            out[2, k] = zr
+            k += 1
+            if m > 0:
+                out[0, k] = 0.5 * (ui - di)
+                out[1, k] = -0.5 * (dr + ur)
+                out[2, k] = zi
+                k += 1

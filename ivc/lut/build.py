@@ -3,7 +3,9 @@
 Stages: the fixtures are calibrated and the sweep solved through the cube
 (:mod:`ivc.fixtures.mapping`); the gated samples are fitted on the grid by the chosen
 method; then, optionally, the wand frames are re-solved as rigid bodies against the map
-and the map refitted until it stops changing (:mod:`ivc.lut.refine`).
+and the map refitted until it stops changing or stops gaining (:mod:`ivc.lut.refine`):
+each refinement must lower the cross-validation score by ``REFINE_MIN_GAIN``, and the map
+with the lowest score is the one kept.
 """
 
 from __future__ import annotations
@@ -32,8 +34,17 @@ METHODS = ("harmonic", "poly")
 #: fewest gated samples worth fitting, and the smallest fraction of the sweep that may pass the gates
 MIN_SAMPLES = 2_000
 MIN_KEPT_FRACTION = 0.05
+#: coarsest grid spacing (m): an AC tracker's whole range is a few metres
+MAX_SPACING = 1.0
+#: estimated bytes per grid node at the peak of a fit: values and their padded, interpolated and refined
+#: copies (9 float64 each), support, masks, node positions and the harmonic basis at the nodes
+BYTES_PER_NODE = 2048
+#: largest estimated grid memory a fit starts with (bytes)
+MAX_GRID_MEMORY = 4 << 30
 #: refinement stops when the map changes by less than this, pose-equivalent RMS over valid nodes (m)
 REFINE_TOLERANCE = 5e-6
+#: ... or when its cross-validation score improves by less than this fraction; the best-scoring map is kept
+REFINE_MIN_GAIN = 0.01
 
 #: what to redo when most samples fail a gate
 _ADVICE = {
@@ -80,6 +91,49 @@ class FitOptions:
             raise InputError(f"unknown fit method {self.method!r}; use one of {', '.join(METHODS)}")
         if (self.origin is None) != (self.shape is None):
             raise InputError("a user grid needs both an origin and a shape")
+        _check_range("degree", self.degree, 1, None, optional=True)
+        _check_range("max_refinements", self.max_refinements, 0)
+        _check_range("max_frames", self.max_frames, 1)
+        _check_range("min_support", self.min_support, 1)
+        _check_range("folds", self.folds, 2)
+        for name in ("max_residual", "max_error"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise InputError(f"{name} must be a positive number, got {value}")
+        if not (np.isfinite(self.spacing) and 0 < self.spacing <= MAX_SPACING):
+            raise InputError(f"grid spacing must be more than 0 and at most {1000 * MAX_SPACING:g} mm, got "
+                             f"{1000 * self.spacing:g} mm")
+        if self.radius is not None and not (np.isfinite(self.radius) and self.radius > 0):
+            raise InputError(f"radius must be a positive number of metres, got {self.radius}")
+        if self.shape is not None:
+            check_grid_memory(tuple(self.shape))
+
+
+def _check_range(name: str, value, low: int, high: int | None = None, optional: bool = False) -> None:
+    if value is None and optional:
+        return
+    if not isinstance(value, int | np.integer) or value < low or (high is not None and value > high):
+        span = f"at least {low}" if high is None else f"from {low} to {high}"
+        raise InputError(f"{name} must be a whole number {span}, got {value!r}")
+
+
+def grid_memory(shape: tuple[int, int, int]) -> int:
+    """Estimated peak memory (bytes) of fitting, refining and interpolating a grid of ``shape`` nodes."""
+    return int(np.prod(np.asarray(shape, dtype=float))) * BYTES_PER_NODE
+
+
+def check_grid_memory(shape: tuple[int, int, int], limit: int | None = None) -> None:
+    """Refuse, before any work, a grid whose estimated memory (:func:`grid_memory`) exceeds ``limit`` bytes
+    (default MAX_GRID_MEMORY)."""
+    limit = MAX_GRID_MEMORY if limit is None else limit
+    if len(shape) != 3 or min(shape) < 2:
+        raise InputError(f"a grid needs at least 2 nodes per axis, got shape {tuple(shape)}")
+    need = grid_memory(shape)
+    if need > limit:
+        nodes = float(np.prod(np.asarray(shape, dtype=float)))
+        raise InputError(f"a grid of {' x '.join(str(int(n)) for n in shape)} = {nodes:.3g} nodes needs about "
+                         f"{need / 2**30:.3g} GiB (limit {limit / 2**30:.3g} GiB): use a coarser spacing "
+                         "(--grid SPACING, in mm) or fewer nodes")
 
 
 def _noop(desc: str, total: int) -> Callable[[int], None]:
@@ -160,6 +214,24 @@ def _check_enough(kept: int, total: int, dropped: dict[str, int]) -> None:
                        f"{_ADVICE[reason]}")
 
 
+def _check_data_grid(session: Session, spacing: float) -> None:
+    """Refuse, before the sweep is solved, a grid around the data too large for memory: the extent is
+    taken from the sweep's dipole poses (its reported poses, else the closed form of its signals)."""
+    sweep = session.steps["wand_sweep"]
+    valid = sweep.valid_mask
+    if not valid.any():
+        return  # the gates will say so
+    if sweep.position is not None:
+        points = sweep.position[valid]
+    else:
+        points = dipole.closed_form_pose(sweep.signal_matrices()[valid])[0]
+    points = points[np.all(np.isfinite(points), axis=1)]
+    if len(points) == 0:
+        return
+    extent = points.max(axis=0) - points.min(axis=0)
+    check_grid_memory(tuple(int(n) for n in np.ceil(extent / spacing) + 3))  # + 1 node and a cell each side
+
+
 def fit_lut(session: Session, options: FitOptions | None = None, source: str | Path | None = None,
             progress: Progress | None = None) -> LookupTable:
     """Build the look-up table of ``session`` (which must hold the fixture steps and the sweep).
@@ -172,6 +244,8 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
     missing = session.missing_for_fit()
     if missing:
         raise SessionError("cannot fit a map; the session is missing:\n  " + "\n  ".join(missing))
+    if options.origin is None:
+        _check_data_grid(session, options.spacing)
     model = FixtureModel.from_session(session)
     recorded = session.steps["wand_sweep"].n_frames
     stride = max(1, -(-recorded // options.max_frames))
@@ -190,10 +264,11 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
     values, report = tabulate(samples, grid, options, progress(_fitting(options), _work(options, samples)))
     support = node_support(grid, samples.positions)
     valid = _mapped_nodes(values, support, options.min_support)
-    history = []
+    history, stopped = [], None
     if options.refine:
         S = sweep.signal_matrices()
         position0, rotation0 = mapping.positions[:, 0], mapping.rotations[:, 0]
+        best = (report["cv_rms_mm"], values, valid, support, samples, report, 0)
         for iteration in range(1, options.max_refinements + 1):
             table = GridField(grid, values, valid)
             r0, T0, ok = resolve_sweep(S, sweep.valid_mask, model.wand, model.interpolant.value_and_jacobian,
@@ -217,14 +292,26 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
                 ok[:, None, None], T0, rotation0)
             support = node_support(grid, samples.positions)
             valid = _mapped_nodes(values, support, options.min_support)
+            gained = report["cv_rms_mm"] < (1 - REFINE_MIN_GAIN) * best[0]
+            if report["cv_rms_mm"] < best[0]:
+                best = (report["cv_rms_mm"], values, valid, support, samples, report, iteration)
             if change < REFINE_TOLERANCE:
+                stopped = f"the map changed by less than {1e6 * REFINE_TOLERANCE:g} µm"
                 break
+            if not gained:
+                stopped = f"the cross-validation score improved by less than {100 * REFINE_MIN_GAIN:g} %"
+                break
+        _, values, valid, support, samples, report, kept = best
+        for step in history:
+            step["kept"] = step["iteration"] == kept
+        stopped = stopped or f"--max-refinements {options.max_refinements} reached"
     fit = {
         "method": options.method, **report,
         "frames": {"recorded": recorded, "used": sweep.n_frames, "stride": stride},
         "samples": {"total": int(mapping.keep.size), "kept": mapping.kept, "used": len(samples),
                     "outside_grid": outside, "dropped": mapping.dropped},
         "refinement": history,
+        "refinement_stopped": stopped,
         "grid_from": "user" if options.origin is not None else "data (one-cell margin)",
         "min_support": options.min_support,
         "valid_nodes": int(valid.sum()),

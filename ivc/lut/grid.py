@@ -28,6 +28,8 @@ class Grid:
     shape: tuple[int, int, int]
 
     def __post_init__(self):
+        if np.asarray(self.origin).dtype.kind not in "biuf":
+            raise InputError(f"grid origin must be three real numbers, got {self.origin!r}")
         object.__setattr__(self, "origin", np.asarray(self.origin, float).reshape(3))
         object.__setattr__(self, "shape", tuple(int(n) for n in self.shape))
         if not self.spacing > 0 or not np.isfinite(self.spacing):

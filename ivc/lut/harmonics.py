@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ivc.errors import InputError
+
 
 def count(degree: int) -> int:
     """Number of real harmonic potentials of degrees 1..degree."""
@@ -62,4 +64,20 @@ def gradients(x: np.ndarray, degree: int) -> np.ndarray:
             if m > 0:
                 out[:, k] = grad.imag
                 k += 1
+    return out
+
+
+def gradient_rows(x: np.ndarray, degree: int, out: np.ndarray | None = None) -> np.ndarray:
+    """The gradients of :func:`gradients`, compiled and laid out as (N, 3, count(degree)): row
+    ``(n, i)`` holds ``∂_i Φ_k`` of every potential at point n, so ``reshape(-1, K)`` is the
+    design matrix of the (sample, component) rows without a copy. ``out``: an array to fill."""
+    from ivc.lut._kernels import harmonic_gradient_rows
+
+    x = np.ascontiguousarray(np.asarray(x, float).reshape(-1, 3))
+    K = count(degree)
+    if out is None:
+        out = np.empty((len(x), 3, K))
+    elif out.shape != (len(x), 3, K) or not out.flags.c_contiguous or out.dtype != np.float64:
+        raise InputError(f"out must be a C-contiguous float64 array of shape {(len(x), 3, K)}")
+    harmonic_gradient_rows(x, int(degree), out)
     return out

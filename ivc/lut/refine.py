@@ -19,6 +19,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ivc import dipole, rotations
+from ivc.fixtures.interpolant import HarmonicField
 from ivc.fixtures.wand import WandCalibration
 from ivc.lut.grid import GridField
 from ivc.pose import levenberg_marquardt, signal_residual
@@ -55,19 +56,43 @@ def _residuals(S, scale, valid, wand, cube_field, map_field, r0, T0):
     return (e * w).reshape(F, -1), (J * w[..., None]).reshape(F, -1, 6)
 
 
+def _compiled(S, valid, scale, wand, field: HarmonicField, map_field: GridField, r, T, max_iterations,
+              step_tolerance) -> np.ndarray:
+    """:func:`solve_rigid` in compiled code (``ivc.lut._refine_kernels``); r, T updated in place."""
+    from ivc.lut._refine_kernels import rigid_kernel
+
+    converged = np.empty(len(S), dtype=bool)
+    m = map_field
+    rigid_kernel(np.ascontiguousarray(S), np.ascontiguousarray(valid), np.ascontiguousarray(scale),
+                 np.ascontiguousarray(wand.positions, dtype=float), np.ascontiguousarray(wand.rotations, dtype=float),
+                 np.ascontiguousarray(field.centre, dtype=float), float(field.scale),
+                 np.ascontiguousarray(field.coefficients, dtype=float), m._padded, m.valid_cells, m._origin,
+                 m.grid.spacing, m._shape, m.interpolation == "cubic", int(max_iterations), float(step_tolerance), r, T,
+                 converged)
+    return converged
+
+
 def solve_rigid(S: np.ndarray, valid: np.ndarray, wand: WandCalibration, cube_field: Callable, map_field: GridField,
                 position0: np.ndarray, rotation0: np.ndarray, max_iterations: int = 30,
-                step_tolerance: float = 1e-9) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                step_tolerance: float = 1e-9, compiled: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Levenberg-Marquardt for the wand's pose (sensor 0's) in every frame, from a starting pose.
 
     ``S`` (F, W, 3, 3), ``valid`` (F, W); ``cube_field``: ``r -> (g, ∂g/∂r)``; ``map_field``: the current map.
     Returns sensor 0's position (F, 3), rotation (F, 3, 3) and per-frame convergence (F,).
+    When ``cube_field`` is a :class:`~ivc.fixtures.interpolant.HarmonicField`'s ``value_and_jacobian``
+    the frames are solved in compiled code (the same rules, one frame at a time) unless ``compiled``
+    is False.
     """
     valid = valid & np.all(np.isfinite(S.reshape(*S.shape[:2], -1)), axis=-1)
     S = np.where(valid[..., None, None], S, 0.0)
     scale = np.sqrt(np.mean(S**2, axis=(-1, -2)))
     scale = np.where(valid, scale, 1.0)
     r, T = position0.copy(), rotation0.copy()
+    field = getattr(cube_field, "__self__", None)
+    if compiled and isinstance(field, HarmonicField) and isinstance(map_field, GridField):
+        r, T = np.ascontiguousarray(r, dtype=float), np.ascontiguousarray(T, dtype=float)
+        converged = _compiled(S, valid, scale, wand, field, map_field, r, T, max_iterations, step_tolerance)
+        return r, T, converged
     F = len(S)
     active = np.all(np.isfinite(r), axis=1) & valid[:, 0]
     r[~active], T[~active] = np.nan, np.nan

@@ -16,7 +16,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ivc.errors import LutError
+from ivc.errors import IvcError, LutError
 from ivc.lut.grid import Grid, GridField
 from ivc.session import atomic_path
 from ivc.session.io import open_ivc_file
@@ -24,6 +24,12 @@ from ivc.session.io import open_ivc_file
 FORMAT_NAME = "lut"
 FORMAT_VERSION = 1
 COMPONENTS = ("Gxx", "Gxy", "Gxz", "Gyx", "Gyy", "Gyz", "Gzx", "Gzy", "Gzz")
+
+
+#: what the values G are, in the words every file carries
+FIELD_UNIT = ("normalised dipole units: those of the dipole model f_D(r) = (3 r r^T / |r|^2 - I) / |r|^3 with r in "
+              "metres (column j: the field of source coil j; on a coil's axis at 1 m its component along the axis "
+              "is 2); the secondary field G is in the same units")
 
 
 @dataclass
@@ -45,9 +51,16 @@ class LookupTable:
     provenance: dict = field(default_factory=dict)
 
     def __post_init__(self):
+        for name in ("values", "valid", "support"):
+            kind = np.asarray(getattr(self, name)).dtype.kind
+            if kind not in "biuf":
+                raise LutError(f"table {name}: expected numbers, got dtype {np.asarray(getattr(self, name)).dtype}")
         self.values = np.asarray(self.values, float)
         self.valid = np.asarray(self.valid, bool)
-        self.support = np.asarray(self.support, np.int64)
+        support = np.asarray(self.support)
+        if support.dtype.kind == "f" and not np.all(np.isfinite(support) & (support == np.round(support))):
+            raise LutError("table support: expected whole numbers of samples, got NaN, inf or fractions")
+        self.support = support.astype(np.int64)
         shape = self.grid.shape
         if self.values.shape != (*shape, 3, 3) or self.valid.shape != shape or self.support.shape != shape:
             raise LutError(f"table arrays {self.values.shape}, {self.valid.shape}, {self.support.shape} do not "
@@ -73,7 +86,7 @@ def write(table: LookupTable, path: str | os.PathLike, *, overwrite: bool = Fals
         raise FileExistsError(f"{path} exists; pass --force to replace it")
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
         h5.attrs.update(ivc_format=FORMAT_NAME, ivc_format_version=FORMAT_VERSION, length_unit="m",
-                        hemisphere=table.hemisphere, field_unit="normalised dipole units (f_D of MATH.md §2)")
+                        hemisphere=table.hemisphere, field_unit=FIELD_UNIT)
         grid = h5.create_group("grid")
         grid.attrs.update(origin=table.grid.origin, spacing=table.grid.spacing, shape=np.array(table.grid.shape),
                           index_order="x slowest, z fastest (seed eq. 105)")
@@ -98,3 +111,8 @@ def read(path: str | os.PathLike) -> LookupTable:
                                json.loads(h5["provenance"].attrs["json"]))
         except KeyError as error:
             raise LutError(f"{path}: missing {error.args[0]}") from None
+        except IvcError as error:
+            raise LutError(f"{path}: {error}") from None
+        except (ValueError, TypeError, IndexError, AttributeError, OSError, RuntimeError) as error:
+            # numbers that are not, bad JSON, a dataset HDF5 cannot read
+            raise LutError(f"{path}: malformed look-up table ({error}); make a new one with `ivc fit`") from None

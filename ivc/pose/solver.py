@@ -69,11 +69,17 @@ _SKEW = np.array(  # [e_a]× for a = x, y, z
 
 def signal_residual(S: np.ndarray, M: np.ndarray, dM: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """e = S − Tᵀ M(r) and its Jacobian in (δr, ω), with T ← T exp([ω]×): ∂e/∂ω_a = [e_a]× Tᵀ M."""
-    P = np.swapaxes(T, -1, -2) @ M
+    F = len(S)
+    Tt = np.swapaxes(T, -1, -2)
+    P = Tt @ M
     e = S - P
-    J_r = -np.einsum("fai,fajk->fijk", T, dM)
-    J_w = np.einsum("aij,fjk->fika", _SKEW, P)
-    return e.reshape(len(S), 9), np.concatenate([J_r, J_w], axis=-1).reshape(len(S), 9, 6)
+    J = np.zeros((F, 3, 3, 6))
+    J[..., :3] = -(Tt @ dM.reshape(F, 3, 9)).reshape(F, 3, 3, 3)  # −Σ_a T_ai ∂M_aj/∂r_k
+    # row i of [e_a]× P: a = x: (0, −P_2, P_1); a = y: (P_2, 0, −P_0); a = z: (−P_1, P_0, 0)
+    J[:, 1, :, 3], J[:, 2, :, 3] = -P[:, 2], P[:, 1]
+    J[:, 0, :, 4], J[:, 2, :, 4] = P[:, 2], -P[:, 0]
+    J[:, 0, :, 5], J[:, 1, :, 5] = -P[:, 1], P[:, 0]
+    return e.reshape(F, 9), J.reshape(F, 9, 6)
 
 
 def _residual_two_stage(S, M, dM, T):
@@ -89,8 +95,9 @@ def damped_step(J: np.ndarray, e: np.ndarray, damping: np.ndarray) -> np.ndarray
 
     Marquardt's diagonal scaling makes the damping independent of the unknowns' units.
     """
-    H = np.einsum("fki,fkj->fij", J, J)
-    g = np.einsum("fki,fk->fi", J, e)
+    Jt = np.swapaxes(J, -1, -2)
+    H = Jt @ J
+    g = (Jt @ e[..., None])[..., 0]
     diag = np.einsum("fii->fi", H)
     scale = np.maximum(diag, 1e-30 * diag.max(axis=1, keepdims=True))
     A = H + (damping[:, None] * scale)[:, :, None] * np.eye(J.shape[-1])

@@ -32,7 +32,7 @@ from ivc.report.compute import (
 from ivc.report.figures import FIGURES
 from ivc.session import Session, atomic_path
 
-__all__ = ["FIGURES", "Report", "build_report", "gather", "summary"]
+__all__ = ["FIGURES", "REPORT_FILES", "Report", "build_report", "gather", "summary"]
 
 REPORT_FILES = ("report.html", "report.json", *(f"{name}.png" for name in FIGURES))
 

@@ -61,9 +61,9 @@ def atomic_path(path: str | os.PathLike, copy_existing: bool = False) -> Iterato
 
 def _decode(value):
     if isinstance(value, bytes):
-        return value.decode()
+        return value.decode(errors="replace")
     if isinstance(value, np.ndarray) and value.dtype.kind in "OS":
-        return [v.decode() if isinstance(v, bytes) else str(v) for v in value.tolist()]
+        return [v.decode(errors="replace") if isinstance(v, bytes) else str(v) for v in value.tolist()]
     return value
 
 
@@ -105,10 +105,16 @@ def open_ivc_file(path: str | os.PathLike, kind: str, version: int, what: str, e
     with handle as h5:
         attrs = {key: _decode(value) for key, value in h5.attrs.items()}
         found_kind = attrs.get("ivc_format")
-        if found_kind != kind:
-            found = f"an ivc {found_kind!r} file" if found_kind else "a file without the ivc_format attribute"
+        if not isinstance(found_kind, str) or found_kind != kind:
+            found = (f"an ivc {found_kind!r} file" if isinstance(found_kind, str) and found_kind
+                     else "a file without the ivc_format attribute" if found_kind is None
+                     else f"a file whose ivc_format is {found_kind!r}")
             raise error(f"{path}: not an ivc {what}: / attribute ivc_format: expected {kind!r}, this is {found}{hint}")
-        found_version = int(attrs.get("ivc_format_version", -1))
+        try:
+            found_version = int(attrs.get("ivc_format_version", -1))
+        except (TypeError, ValueError):
+            raise error(f"{path}: / attribute ivc_format_version = {attrs['ivc_format_version']!r}: not a whole "
+                        "number") from None
         if found_version != version:
             advice = "upgrade ivc to read it" if found_version > version else "it is not a version ivc ever wrote"
             raise error(f"{path}: / attribute ivc_format_version = {found_version}: this ivc reads {version}; {advice}")
@@ -127,6 +133,17 @@ def read(path: str | os.PathLike) -> Session:
         format; the message names the dataset and the problem.
     """
     path = Path(path)
+    try:
+        return _read(path)
+    except (SessionError, FileNotFoundError):
+        raise
+    except (ValueError, TypeError, IndexError, KeyError, AttributeError, UnicodeDecodeError, OSError,
+            RuntimeError) as error:
+        # a dataset or attribute of the wrong kind that no check above names: still the file's fault
+        raise SessionError(f"{path}: malformed session file ({type(error).__name__}: {error})") from None
+
+
+def _read(path: Path) -> Session:
     with open_ivc_file(path, FORMAT_NAME, FORMAT_VERSION, "session file") as (h5, attrs):
         if attrs.get("length_unit", "m") != "m":
             raise SessionError(

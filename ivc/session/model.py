@@ -82,7 +82,8 @@ class Step:
     @property
     def n_sensors(self) -> int:
         data = self.signal if self.signal is not None else self.position
-        return 0 if data is None else int(np.shape(data)[1])
+        shape = np.shape(data) if data is not None else ()
+        return int(shape[1]) if len(shape) >= 2 else 0
 
     @property
     def valid_mask(self) -> NDArray[np.bool_]:
@@ -215,6 +216,9 @@ def validate_step(name: str, step: Step) -> None:
         raise SessionError(f"{base}/time: holds NaN or inf")
     if np.any(np.diff(time) < 0):
         raise SessionError(f"{base}/time: goes backwards at frame {int(np.argmax(np.diff(time) < 0)) + 1}")
+    if np.any(np.diff(time) == 0):
+        raise SessionError(f"{base}/time: frame {int(np.argmax(np.diff(time) == 0)) + 1} repeats the time of the "
+                           "frame before; each frame needs its own time")
     if step.signal is None and step.position is None and step.quaternion is None:
         raise SessionError(f"{base}: holds neither signal nor position + quaternion")
     if (step.position is None) != (step.quaternion is None):

@@ -1,0 +1,30 @@
+"""Option types shared by the commands: ranges checked by click, so a bad value is a one-line usage error."""
+
+from __future__ import annotations
+
+import math
+
+import click
+
+
+class PositiveFloat(click.ParamType):
+    """A finite number above zero (click's FloatRange lets NaN through)."""
+
+    name = "number > 0"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, float) and math.isfinite(value) and value > 0:
+            return value
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number", param, ctx)
+        if not (math.isfinite(number) and number > 0):
+            self.fail(f"{value!r} must be a finite number above 0", param, ctx)
+        return number
+
+
+POSITIVE = PositiveFloat()
+#: most frames one simulated step may have: 20 times the protocol's 100,000-frame sweep (memory grows with it)
+MAX_SIM_FRAMES = 2_000_000
+SIM_FRAMES = click.IntRange(1, MAX_SIM_FRAMES)
