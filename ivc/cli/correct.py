@@ -12,7 +12,7 @@ from ivc import lut
 from ivc import session as session_io
 from ivc.cli.options import POSITIVE
 from ivc.cli.paths import input_and_output
-from ivc.cli.predict import check_tuning_rate, parse_horizon, predicted_quaternions, prediction_attrs, requested_tuning
+from ivc.cli.predict import check_tuning_rate, echo_timing, parse_horizon, predicted_quaternions, requested_tuning
 from ivc.collect.checks import rate_warning
 from ivc.collect.plus import is_plus_sequence, read_plus, write_plus
 from ivc.collect.replay import read_csv_columns, write_csv
@@ -22,7 +22,8 @@ from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, MAX_RESIDUAL, NOT_C
 from ivc.dipole.tracker_solver import SOLVERS
 from ivc.lut.build import file_digest
 from ivc.lut.grid import INTERPOLATIONS
-from ivc.predict import FILTERS, Tuning
+from ivc.predict import DEFAULT_FILTER, FILTERS, Tuning
+from ivc.predict.steps import prediction_attrs
 from ivc.session import Session, Step
 from ivc.units import LENGTH_UNITS
 
@@ -45,6 +46,7 @@ def _predicted(step: Step, out: Correction, name: str, horizon: float, tune: boo
 
     ``tune``: the seed-001 filters are tuned to the corrected step itself (its trusted samples);
     or ``tuning`` (from ``tuning_file``) gives their noise."""
+    echo_timing(f"{step.description or 'step'} (trusted samples)", step, out.ok)
     quaternion = predicted_quaternions(step, name, horizon, out.ok, tune=tune, tuning=tuning)
     return Step(step.time, step.signal, step.position, quaternion, step.valid_mask, step.sample_rate_hz,
                 step.sensor_ids, step.description, prediction_attrs(step, name, horizon, tune, tuning_file))
@@ -126,8 +128,9 @@ def _advice(out: Correction, max_residual: float, pose_only: bool = False) -> st
 @click.option("--tracker", type=click.Choice(SOLVERS), help="Input of reported poses only: the tracker's own pose "
               "solver (default: the one the table was fitted for, else closed-form).")
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists (never the input).")
-@click.option("--predict", "predictor", type=click.Choice(list(FILTERS)),
-              help="Then predict each sensor's corrected orientation ahead with this filter (see `ivc predict`).")
+@click.option("--predict", "predictor", type=click.Choice(list(FILTERS)), is_flag=False, flag_value=DEFAULT_FILTER,
+              help=f"Then predict each sensor's corrected orientation ahead with this filter (see `ivc predict`); "
+              f"--predict alone: {DEFAULT_FILTER}.")
 @click.option("--horizon", default="50ms", show_default=True, help="Prediction horizon with --predict.")
 @click.option("--tune", is_flag=True, help="With --predict: tune the seed-001 filters (q-ekf, dqekf-*, mmdq*) to each "
               "corrected step's trusted samples (see `ivc predict --tune`). Not with --live.")

@@ -1,8 +1,12 @@
 """Recording the protocol: from the simulator or a real tracker's recording, with checks."""
 
 from ivc.collect.checks import check_step, rate_warning
+from ivc.collect.head_trace import read_head_trace
+from ivc.collect.imports import ImportReport, read_import, read_recording, sniff
 from ivc.collect.plus import PlusError, PlusSequence, is_plus_sequence, read_plus, write_plus
+from ivc.collect.polhemus import read_liberty_csv
 from ivc.collect.replay import CsvColumns, CsvError, read_csv, read_csv_columns, replay, write_csv
 
-__all__ = ["CsvColumns", "CsvError", "PlusError", "PlusSequence", "check_step", "is_plus_sequence", "rate_warning",
-           "read_csv", "read_csv_columns", "read_plus", "replay", "write_csv", "write_plus"]
+__all__ = ["CsvColumns", "CsvError", "ImportReport", "PlusError", "PlusSequence", "check_step", "is_plus_sequence",
+           "rate_warning", "read_csv", "read_csv_columns", "read_head_trace", "read_import", "read_liberty_csv",
+           "read_plus", "read_recording", "replay", "sniff", "write_csv", "write_plus"]
