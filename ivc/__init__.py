@@ -32,7 +32,7 @@ The package is laid out as the pipeline it implements:
 ``fixtures``   cube and wand calibration, the sweep solved through the cube
 ``pose``       the batched pose solver with a known secondary field
 ``lut``        the secondary-field look-up table: fit, grid, file
-``correct``    corrected poses from signals or reported poses; evaluation against truth
+``correct``    corrected poses from signals or reported poses (pose-only trackers); evaluation against truth
 ``predict``    head-motion prediction filters
 ``live``       live correction of OpenIGTLink streams
 ``export``     the table for firmware, ParaView, 3D Slicer and Vrui
@@ -111,6 +111,7 @@ _EXPORTS = {
     "write_lut": ("ivc.lut", "write"),
     # correction and evaluation
     "Corrector": ("ivc.correct", "Corrector"),
+    "PoseCorrector": ("ivc.correct", "PoseCorrector"),
     "Correction": ("ivc.correct", "Correction"),
     "evaluate": ("ivc.correct.evaluate", "evaluate"),
     # export

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ivc import lut
@@ -24,7 +24,7 @@ from ivc.lut.table import LookupTable
 from ivc.session import Session, Step
 from ivc.sim import Scene, Simulator, load_scene
 
-__all__ = ["DemoResult", "SESSION_NAME", "TABLE_NAME", "demo_files", "run"]
+__all__ = ["DemoResult", "SESSION_NAME", "TABLE_NAME", "demo_files", "run", "without_signals"]
 
 #: file names of the session and the table inside the demo's folder
 SESSION_NAME, TABLE_NAME = "demo.h5", "demo_lut.h5"
@@ -48,6 +48,12 @@ class DemoResult:
     report: dict | None = None
 
 
+def without_signals(session: Session) -> Session:
+    """The session with every step's signal matrices removed, as a tracker that reports poses only records it."""
+    steps = {name: replace(step, signal=None) for name, step in session.steps.items()}
+    return Session(session.hemisphere, steps, session.truth, session.attrs)
+
+
 def demo_files(folder: str | Path) -> tuple[Path, Path]:
     """The session and table paths of a demo kept in ``folder``."""
     folder = Path(folder)
@@ -58,7 +64,7 @@ def run(scene: str | Scene = "default", *, seed: int = 0, sweep_frames: int = 10
         method: str = "harmonic", folder: str | Path | None = None, force: bool = False,
         simulator: Simulator | None = None, on_step: Callable[[str, Step, Session], None] | None = None,
         fit_progress: Progress | None = None,
-        on_stage: Callable[[str, DemoResult], None] | None = None) -> DemoResult:
+        on_stage: Callable[[str, DemoResult], None] | None = None, pose_only: bool = False) -> DemoResult:
     """Collect, fit and evaluate on a simulated room.
 
     ``scene``: a built-in scene name, a scene .toml path or a :class:`~ivc.sim.Scene`
@@ -67,6 +73,8 @@ def run(scene: str | Scene = "default", *, seed: int = 0, sweep_frames: int = 10
     ``on_step`` after each simulated step (see :meth:`Simulator.protocol`),
     ``fit_progress`` for the fit's stages, ``on_stage(name, result)`` as each of the three
     stages (``"collect"``, ``"fit"``, ``"evaluate"``) starts, with what is made so far.
+    ``pose_only``: drop every step's signals after collecting (:func:`without_signals`), so the
+    table is fitted, and the check poses corrected, from the reported poses alone.
     """
     if simulator is None:
         simulator = Simulator(scene if isinstance(scene, Scene) else load_scene(scene), seed)
@@ -80,6 +88,8 @@ def run(scene: str | Scene = "default", *, seed: int = 0, sweep_frames: int = 10
     stage = on_stage or (lambda name, partial: None)
     stage("collect", result)
     result.session = simulator.protocol({"wand_sweep": sweep_frames, "check": check_frames}, on_step=on_step)
+    if pose_only:
+        result.session = without_signals(result.session)
     if result.session_file is not None:
         session_io.write(result.session, result.session_file, overwrite=force)
     stage("fit", result)

@@ -64,7 +64,8 @@ def test_predict_tune_estimates_the_noise_from_the_input(tmp_path):
     assert np.allclose(read_csv(csv_out).quaternion[5:], expected[5:], atol=1e-12)
     short = tmp_path / "short.csv"
     write_csv(motion_step(frames=30), short)
-    refused = CliRunner().invoke(cli, ["predict", str(short), "--tune", "-o", str(tmp_path / "s.csv")])
+    refused = CliRunner().invoke(cli, ["predict", str(short), "--filter", "mmdq2", "--tune", "-o",
+                                       str(tmp_path / "s.csv")])
     assert refused.exit_code != 0 and "gap-free stretch" in refused.output
 
 
@@ -142,7 +143,8 @@ def test_predict_tune_from_another_recording(tmp_path):
     out_h5 = tmp_path / "ahead.h5"
     h5_in = tmp_path / "head.h5"
     session_io.write(Session("+x", {"check": read_csv(csv_in)}), h5_in)
-    result = runner.invoke(cli, ["predict", str(h5_in), "--tune-from", str(session_file), "-o", str(out_h5)])
+    result = runner.invoke(cli, ["predict", str(h5_in), "--filter", "mmdq2", "--tune-from", str(session_file),
+                                 "-o", str(out_h5)])
     assert result.exit_code == 0, result.output
     pooled = estimate([read_csv(csv_tune).quaternion, read_csv(csv_in).quaternion], 120.0)
     got = session_io.read(out_h5).steps["check"]
@@ -157,7 +159,8 @@ def test_predict_tune_from_another_recording(tmp_path):
     slow.write_text("\n".join([text[0]] + [",".join([f"{float(r[0]) * 2:.9f}"] + r[1:]) for r in rows]) + "\n")
     for args, message in ((["--tune-from", str(slow)], "recording at 60 Hz"),
                           (["--tune", "--tune-from", str(csv_tune)], "not both")):
-        refused = runner.invoke(cli, ["predict", str(csv_in), *args, "-o", str(tmp_path / "x.csv")])
+        refused = runner.invoke(cli, ["predict", str(csv_in), "--filter", "mmdq2", *args, "-o",
+                                      str(tmp_path / "x.csv")])
         assert refused.exit_code != 0 and message in refused.output, refused.output
     refused = runner.invoke(cli, ["predict", "--benchmark", "--tune-from", str(csv_tune)])
     assert refused.exit_code != 0 and "synthetic" in refused.output

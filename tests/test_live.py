@@ -14,6 +14,7 @@ from pyigtl import OpenIGTLinkClient, OpenIGTLinkServer, StringMessage, Transfor
 
 from ivc import dipole, rotations
 from ivc.correct import Corrector
+from ivc.correct.pose_domain import PoseCorrector
 from ivc.live import LiveCorrector, NDArrayMessage, TrackingDataMessage
 from ivc.live.igtl import Framer
 from ivc.lut import write as write_lut
@@ -44,10 +45,10 @@ def reported_poses(rng, frames):
 
 
 def offline(table_or_corrector, matrices):
-    """``ivc correct`` on the same (float32) poses: batch, each sample on its own."""
-    corrector = table_or_corrector if isinstance(table_or_corrector, Corrector) else Corrector(table_or_corrector)
+    """``ivc correct`` on the same (float32) poses: batch, each sample on its own, through the pose path."""
+    table = table_or_corrector.field if isinstance(table_or_corrector, Corrector) else table_or_corrector
     m = matrices.astype(float)
-    return corrector.batch_poses(m[..., :3, 3] / 1000.0, rotations.from_matrix(m[..., :3, :3]))
+    return PoseCorrector(table).batch(m[..., :3, 3] / 1000.0, rotations.from_matrix(m[..., :3, :3]))
 
 
 def test_framer_resynchronises_after_garbage_and_checks_the_crc():
@@ -192,7 +193,7 @@ def test_bad_input_is_dropped_and_logged_once_and_slow_clients_do_not_block(exac
     assert names.count("S0_ivc") == 6 and names.count("S2_ivc") == 7 and "Needle_ivc" not in names
     assert stats.unknown == 6 and stats.out_of_order == 1 and stats.garbage_bytes >= 3000
     assert stats.received == 6 * 4 + 1 and stats.rejected == 1  # the NaN pose is dropped, logged, not published
-    assert stats.flagged >= 1
+    assert stats.flagged == 0  # TRANSFORMs go through the pose path: every valid pose of the exact table is trusted
     warnings = [r.getMessage() for r in caplog.records]
     assert sum("unknown sensor 'Needle'" in w for w in warnings) == 1
     assert sum("malformed bytes" in w for w in warnings) == 1
@@ -212,8 +213,7 @@ def test_live_prediction_matches_offline_correct_then_predict(exact_table, rng):
     q = rotations.multiply(rotations.from_rotvec(t[:, None, None] * omega), rotations.random(2, rng))
     S = dipole.signal(r, rotations.to_matrix(q), quadratic_field(r.reshape(-1, 3)).reshape(frames, 2, 3, 3))
     matrices = reported_matrices(S)
-    # pose-only input this strongly distorted is flagged HIGH_RESIDUAL at the default threshold (a pose cannot
-    # carry all nine signal numbers, MATH.md §9); trust it here, on both sides, to exercise the prediction
+    # TRANSFORM input goes through the pose path on both sides (max_residual gates signal input only)
     corrected = offline(Corrector(exact_table, max_residual=1.0), matrices)
     assert np.all(corrected.flags == 0)
     expected = make("dqekf-cv", rate).predict(corrected.quaternion, horizon, corrected.flags == 0)[0]

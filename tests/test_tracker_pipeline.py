@@ -1,4 +1,4 @@
-"""The pipeline with a miscalibrated device, and with the tracker model that fixes it (--tracker)."""
+"""The pipeline with a miscalibrated device, and with the tracker model that fixes it (--tracker-model)."""
 
 import numpy as np
 import pytest
@@ -74,7 +74,7 @@ def test_cli_tracker_option_through_collect_and_fixtures(tmp_path):
     session = tmp_path / "s.h5"
     runner = CliRunner()
     result = runner.invoke(cli, ["collect", "check", "--source", f"sim:{scene}", "--frames", "50", "-o", str(session),
-                                 "--tracker", str(tracker_file)])
+                                 "--tracker-model", str(tracker_file)])
     assert result.exit_code == 0, result.output
     data = session_io.read(session)
     step, truth = data.steps["check"], data.truth["check"]
@@ -87,9 +87,9 @@ def test_cli_tracker_option_through_collect_and_fixtures(tmp_path):
     # a second, different model on an already converted session is refused in one line
     other = tmp_path / "other.json"
     save_tracker(imperfect_tracker(np.random.default_rng(6), offsets=False), other)
-    result = runner.invoke(cli, ["fixtures", str(session), "--tracker", str(other)])
+    result = runner.invoke(cli, ["fixtures", str(session), "--tracker-model", str(other)])
     assert result.exit_code == 1 and "already converted" in result.output and "Traceback" not in result.output
-    # a session recorded without --tracker is converted on reading instead (here: the label it gets)
+    # a session recorded without --tracker-model is converted on reading instead (here: the label it gets)
     from ivc.cli.tracker import with_tracker
 
     converted = with_tracker(session_io.read(plain), str(tracker_file))

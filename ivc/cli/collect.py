@@ -157,7 +157,7 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
     The protocol (seed 001 ch. 4.4.3): cube_calibration (free space), cube_survey (cube at
     its declared pose in the distorted room), wand_calibration (free space), wand_sweep
     (wand sensor 0 inside the cube, far end sweeping), check (independent poses).
-    With --tracker the signals are stored in ideal-dipole units (a simulated device
+    With --tracker-model the signals are stored in ideal-dipole units (a simulated device
     records with that coil model first).
     """
     kind, argument = _parse_source(source)

@@ -12,16 +12,19 @@ from ivc import lut
 from ivc import session as session_io
 from ivc.cli.options import POSITIVE
 from ivc.cli.paths import input_and_output
-from ivc.cli.predict import check_tuning_rate, parse_horizon, predicted_quaternions, prediction_attrs, requested_tuning
+from ivc.cli.predict import check_tuning_rate, echo_timing, parse_horizon, predicted_quaternions, requested_tuning
 from ivc.cli.tracker import tracker_option, with_tracker
 from ivc.collect.checks import rate_warning
 from ivc.collect.plus import is_plus_sequence, read_plus, write_plus
 from ivc.collect.replay import read_csv_columns, write_csv
 from ivc.correct import Corrector, describe
+from ivc.correct.pose_domain import PoseCorrector
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, MAX_RESIDUAL, NOT_CONVERGED, OUTSIDE, Correction
+from ivc.dipole.tracker_solver import SOLVERS
 from ivc.lut.build import file_digest
 from ivc.lut.grid import INTERPOLATIONS
-from ivc.predict import FILTERS, Tuning
+from ivc.predict import DEFAULT_FILTER, FILTERS, Tuning
+from ivc.predict.steps import prediction_attrs
 from ivc.session import Session, Step
 from ivc.units import LENGTH_UNITS
 
@@ -44,9 +47,19 @@ def _predicted(step: Step, out: Correction, name: str, horizon: float, tune: boo
 
     ``tune``: the seed-001 filters are tuned to the corrected step itself (its trusted samples);
     or ``tuning`` (from ``tuning_file``) gives their noise."""
+    echo_timing(f"{step.description or 'step'} (trusted samples)", step, out.ok)
     quaternion = predicted_quaternions(step, name, horizon, out.ok, tune=tune, tuning=tuning)
     return Step(step.time, step.signal, step.position, quaternion, step.valid_mask, step.sample_rate_hz,
                 step.sensor_ids, step.description, prediction_attrs(step, name, horizon, tune, tuning_file))
+
+
+def _correct_step(table, step: Step, hemisphere: str, interpolation: str, max_residual: float,
+                  tracker: str | None) -> Correction:
+    """A step's corrections: from its signals when it has them, else from its reported poses."""
+    if step.signal is not None:
+        return Corrector(table, hemisphere, interpolation, max_residual).batch(step.signal, step.valid_mask)
+    return PoseCorrector(table, hemisphere, interpolation, tracker).batch(step.position, step.quaternion,
+                                                                         step.valid_mask)
 
 
 def csv_output_columns(kept: dict[str, np.ndarray], added: dict[str, np.ndarray]) -> tuple[dict, dict[str, str]]:
@@ -75,7 +88,7 @@ def _warn(advice: str | None) -> None:
         click.echo(f"warning: {advice}", err=True)
 
 
-def _advice(out: Correction, max_residual: float) -> str | None:
+def _advice(out: Correction, max_residual: float, pose_only: bool = False) -> str | None:
     """What to check when most valid samples carry one flag; None when most are trusted."""
     flags = out.flags.reshape(-1)
     valid = (flags & INVALID_INPUT) == 0
@@ -89,6 +102,10 @@ def _advice(out: Correction, max_residual: float) -> str | None:
     if bit == OUTSIDE:
         return (f"{percent} lie outside the table's mapped volume: sweep the wand there and fit again "
                 "(`ivc report` shows the coverage)")
+    if bit == HIGH_RESIDUAL and pose_only:
+        return (f"{percent} are reported poses the table's map does not produce (or not uniquely): was this "
+                "recorded in the mapped room, with the source where it was when the table was fitted, in the "
+                "table's hemisphere, and with the tracker solver the table assumes (--tracker)?")
     if bit == HIGH_RESIDUAL:
         median = float(np.median(out.residual.reshape(-1)[valid]))
         return (f"{percent} do not fit the table's field (median residual {median:.2g}, gate --max-residual "
@@ -109,9 +126,12 @@ def _advice(out: Correction, max_residual: float) -> str | None:
 @click.option("--max-residual", type=POSITIVE, default=MAX_RESIDUAL, show_default=True,
               help="Flag corrections whose rms(M − T S)/rms(S) exceeds this.")
 @click.option("--hemisphere", help="Hemisphere of a CSV input (default: the table's).")
+@click.option("--tracker", type=click.Choice(SOLVERS), help="Input of reported poses only: the tracker's own pose "
+              "solver (default: the one the table was fitted for, else closed-form).")
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists (never the input).")
-@click.option("--predict", "predictor", type=click.Choice(list(FILTERS)),
-              help="Then predict each sensor's corrected orientation ahead with this filter (see `ivc predict`).")
+@click.option("--predict", "predictor", type=click.Choice(list(FILTERS)), is_flag=False, flag_value=DEFAULT_FILTER,
+              help=f"Then predict each sensor's corrected orientation ahead with this filter (see `ivc predict`); "
+              f"--predict alone: {DEFAULT_FILTER}.")
 @click.option("--horizon", default="50ms", show_default=True, help="Prediction horizon with --predict.")
 @click.option("--tune", is_flag=True, help="With --predict: tune the seed-001 filters (q-ekf, dqekf-*, mmdq*) to each "
               "corrected step's trusted samples (see `ivc predict --tune`). Not with --live.")
@@ -130,8 +150,8 @@ def _advice(out: Correction, max_residual: float) -> str | None:
               help="With --live --predict: the stream's sample rate.")
 @click.option("--duration", type=POSITIVE, help="With --live: stop after this many seconds (default: until Ctrl-C).")
 @tracker_option
-def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, force, predictor, horizon,
-            tune, tune_from, live_url, publish, length_unit, sensors, rate_hz, duration, tracker_file):
+def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, tracker, force, predictor,
+            horizon, tune, tune_from, live_url, publish, length_unit, sensors, rate_hz, duration, tracker_file):
     """Correct the poses in INPUT_FILE (session .h5, recording .csv or PLUS sequence .igs.mha) with LUT_FILE.
 
     A PLUS sequence (.igs.mha, .seq.mha, .igs.nrrd) is written back with each
@@ -140,8 +160,9 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
 
     Every output sample carries flags: 0 = trusted; 1 outside the mapped volume, 2 not
     converged, 4 residual too high, 8 invalid input (bits combine). Signals are used when
-    the input has them; otherwise the reported poses are turned back into signals through
-    the dipole model (MATH.md §9). With --predict, the corrected orientations of trusted
+    the input has them; otherwise the reported poses are corrected directly, by inverting the
+    tracker's pose-domain distortion (docs/lut.md): then 4 means a reported pose the map does
+    not produce, or not uniquely. With --predict, the corrected orientations of trusted
     samples are then predicted --horizon ahead per sensor (positions stay corrected, unpredicted).
 
     With --live igtl://HOST:PORT, poses (TRANSFORM) or signal matrices (NDARRAY 3x3) streamed
@@ -151,7 +172,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         raise click.UsageError("--tune and --tune-from tune a prediction filter: give --predict NAME too")
     if live_url:
         if tracker_file:
-            raise click.UsageError("--tracker applies to recorded signals; a live stream must be in ideal units")
+            raise click.UsageError("--tracker-model applies to recorded signals; a live stream must be in ideal units")
         if input_file or output:
             raise click.UsageError("--live reads from the network: give no INPUT_FILE or --output")
         if tune:
@@ -161,7 +182,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         if tuning is not None:
             check_tuning_rate(tuning, rate_hz, "the live stream (--rate-hz)")
         _live(lut_file, live_url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor,
-              horizon, rate_hz, duration, tuning)
+              horizon, rate_hz, duration, tuning, tracker)
         return
     if not input_file or not output:
         raise click.UsageError("give INPUT_FILE and -o OUTPUT (or --live igtl://HOST:PORT)")
@@ -172,7 +193,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     table = lut.read(lut_file)
     if is_plus_sequence(input_path):
         if tracker_file is not None:
-            raise click.UsageError("--tracker applies to signal matrices; a PLUS sequence holds poses only")
+            raise click.UsageError("--tracker-model applies to signal matrices; a PLUS sequence holds poses only")
         _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpolation, max_residual, predictor,
                       delta, tune, tuning, tune_from)
         return
@@ -184,8 +205,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         if tracker_file is not None:
             step = with_tracker(Session(hemisphere or table.hemisphere, {"recording": step}), tracker_file
                                 ).steps["recording"]
-        corrector = Corrector(table, hemisphere or table.hemisphere, interpolation, max_residual)
-        out = corrector.batch(step.signal_matrices(), step.valid_mask)
+        out = _correct_step(table, step, hemisphere or table.hemisphere, interpolation, max_residual, tracker)
         fixed = corrected_step(step, out, lut_file)
         fixed.signal = None
         fixed.valid = out.flags == 0  # valid: the corrected pose is trusted (flags say why not)
@@ -197,7 +217,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         with session_io.atomic_path(output_path) as tmp:
             write_csv(fixed, tmp, extra, length_unit=columns.length_unit)
         click.echo(_summary(input_path.name, out))
-        _warn(_advice(out, max_residual))
+        _warn(_advice(out, max_residual, step.signal is None))
         click.echo(f"wrote {output_path}")
         return
     data = session_io.read(input_path)
@@ -206,13 +226,12 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     if unknown:
         raise click.UsageError(f"{input_path} has no step {', '.join(unknown)} (it has {', '.join(data.steps)})")
     data = with_tracker(data, tracker_file, names)
-    corrector = Corrector(table, data.hemisphere, interpolation, max_residual)
     results = {}
     for name in names:
         step = data.steps[name]
-        results[name] = corrector.batch(step.signal_matrices(), step.valid_mask)
+        results[name] = _correct_step(table, step, data.hemisphere, interpolation, max_residual, tracker)
         click.echo(_summary(name, results[name]))
-        _warn(_advice(results[name], max_residual))
+        _warn(_advice(results[name], max_residual, step.signal is None))
     fixed = {n: corrected_step(data.steps[n], results[n], lut_file) for n in names}
     if predictor:
         fixed = {n: _predicted(fixed[n], results[n], predictor, delta, tune, tuning, tune_from) for n in names}
@@ -224,8 +243,9 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         with h5py.File(tmp, "a") as h5:
             for name, out in results.items():
                 h5[f"steps/{name}/flags"] = out.flags
-                h5[f"steps/{name}/flags"].attrs["meaning"] = ("0 trusted; bits: 1 outside the mapped volume, "
-                                                              "2 not converged, 4 residual too high, 8 invalid input")
+                h5[f"steps/{name}/flags"].attrs["meaning"] = (
+                    "0 trusted; bits: 1 outside the mapped volume, 2 not converged, 4 residual too high (reported "
+                    "poses: the map does not produce the pose, or not uniquely), 8 invalid input")
                 h5[f"steps/{name}/residual"] = out.residual
     click.echo(f"wrote {output_path}")
 
@@ -259,7 +279,7 @@ def _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpol
 
 
 def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor, horizon,
-          rate_hz, duration, tuning=None) -> None:
+          rate_hz, duration, tuning=None, tracker=None) -> None:
     import logging
 
     from ivc.live import LiveCorrector, parse_url
@@ -267,6 +287,7 @@ def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_resid
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     table = lut.read(lut_file)
     corrector = Corrector(table, hemisphere or table.hemisphere, interpolation, max_residual)
+    poses = PoseCorrector(table, hemisphere or table.hemisphere, interpolation, tracker)
     source = parse_url(url)
     host, _, port = publish.rpartition(":")
     if not host or not port.isdigit():
@@ -276,7 +297,7 @@ def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_resid
     start = time.perf_counter()
     live = LiveCorrector(corrector, source, (host, int(port)), length_unit=LENGTH_UNITS[length_unit],
                          predictor=predictor, horizon=parse_horizon(horizon) if predictor else 0.0, rate_hz=rate_hz,
-                         tuning=tuning,
+                         tuning=tuning, pose_corrector=poses,
                          sensors=list(sensors) or None)
     click.echo(f"ready in {time.perf_counter() - start:.1f} s: correcting {url} -> serving on "
                f"{live.publish_address[0]}:{live.publish_address[1]}", err=True)

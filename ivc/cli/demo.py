@@ -26,8 +26,10 @@ from ivc.session import STEPS
 @click.option("--method", type=click.Choice(lut.METHODS), default="harmonic", show_default=True)
 @click.option("--keep", "keep_dir", type=click.Path(file_okay=False),
               help="Keep the session and table in this directory (default: a temporary one, removed).")
+@click.option("--pose-only", is_flag=True, help="Drop the signals after collecting, as a tracker that reports poses "
+              "only would: fit and correct from the reported poses alone.")
 @click.option("--force", is_flag=True, help="With --keep: replace files from an earlier demo.")
-def demo(scene, seed, sweep_frames, check_frames, method, keep_dir, force):
+def demo(scene, seed, sweep_frames, check_frames, method, pose_only, keep_dir, force):
     """Simulate a distorted room, collect the protocol, fit the map, and compare corrected with uncorrected poses."""
     start = time.perf_counter()
     sim = SimulatorProgress(scene, seed)
@@ -40,7 +42,8 @@ def demo(scene, seed, sweep_frames, check_frames, method, keep_dir, force):
             for step in STEPS:
                 click.echo(summary(step, made.session.steps[step], made.session.truth.get(step)))
             click.echo(f"wrote {made.session_file}" if keep_dir else "collected the protocol (temporary session)")
-            click.echo(f"2/3 fit: {method} look-up table", err=True)
+            click.echo(f"2/3 fit: {method} look-up table" + (" from reported poses alone (signals dropped)"
+                                                              if pose_only else ""), err=True)
         else:
             click.echo(render_fit(made.table, made.fit_seconds))
             click.echo("3/3 evaluate: correcting the check poses", err=True)
@@ -50,6 +53,7 @@ def demo(scene, seed, sweep_frames, check_frames, method, keep_dir, force):
         with sim.protocol_progress(sim.scene.hemisphere) as on_step, StageBars("sample") as bars:
             result = demo_run.run(simulator=sim.simulator, sweep_frames=sweep_frames, check_frames=check_frames,
                                   method=method, folder=folder, force=force, on_step=on_step, fit_progress=bars,
+                                  pose_only=pose_only,
                                   on_stage=stage)
         click.echo("")
         click.echo(render_table(result.report))

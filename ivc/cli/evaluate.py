@@ -12,7 +12,9 @@ from ivc.cli.options import POSITIVE
 from ivc.cli.tracker import tracker_option, with_tracker
 from ivc.correct import Corrector
 from ivc.correct.evaluate import evaluate as evaluate_table
+from ivc.correct.pose_domain import PoseCorrector
 from ivc.correct.solver import MAX_RESIDUAL
+from ivc.dipole.tracker_solver import SOLVERS
 from ivc.lut.grid import INTERPOLATIONS
 
 _COLUMNS = ("p25", "p50", "p75", "p95", "p99", "max")
@@ -26,7 +28,9 @@ def _row(label: str, values: dict, unit: str) -> str:
 
 def render_table(report: dict) -> str:
     flagged = ", ".join(f"{n} {k}" for k, n in report["flagged"].items() if n) or "none"
-    lines = [f"Check poses: {report['samples']}; corrected and trusted: {report['corrected']} (flagged: {flagged})",
+    lines = [f"Check poses: {report['samples']}"
+             + (" (reported poses only)" if report.get("input") == "reported poses" else "")
+             + f"; corrected and trusted: {report['corrected']} (flagged: {flagged})",
              f"IVC errors against {report['frame']}"
              + (f"; declared cube pose off by {report['placement_error_mm']:.2f} mm at the check poses"
                 if "placement_error_mm" in report else ""),
@@ -37,8 +41,12 @@ def render_table(report: dict) -> str:
     if report["ivc"] is not report["ivc_raw"] and "placement_error_mm" in report:
         lines += [_row("IVC position, raw truth", report["ivc_raw"]["position_mm"], "mm"),
                   _row("IVC orientation, raw truth", report["ivc_raw"]["orientation_mrad"], "mrad")]
-    lines += [_row("dipole position (uncorrected)", report["dipole"]["position_mm"], "mm"),
-              _row("dipole orientation", report["dipole"]["orientation_mrad"], "mrad")]
+    if "ivc_aligned" in report:
+        lines += [_row("IVC position, rigid fit", report["ivc_aligned"]["position_mm"], "mm"),
+                  _row("IVC orientation, rigid fit", report["ivc_aligned"]["orientation_mrad"], "mrad")]
+    source = "reported" if report.get("input") == "reported poses" else "dipole"
+    lines += [_row(f"{source} position (uncorrected)", report["dipole"]["position_mm"], "mm"),
+              _row(f"{source} orientation", report["dipole"]["orientation_mrad"], "mrad")]
     return "\n".join(lines)
 
 
@@ -50,9 +58,11 @@ def render_table(report: dict) -> str:
               help="Between grid nodes: Catmull-Rom cubic, or trilinear (the seed's).")
 @click.option("--max-residual", type=POSITIVE, default=MAX_RESIDUAL, show_default=True,
               help="Flag corrections whose rms(M − T S)/rms(S) exceeds this.")
+@click.option("--tracker", type=click.Choice(SOLVERS), help="Check poses reported only: the tracker's own pose "
+              "solver (default: the one the table was fitted for, else closed-form).")
 @click.option("--json", "as_json", is_flag=True, help="Print the table as JSON.")
 @tracker_option
-def evaluate(lut_file, check_file, step, interpolation, max_residual, as_json, tracker_file):
+def evaluate(lut_file, check_file, step, interpolation, max_residual, tracker, as_json, tracker_file):
     """Correct the check poses of CHECK_FILE with LUT_FILE and compare with their truth (seed Table 24)."""
     if session_io.is_recording_csv(check_file):
         raise click.UsageError(f"{check_file}: a recording CSV holds no true poses; evaluate a session .h5 with "
@@ -61,6 +71,9 @@ def evaluate(lut_file, check_file, step, interpolation, max_residual, as_json, t
     check = session_io.read(check_file)
     if tracker_file is not None and step in check.steps:
         check = with_tracker(check, tracker_file, [step])
-    corrector = Corrector(table, check.hemisphere, interpolation, max_residual)
+    if step in check.steps and check.steps[step].signal is None:
+        corrector = PoseCorrector(table, check.hemisphere, interpolation, tracker)
+    else:
+        corrector = Corrector(table, check.hemisphere, interpolation, max_residual)
     report = evaluate_table(corrector, check, step)
     click.echo(json.dumps(report, indent=2) if as_json else render_table(report))

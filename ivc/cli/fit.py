@@ -14,6 +14,7 @@ from ivc.cli.options import POSITIVE
 from ivc.cli.paths import check_output
 from ivc.cli.progress import StageBars
 from ivc.cli.tracker import tracker_option, with_tracker
+from ivc.dipole.tracker_solver import SOLVERS
 from ivc.lut.build import FitOptions
 
 
@@ -45,8 +46,16 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
         if count:
             lines.append(f"  dropped {count:>8}: {reason}")
     degree = f"degree {fit['degree']} ({fit['degree_chosen_by']})"
-    lines.append(f"Fit: {fit['method']}, {degree}; {fit['cv_folds']}-fold cross-validation RMS "
-                 f"{fit['cv_rms_mm']:.4f} mm (pose-equivalent)")
+    if fit.get("input") == "reported poses":
+        cube = fit["cube"]
+        lines.append(f"From reported poses alone (tracker solver {fit['tracker_solver']}): cube field degree "
+                     f"{cube['degree']}, vertex residual {cube['vertex_position_rms_mm']:.4f} mm / "
+                     f"{cube['vertex_orientation_rms_mrad']:.4f} mrad RMS")
+        lines.append(f"Fit: {fit['method']} through the tracker model, {degree}; {fit['cv_folds']}-fold "
+                     f"cross-validation RMS {fit['cv_rms_mm']:.4f} mm (reported-pose residual)")
+    else:
+        lines.append(f"Fit: {fit['method']}, {degree}; {fit['cv_folds']}-fold cross-validation RMS "
+                     f"{fit['cv_rms_mm']:.4f} mm (pose-equivalent)")
     if fit.get("outliers_downweighted"):
         lines.append(f"  {fit['outliers_downweighted']} samples down-weighted as outliers (Huber)")
     for step in fit["refinement"]:
@@ -88,11 +97,14 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
               help="Gate: largest rms(Λ)/rms(S) of sensor 0's solve in the cube.")
 @click.option("--max-error-mm", type=POSITIVE, default=1000 * FitOptions.max_error, show_default=True,
               help="Gate: largest estimated sample error (eq. 101), mm.")
+@click.option("--tracker", type=click.Choice(SOLVERS), default="closed-form", show_default=True,
+              help="A session of reported poses only (no signals): the tracker's own pose solver, whose model the "
+              "map is fitted through.")
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists.")
 @click.option("--json", "as_json", is_flag=True, help="Print the fit report as JSON.")
 @tracker_option
 def fit(session_file, output, method, grid_spec, degree, refine, max_refinements, max_frames, min_support,
-        max_residual, max_error_mm, force, as_json, tracker_file):
+        max_residual, max_error_mm, tracker, force, as_json, tracker_file):
     """Fit the secondary-field look-up table of SESSION_FILE and write it to OUTPUT."""
     check_output(output, force, {"SESSION_FILE": session_file})
     options = FitOptions(method=method, degree=degree, refine=refine, max_refinements=max_refinements,
@@ -101,7 +113,7 @@ def fit(session_file, output, method, grid_spec, degree, refine, max_refinements
     data = with_tracker(session_io.read(session_file), tracker_file)
     start = time.perf_counter()
     with StageBars("sample", disable=as_json) as bars:
-        table = lut.fit_lut(data, options, source=session_file, progress=bars)
+        table = lut.fit_lut(data, options, source=session_file, progress=bars, tracker=tracker)
     lut.write(table, output, overwrite=force)
     seconds = time.perf_counter() - start
     click.echo(json.dumps(table.fit, indent=2) if as_json else render_fit(table, seconds) + f"\nwrote {output}")

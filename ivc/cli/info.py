@@ -10,8 +10,9 @@ import numpy as np
 
 from ivc import lut
 from ivc import session as session_io
+from ivc.collect.imports import read_recording, sniff
 from ivc.collect.plus import is_plus_sequence, read_plus
-from ivc.collect.replay import read_csv
+from ivc.predict.timing import stream_timing
 from ivc.session import STEPS, Session, Step
 
 
@@ -24,7 +25,18 @@ def summarise_step(step: Step) -> dict:
         "duration_s": float(step.time[-1] - step.time[0]) if step.n_frames > 1 else 0.0,
         "valid_fraction": float(np.mean(step.valid_mask)) if step.n_frames else 0.0,
         "data": "+".join(k for k, v in (("signal", step.signal), ("pose", step.position)) if v is not None),
+        **_timing(step),
     }
+
+
+def _timing(step: Step) -> dict:
+    """The time steps as a predictor sees them: rate, median and percentile steps, jitter, repeats, gaps."""
+    if step.n_frames < 2 or not np.all(np.diff(step.time) > 0):
+        return {}
+    timing = stream_timing(step.time, step.quaternion, step.valid_mask)
+    return {"measured_rate_hz": timing.rate_hz, "step_ms_p1_median_p99": list(timing.step_ms),
+            "jitter_ms": timing.jitter_ms, "repeated_samples": timing.repeats,
+            "gaps": [len(g) for g in timing.gaps], "timing": timing.summary()}
 
 
 def summarise(s: Session) -> dict:
@@ -81,8 +93,14 @@ def info(file: str, as_json: bool) -> None:
                    f"\nmade by ivc {table.provenance.get('ivc_version')} on {table.provenance.get('created_utc')}"
                    f" from {table.provenance.get('input', 'an unnamed session')}")
         return
-    if session_io.is_recording_csv(file) or is_plus_sequence(file):
-        summary = summarise_recording(read_csv(file) if session_io.is_recording_csv(file) else read_plus(file).step)
+    if session_io.is_recording_csv(file) or sniff(file) is not None or is_plus_sequence(file):
+        if is_plus_sequence(file):
+            step, report = read_plus(file).step, None
+        else:
+            step, report = read_recording(file)
+        summary = summarise_recording(step)
+        if report is not None:
+            summary["import_report"] = report.text()
         click.echo(json.dumps(summary, indent=2) if as_json else render_recording(file, summary))
         return
     summary = summarise(session_io.read(file))
@@ -105,13 +123,19 @@ def render_recording(path: str, summary: dict) -> str:
             "for a session")
     if summary["data"] == "pose":
         uses = "`ivc predict FILE ...`; without signal matrices, `ivc correct` solves from the reported poses"
-    return "\n".join([
+    lines = [
         f"{path}: {'PLUS sequence' if is_plus_sequence(path) else 'recording CSV'}, {summary['frames']} frames x "
         f"{count} sensors ({named})",
         f"  {summary['sample_rate_hz']:.1f} Hz, {summary['duration_s']:.2f} s, {100 * summary['valid_fraction']:.2f}% "
         f"valid, data: {summary['data']}",
-        f"  use it with {uses}",
-    ])
+    ]
+    if "import_report" in summary:
+        lines[0] = f"{path}: {count} sensors ({named}), imported:"
+        lines[1:1] = ["  " + line for line in summary["import_report"].splitlines()[1:]]
+    if "timing" in summary:
+        lines.extend("  " + line for line in summary["timing"].splitlines())
+    lines.append(f"  use it with {uses}")
+    return "\n".join(lines)
 
 
 def _is_table(path: str) -> bool:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import re
+from dataclasses import replace
+from pathlib import Path
 
 import click
 import numpy as np
@@ -13,9 +15,11 @@ from ivc.cli.options import POSITIVE
 from ivc.cli.paths import input_and_output
 from ivc.cli.progress import ON_TERMINAL
 from ivc.collect.checks import rate_warning
+from ivc.collect.imports import read_recording, sniff
 from ivc.collect.plus import is_plus_sequence, read_plus, write_plus
-from ivc.collect.replay import read_csv, read_csv_columns, write_csv
-from ivc.predict import FILTERS, TUNABLE, make
+from ivc.collect.replay import CsvColumns, read_csv_columns, write_csv
+from ivc.predict import DEFAULT_FILTER, FILTERS, TUNABLE, make
+from ivc.predict import steps as steps_lib
 from ivc.predict.base import MAX_HORIZON
 from ivc.predict.evaluate import (
     error_table,
@@ -27,12 +31,13 @@ from ivc.predict.evaluate import (
     velocity_table,
 )
 from ivc.predict.motion import MOTIONS, head_motion
-from ivc.predict.tuning import Tuning, estimate, synthetic
+from ivc.predict.recording import Score
+from ivc.predict.tuning import Tuning, synthetic
 from ivc.session import Session, Step
 
 #: the benchmark's default filters: the thesis's, Kyger's and the linear ones
-BENCHMARK_FILTERS = ("none", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", "mmae", "alpha-beta", "kinematic",
-                     "poly1", "poly2")
+BENCHMARK_FILTERS = ("none", "auto", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", "mmae", "alpha-beta",
+                     "kinematic", "poly1", "poly2")
 
 
 def parse_horizon(text: str) -> float:
@@ -49,20 +54,14 @@ def parse_horizon(text: str) -> float:
     return value
 
 
-def tuning_from(path: str) -> Tuning:
-    """A tuning (:mod:`ivc.predict.tuning`) from every orientation step of a recording .csv or session .h5.
+def parse_horizons(text: str) -> list[float]:
+    """'50ms,100ms' -> seconds, each as :func:`parse_horizon`."""
+    return [parse_horizon(part) for part in str(text).split(",") if part.strip()] or [parse_horizon(text)]
 
-    The steps are pooled as the thesis's composite set; they must share one sample rate.
-    """
-    steps = [read_csv(path)] if session_io.is_recording_csv(path) else list(session_io.read(path).steps.values())
-    usable = [s for s in steps if s.quaternion is not None and s.sample_rate_hz]
-    if not usable:
-        raise click.UsageError(f"{path} has no step with orientations and a sample rate to tune from")
-    rates = sorted({float(s.sample_rate_hz) for s in usable})
-    if len(rates) > 1:
-        raise click.UsageError(f"{path} has steps at {', '.join(f'{r:g}' for r in rates)} Hz: tune from recordings "
-                               "at one rate, the rate of the stream to predict")
-    tuning = estimate([s.quaternion for s in usable], rates[0], valid=[s.valid_mask for s in usable])
+
+def tuning_from(path: str) -> Tuning:
+    """:func:`ivc.predict.steps.tuning_from_file`, its summary printed."""
+    tuning = steps_lib.tuning_from_file(path)
     click.echo(f"--tune-from {path}:\n" + tuning.summary())
     return tuning
 
@@ -88,40 +87,66 @@ def check_tuning_rate(tuning: Tuning, rate_hz: float, what: str) -> None:
                                "tune from a recording at the stream's rate")
 
 
+def echo_timing(label: str, step: Step, valid: np.ndarray | None = None) -> None:
+    """The stream's rate, jitter, repeats and gaps, as the predictors will see them."""
+    if step.quaternion is None or step.n_frames < 2:
+        return
+    if not np.all(np.diff(step.time) > 0):
+        click.echo(f"{label}: the time stamps do not increase; frames are taken 1 / {step.sample_rate_hz:g} Hz apart")
+        return
+    click.echo(f"{label}: " + steps_lib.step_timing(step, valid).summary().replace("\n", "\n  "))
+
+
 def predicted_quaternions(step: Step, name: str, horizon: float, valid: np.ndarray | None = None,
                           tune: bool = False, tuning: Tuning | None = None) -> np.ndarray:
-    """The step's orientations predicted ``horizon`` s ahead; samples without a prediction (the filter's first
-    frames, invalid samples) keep the measured orientation. ``tune``: the filter's measurement and process noise
-    are estimated from the step itself (:mod:`ivc.predict.tuning`); or ``tuning`` gives them."""
-    if step.quaternion is None:
-        raise click.UsageError("this input has no orientations (signals only): run `ivc correct` first")
-    if not step.sample_rate_hz:
-        raise click.UsageError("the input does not give its sample rate; pass --rate HZ")
-    ok = step.valid_mask if valid is None else valid & step.valid_mask
-    if tune and name in TUNABLE:
-        tuning = estimate(step.quaternion, step.sample_rate_hz, valid=ok)
-        click.echo(tuning.summary())
-    elif tuning is not None:
-        check_tuning_rate(tuning, step.sample_rate_hz, "the input")
-    predicted = make(name, step.sample_rate_hz, tuning).predict(step.quaternion, horizon, ok)[0]
-    return np.where(np.all(np.isfinite(predicted), axis=-1, keepdims=True), predicted, step.quaternion)
-
-
-def prediction_attrs(step: Step, name: str, horizon: float, tune: bool, tuning_file: str | None) -> dict:
-    """``step``'s attributes with the prediction's: the filter, the horizon (s) and how it was tuned."""
-    attrs = dict(step.attrs, predicted_with=name, prediction_horizon_s=horizon,
-                 tuned_from_input=bool(tune and name in TUNABLE))
-    if tuning_file and name in TUNABLE:
-        attrs["tuned_from"] = str(tuning_file)
-    return attrs
+    """:func:`ivc.predict.steps.predict_quaternions`, printing the tuning estimated with ``tune``."""
+    quaternion, used = steps_lib.predict_quaternions(step, name, horizon, valid, tune, tuning)
+    if tune and used is not None:
+        click.echo(used.summary())
+    return quaternion
 
 
 def predicted_step(step: Step, name: str, horizon: float, tune: bool = False, tuning: Tuning | None = None,
                    tuning_file: str | None = None) -> Step:
-    attrs = prediction_attrs(step, name, horizon, tune, tuning_file)
-    quaternion = predicted_quaternions(step, name, horizon, tune=tune, tuning=tuning)
-    return Step(step.time, None, step.position, quaternion, step.valid_mask, step.sample_rate_hz, step.sensor_ids,
-                f"{step.description} (orientation predicted by ivc)".strip(), attrs)
+    out, used = steps_lib.predicted_step(step, name, horizon, tune, tuning, tuning_file)
+    if tune and used is not None:
+        click.echo(used.summary())
+    return replace(out, signal=None, description=f"{step.description} (orientation predicted by ivc)".strip())
+
+
+def run_evaluation(path, step: Step, names: list[str], horizons: list[float], plot: str | None,
+                   as_json: bool) -> None:
+    """Every predictor in ``names`` scored against the recording's own future, per sensor; table, JSON, PNG."""
+    from tqdm import tqdm
+
+    from ivc.predict.recording import plot as plot_scores
+    from ivc.predict.recording import score, table
+
+    if step.quaternion is None:
+        raise click.UsageError("this input has no orientations (signals only): run `ivc correct` first")
+    wanted = sorted(set(horizons) | ({round(0.0125 * k, 4) for k in range(1, 1 + int(max(horizons) / 0.0125))}
+                                     if plot else set()))
+    results = {}
+    with tqdm(total=len(names) * step.n_sensors, desc="evaluate", unit="filter", leave=False) as bar:
+        for s, sensor in enumerate(step.names):
+            predictors = [make(n, step.sample_rate_hz) for n in names]
+            results[sensor] = score(predictors, step.quaternion[:, s], step.time, wanted, step.valid_mask[:, s],
+                                    progress=bar.update)
+    if as_json:
+        click.echo(json.dumps({sensor: [{"filter": r.name, "horizons_s": r.horizons_s.tolist(), "rows": r.rows}
+                                        for r in scores] for sensor, scores in results.items()}, indent=1))
+    else:
+        for sensor, scores in results.items():
+            picked = [Score(r.name, np.asarray(horizons), [r.at(h) for h in horizons]) for r in scores]
+            click.echo(f"sensor {sensor}:\n" + table(picked) + "\n")
+        click.echo("median, 95th percentile and RMS of the geodesic angle between each prediction and the "
+                   "recording's own orientation at t + horizon (slerp between its samples; frames in the first "
+                   "0.5 s, invalid or with a reference across a step over 40 ms left out; no prediction = the "
+                   "measured orientation)")
+    if plot:
+        first = next(iter(results))
+        plot_scores(results[first], plot, title=f"{Path(path).name}, sensor {first}")
+        click.echo(f"wrote {plot}")
 
 
 def _predict_plus(input_path, output_path, name, delta, tune, tuning, tune_from, rate) -> None:
@@ -205,8 +230,15 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
 @click.command()
 @click.argument("input_file", required=False, type=click.Path(dir_okay=False))
 @click.option("--filter", "filters", multiple=True, type=click.Choice(list(FILTERS)),
-              help="Predictor (default mmdq2). With --benchmark: repeat to choose several (default: all but nasa-ekf).")
-@click.option("--horizon", default="50ms", show_default=True, help="How far ahead, with its unit: 50ms or 0.05s.")
+              help=f"Predictor (default {DEFAULT_FILTER}: the filter that lately predicted each sensor's own stream "
+              "best, see docs/predict.md). With --benchmark or --evaluate: repeat to choose several (default: all "
+              "but nasa-ekf; --evaluate always adds none and poly1).")
+@click.option("--horizon", default="50ms", show_default=True, help="How far ahead, with its unit: 50ms or 0.05s; "
+              "with --evaluate a list, 50ms,100ms.")
+@click.option("--evaluate", is_flag=True, help="Score the predictors on INPUT_FILE against its own later samples "
+              "(slerp) and print median, p95 and RMS error per horizon (--plot: error against horizon as PNG).")
+@click.option("--import-unit", type=click.Choice(["m", "cm", "mm", "in"]), default="in", show_default=True,
+              help="Position unit of a Polhemus Liberty logger CSV (the file does not say; a Liberty reports inches).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), help="Output: session .h5 or .csv, as the input.")
 @click.option("--step", "steps", multiple=True, help="Session input: step(s) to predict (default: all).")
 @click.option("--rate", type=POSITIVE, help="Sample rate (Hz) of a CSV without a usable time column.")
@@ -219,8 +251,9 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--reference", type=click.Choice(["measured", "truth"]), default="measured", show_default=True,
               help="Benchmark reference: time-shifted measurements (the thesis) or the noiseless truth.")
-@click.option("--plot", type=click.Path(dir_okay=False), help="Benchmark: write the error-vs-horizon PNG here.")
-@click.option("--json", "as_json", is_flag=True, help="Benchmark: print the figures as JSON.")
+@click.option("--plot", type=click.Path(dir_okay=False), help="--benchmark or --evaluate: write the error-vs-horizon "
+              "PNG here.")
+@click.option("--json", "as_json", is_flag=True, help="--benchmark or --evaluate: print the figures as JSON.")
 @click.option("--tune", is_flag=True, help="Tune the seed-001 filters (q-ekf, dqekf-*, mmdq*) by the thesis's "
               "procedure (measurement noise from the data, process noise at each model's λ) instead of using the "
               "thesis's values: from each input step itself, or with --benchmark from a separate synthetic "
@@ -232,15 +265,18 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
               "method for the twist and hybrid costs on synthetic yaw records, and print Table 1.")
 @click.option("--evaluations", type=int, default=1500, show_default=True,
               help="With --compensators: cost evaluations per design at most.")
-def predict(input_file, filters, horizon, output, steps, rate, force, benchmark, motions, frames, bench_rate, seed,
-            reference, plot, as_json, tune, tune_from, compensators, evaluations):
-    """Predict the orientations in INPUT_FILE (session .h5 or recording .csv) a horizon ahead.
+def predict(input_file, filters, horizon, evaluate, import_unit, output, steps, rate, force, benchmark, motions,
+            frames, bench_rate, seed, reference, plot, as_json, tune, tune_from, compensators, evaluations):
+    """Predict the orientations in INPUT_FILE (session .h5, recording .csv, a head-orientation trace
+    `timestamp viewpoint w x y z` or a Polhemus Liberty logger CSV) a horizon ahead.
 
     The output holds, at each frame's time stamp, the orientation predicted for time +
-    horizon from that frame and the ones before it; positions are copied unchanged. Samples
-    the filter cannot predict yet (its first frames) or that are invalid keep their measured
-    orientation. `ivc predict --benchmark` instead evaluates the predictors on synthetic head
-    motion and prints the thesis's tables (Tables 5-6, 11, 12-15 layouts, and the SNR of Figs. 16-17).
+    horizon from that frame and the ones before it, at the stream's own time steps; positions
+    are copied unchanged. Samples the filter cannot predict yet (its first frames) or that are
+    invalid keep their measured orientation. `--evaluate` scores the predictors on INPUT_FILE
+    against its own later samples. `ivc predict --benchmark` instead evaluates the predictors on
+    synthetic head motion and prints the thesis's tables (Tables 5-6, 11, 12-15 layouts, and the
+    SNR of Figs. 16-17).
     """
     if tune_from and (benchmark or compensators):
         raise click.UsageError("--tune-from tunes the prediction of an INPUT_FILE; --benchmark --tune tunes on "
@@ -256,24 +292,42 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
         run_benchmark(list(motions) or list(MOTIONS), list(filters) or list(BENCHMARK_FILTERS), frames,
                       float(bench_rate), seed, reference, plot, as_json, tune)
         return
+    if evaluate:
+        if input_file is None:
+            raise click.UsageError("--evaluate scores the predictors on an INPUT_FILE")
+        if output or tune or tune_from:
+            raise click.UsageError("--evaluate writes no -o OUTPUT and scores the filters as they are (no --tune)")
+        if not Path(input_file).exists():
+            raise FileNotFoundError(f"{input_file}: no such recording")
+        step = _read_one(input_file, rate, import_unit, steps)
+        echo_timing(Path(input_file).name, step)
+        names = list(dict.fromkeys(["none", "poly1", *(filters or [f for f in FILTERS if f != "nasa-ekf"])]))
+        run_evaluation(input_file, step, names, parse_horizons(horizon), plot, as_json)
+        return
     if input_file is None or output is None:
         raise click.UsageError("give INPUT_FILE and -o OUTPUT (or --benchmark)")
     if len(filters) > 1:
         raise click.UsageError("predict a stream with one --filter")
-    name = filters[0] if filters else "mmdq2"
+    name = filters[0] if filters else DEFAULT_FILTER
     delta = parse_horizon(horizon)
     input_path, output_path = input_and_output(input_file, output, force, [("--tune-from", tune_from)])
     tuning = requested_tuning(name, tune, tune_from)
     if is_plus_sequence(input_path):
         _predict_plus(input_path, output_path, name, delta, tune, tuning, tune_from, rate)
         return
-    if session_io.is_recording_csv(input_path):
+    if session_io.is_recording_csv(input_path) or sniff(input_path) is not None:
         if not session_io.is_recording_csv(output_path):
-            raise click.UsageError("a CSV input is predicted into a CSV output (-o FILE.csv)")
-        step, columns = read_csv_columns(input_path, rate)
-        warning = rate_warning(step) if rate is None else None
-        if warning:
-            click.echo(f"warning: {warning}", err=True)
+            raise click.UsageError("a recording is predicted into a recording CSV (-o FILE.csv)")
+        if sniff(input_path) is not None:  # another program's format: its import report, positions in metres
+            step, report = read_recording(input_path, rate, import_unit)
+            click.echo(report.text())
+            columns = CsvColumns()
+        else:
+            step, columns = read_csv_columns(input_path, rate)
+            warning = rate_warning(step) if rate is None else None
+            if warning:
+                click.echo(f"warning: {warning}", err=True)
+        echo_timing(input_path.name, step)
         out = predicted_step(step, name, delta, tune, tuning, tune_from)
         with session_io.atomic_path(output_path) as tmp:
             write_csv(out, tmp, columns.extra, length_unit=columns.length_unit)
@@ -291,10 +345,30 @@ def predict(input_file, filters, horizon, output, steps, rate, force, benchmark,
         step = data.steps[n]
         if rate and not step.sample_rate_hz:
             step.sample_rate_hz = rate
+        echo_timing(n, step)
         out_steps[n] = predicted_step(step, name, delta, tune, tuning, tune_from)
-        click.echo(f"{n}: {step.n_frames} frames x {step.n_sensors} sensors predicted {delta * 1e3:g} ms ahead")
+        click.echo(f"{n}: {step.n_frames} frames x {step.n_sensors} sensors predicted {delta * 1e3:g} ms ahead "
+                   f"with {name}")
     predicted = Session(data.hemisphere, out_steps, {n: data.truth[n] for n in names if n in data.truth},
                         dict(data.attrs, predicted_with=name, prediction_horizon_s=delta))
     with session_io.atomic_path(output_path) as tmp:
         session_io.write(predicted, tmp, overwrite=True)
     click.echo(f"wrote {output_path}")
+
+
+def _read_one(path, rate, unit, steps) -> Step:
+    """The one step to evaluate: a recording, or a session's --step (its only step when there is one)."""
+    if session_io.is_recording_csv(path) or sniff(path) is not None:
+        step, report = read_recording(path, rate, unit)
+        if report is not None:
+            click.echo(report.text())
+        return step
+    data = session_io.read(path)
+    names = list(steps) or list(data.steps)
+    if len(names) != 1 or names[0] not in data.steps:
+        raise click.UsageError(f"--evaluate scores one step: pick it with --step (the session has "
+                               f"{', '.join(data.steps) or 'none'})")
+    step = data.steps[names[0]]
+    if rate:
+        step.sample_rate_hz = rate
+    return step

@@ -148,8 +148,8 @@ def check(tracker_file, recordings, carrier, no_stage_compensation, as_json):
 
 
 def tracker_option(command: Callable) -> Callable:
-    """``--tracker FILE``: the device's coil model, applied to the signals a command reads (docs/tracker.md)."""
-    return click.option("--tracker", "tracker_file", type=click.Path(exists=True, dir_okay=False),
+    """``--tracker-model FILE``: the device's coil model, applied to the signals a command reads (docs/tracker.md)."""
+    return click.option("--tracker-model", "tracker_file", type=click.Path(exists=True, dir_okay=False),
                         help="The tracker's coil model (from `ivc tracker calibrate`): signals are brought to "
                              "ideal-dipole units before anything else.")(command)
 

@@ -173,7 +173,7 @@ class IlemtRecording:
     def to_step(self, fixtures=None, hemisphere: str = "+y"):
         """This recording as a session :class:`~ivc.session.Step` of one sensor, and its truth.
 
-        The signals go in as they are (ILEMT's units; ``--tracker`` or
+        The signals go in as they are (ILEMT's units; ``--tracker-model`` or
         :func:`ivc.collect.apply_tracker` brings them to ideal units). The known stage poses
         are kept in the step's attributes (``stage_poses``, mm and degrees, compensated);
         with the rig's fitted ``fixtures`` (:class:`ivc.dipole.calibrate.Fixtures`) the

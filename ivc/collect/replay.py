@@ -29,6 +29,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ivc import rotations
+from ivc.collect.imports import read_recording, sniff
 from ivc.collect.plus import is_plus_sequence, read_plus
 from ivc.errors import CsvError
 from ivc.session import SessionError, Step, Truth, is_recording_csv
@@ -355,6 +356,8 @@ def replay(path: str | Path, step_name: str, sample_rate_hz: float | None = None
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such recording")
+    if sniff(path) is not None:  # another program's format (ivc/collect/imports.py)
+        return read_recording(path, sample_rate_hz)[0], None
     if is_recording_csv(path):
         return read_csv(path, sample_rate_hz), None
     if is_plus_sequence(path):

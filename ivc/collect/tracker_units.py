@@ -1,6 +1,6 @@
 """Bringing a research tracker's recordings into ideal-dipole units with its coil model (docs/tracker.md).
 
-:func:`apply_tracker` is what ``--tracker FILE`` does in ``ivc collect``, ``fixtures``,
+:func:`apply_tracker` is what ``--tracker-model FILE`` does in ``ivc collect``, ``fixtures``,
 ``fit``, ``correct`` and ``evaluate``: every signal matrix of a step becomes
 :meth:`ivc.dipole.tracker.Tracker.to_ideal` of itself, and a step that also held the
 device's own reported poses gets the closed-form poses of the converted signals instead.

@@ -1,5 +1,6 @@
 """Stage 5: corrected poses from live or recorded measurements with a look-up table."""
 
+from ivc.correct.pose_domain import PoseCorrector
 from ivc.correct.solver import (
     FLAG_NAMES,
     HIGH_RESIDUAL,
@@ -12,4 +13,4 @@ from ivc.correct.solver import (
 )
 
 __all__ = ["FLAG_NAMES", "HIGH_RESIDUAL", "INVALID_INPUT", "NOT_CONVERGED", "OUTSIDE", "Correction", "Corrector",
-           "describe"]
+           "PoseCorrector", "describe"]

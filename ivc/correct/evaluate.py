@@ -5,7 +5,11 @@ every sample was placed through it. When the check file also holds the cube surv
 truth (a simulated session, or a precision rig), the true poses are moved into that frame
 and IVC is judged there, which is the accuracy the method itself delivers; the error
 against raw truth, which adds the cube-placement error, is reported beside it. The
-uncorrected dipole solution lives in the source frame and is compared with raw truth.
+uncorrected dipole solution lives in the source frame and is compared with raw truth. A check
+step of reported poses only is corrected through the pose path, and the tracker's own reported
+poses are the uncorrected figure. Beside both frames, the errors left after the best rigid
+alignment of the corrected positions to truth: what a registration removes (the declared cube
+pose's error is such a rigid offset).
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ivc import rotations
+from ivc.correct.pose_domain import PoseCorrector
 from ivc.correct.solver import FLAG_NAMES, Corrector
 from ivc.dipole import closed_form_pose
 from ivc.lut.table import LookupTable
@@ -46,9 +51,44 @@ class CheckErrors:
     true_position: np.ndarray
     frame_map: tuple | None
     placement_error_mm: float | None
+    aligned_position_mm: np.ndarray | None = None
+    aligned_orientation_mrad: np.ndarray | None = None
+    input: str = "signals"
 
 
-def check_errors(table: LookupTable | Corrector, check: Session, step: str = "check",
+#: refits of the rigid alignment without its outliers, and what counts as one (times the median error)
+ALIGNMENT_TRIMS = 2
+ALIGNMENT_OUTLIER = 5.0
+
+
+def rigid_alignment(points: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` minimising ``Σ |R p + t − q|²`` over point pairs (N, 3) (Kabsch / Umeyama without scale)."""
+    p_mean, q_mean = points.mean(axis=0), targets.mean(axis=0)
+    U, _, Vt = np.linalg.svd((targets - q_mean).T @ (points - p_mean))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    return R, q_mean - R @ p_mean
+
+
+def aligned_errors(position, rotation, true_position, true_rotation, ok):
+    """Errors (mm, mrad) of the ``ok`` samples after the best rigid alignment of their positions to truth
+    (what a registration to a patient or a virtual world removes; the orientations turned by the same R).
+    The alignment is refitted without the samples more than ALIGNMENT_OUTLIER times the median error
+    off (they are still reported). NaN elsewhere, and everywhere when fewer than 3 samples are ok."""
+    p_mm = np.full(ok.shape, np.nan)
+    a_mrad = np.full(ok.shape, np.nan)
+    if ok.sum() < 3:
+        return p_mm, a_mrad
+    used = np.ones(int(ok.sum()), dtype=bool)
+    for _ in range(ALIGNMENT_TRIMS + 1):  # a few gross errors (a wrong fold branch) must not tilt the fit
+        R, t = rigid_alignment(position[ok][used], true_position[ok][used])
+        miss = np.linalg.norm(position[ok] @ R.T + t - true_position[ok], axis=1)
+        used = miss <= max(ALIGNMENT_OUTLIER * float(np.median(miss)), 1e-6)
+    p_mm[ok], a_mrad[ok] = pose_errors(position[ok] @ R.T + t, R @ rotation[ok], true_position[ok], true_rotation[ok])
+    return p_mm, a_mrad
+
+
+def check_errors(table: LookupTable | Corrector | PoseCorrector, check: Session, step: str = "check",
                  frame_map: tuple | None = None, progress: Callable[[int], None] | None = None) -> CheckErrors:
     """Correct ``check``'s ``step`` and compare every sample with its truth (see :class:`CheckErrors`).
 
@@ -60,13 +100,26 @@ def check_errors(table: LookupTable | Corrector, check: Session, step: str = "ch
     if step not in check.truth:
         raise SessionError(f"the check file has no /truth/{step}: evaluation needs true poses (a simulation or a "
                            "precision rig)")
-    corrector = table if isinstance(table, Corrector) else Corrector(table, check.hemisphere)
     data, truth = check.steps[step], check.truth[step]
-    S = data.signal_matrices()
     valid = data.valid_mask
-    out = corrector.batch(S, valid)
+    if data.signal is not None:
+        corrector = table if isinstance(table, Corrector) else Corrector(table, check.hemisphere)
+        if isinstance(corrector, PoseCorrector):
+            raise SessionError(f"the {step!r} step holds signals: evaluate it with a signal Corrector")
+        out = corrector.batch(data.signal, valid)
+        r_dip, T_dip = closed_form_pose(data.signal, check.hemisphere)
+    else:  # reported poses only: the pose path, and the tracker's own poses as the uncorrected figure
+        if isinstance(table, PoseCorrector):
+            corrector = table
+        elif isinstance(table, Corrector):
+            corrector = PoseCorrector(table.field, table.hemisphere)
+        else:
+            corrector = PoseCorrector(table, check.hemisphere)
+        out = corrector.batch(data.position, data.quaternion, valid)
+        with np.errstate(invalid="ignore"):
+            r_dip, T_dip = data.position, rotations.to_matrix(data.quaternion)
     if progress is not None:
-        progress(S.shape[0])
+        progress(data.n_frames)
     true_p, true_T = truth.position, rotations.to_matrix(truth.quaternion)
     if frame_map is None:
         found = declared_frame_map(check) if "cube_survey" in check.truth else None
@@ -74,8 +127,8 @@ def check_errors(table: LookupTable | Corrector, check: Session, step: str = "ch
     ok = out.flags == 0
     T_ivc = rotations.to_matrix(np.where(ok[..., None], out.quaternion, rotations.IDENTITY))
     raw_p, raw_a = pose_errors(out.position, T_ivc, true_p, true_T)
-    r_dip, T_dip = closed_form_pose(S, check.hemisphere)
     dip_p, dip_a = pose_errors(r_dip, T_dip, true_p, true_T)
+    aligned_p, aligned_a = aligned_errors(out.position, T_ivc, true_p, true_T, ok)
     p, a, placement, judged = raw_p, raw_a, None, true_p
     if frame_map is not None:
         D_R, D_t = frame_map
@@ -83,7 +136,7 @@ def check_errors(table: LookupTable | Corrector, check: Session, step: str = "ch
         p, a = pose_errors(out.position, T_ivc, judged, D_R @ true_T)
         placement = float(1000 * np.linalg.norm(D_t + (D_R - np.eye(3)) @ np.mean(true_p[valid], axis=0)))
     return CheckErrors(valid, ok, out.flags, out.iterations, p, a, raw_p, raw_a, dip_p, dip_a, judged, frame_map,
-                       placement)
+                       placement, aligned_p, aligned_a, "signals" if data.signal is not None else "reported poses")
 
 
 def summarise(e: CheckErrors) -> dict:
@@ -107,6 +160,10 @@ def summarise(e: CheckErrors) -> dict:
         report["placement_error_mm"] = e.placement_error_mm
     else:
         report["ivc"] = report["ivc_raw"]
+    if e.aligned_position_mm is not None and ok.any():
+        report["ivc_aligned"] = {"position_mm": percentiles(e.aligned_position_mm[ok]),
+                                 "orientation_mrad": percentiles(e.aligned_orientation_mrad[ok])}
+    report["input"] = e.input
     report["iterations_median"] = float(np.median(e.iterations[valid])) if valid.any() else 0.0
     return report
 

@@ -3,8 +3,10 @@
 Single-threaded around a selector, so nothing waits on anything it does not have to:
 
 * upstream (a client of the tracking server): TRANSFORM messages (sensor pose; translation in
-  ``length_unit`` metres per unit, mm by default as PLUS sends) or NDARRAY (3, 3) messages
-  (signal matrices), one device name per sensor. Lost connections are retried every
+  ``length_unit`` metres per unit, mm by default as PLUS sends), corrected through the pose path
+  (:class:`~ivc.correct.pose_domain.PoseCorrector`: the inverse of the tracker's pose-domain
+  distortion), or NDARRAY (3, 3) messages (signal matrices) through the signal path, one
+  device name per sensor. Lost connections are retried every
   ``retry_s``; each sensor's warm start and predictor restart after a reconnect.
 * downstream (a server on ``publish``): per corrected sample a TRANSFORM named
   ``<device><suffix>`` with the input's timestamp and, in its v2 metadata, ``ivc_flags`` (0 =
@@ -28,7 +30,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ivc import dipole, rotations
-from ivc.correct import Corrector
+from ivc.correct import Correction, Corrector
+from ivc.correct.pose_domain import PoseCorrector
 from ivc.live.igtl import Framer, TrackingDataMessage, encode_transforms
 from ivc.predict import Tuning
 from ivc.predict import make as make_predictor
@@ -122,10 +125,11 @@ class LiveCorrector:
     def __init__(self, corrector: Corrector, source: tuple[str, int], publish: tuple[str, int] = ("127.0.0.1", 18945),
                  *, length_unit: float = 1e-3, predictor: str | None = None, horizon: float = 0.0,
                  rate_hz: float = 240.0, suffix: str = "_ivc", sensors: list[str] | None = None,
-                 retry_s: float = 0.5, tuning: Tuning | None = None):
+                 retry_s: float = 0.5, tuning: Tuning | None = None, pose_corrector: PoseCorrector | None = None):
         if predictor:
             make_predictor(predictor, rate_hz, tuning)  # an unknown filter or a tuning at another rate: refuse now
         self.corrector, self.source = corrector, source
+        self.pose_corrector = pose_corrector or PoseCorrector(corrector.field, corrector.hemisphere)
         self.length_unit, self.suffix = float(length_unit), suffix
         self.predictor, self.horizon, self.rate_hz = predictor, float(horizon), float(rate_hz)
         self.tuning = tuning
@@ -152,6 +156,8 @@ class LiveCorrector:
             np.array(self.corrector.field.grid.shape) - 1)
         self.corrector.update(dipole.signal(centre[None], np.eye(3)[None]), sensors=["warm-up"])
         self.corrector.reset()
+        self.pose_corrector.update(centre[None], np.eye(3)[None], sensors=["warm-up"])
+        self.pose_corrector.reset()
         if self.predictor:
             self._predicted("warm-up", np.array([1.0, 0.0, 0.0, 0.0]), True)
             self._streams.clear()
@@ -218,10 +224,10 @@ class LiveCorrector:
             self._process(frames, arrived)
 
     # ---- correction ---------------------------------------------------------------------------
-    def _samples(self, frames) -> list[tuple[str, float, np.ndarray]]:
-        """(device, timestamp, signal matrix (3, 3)) of the usable tracking messages, in arrival order."""
-        names, times, signals = [], [], []
-        poses, positions, rotations_ = [], [], []  # the TRANSFORM samples: index, position (m), rotation
+    def _samples(self, frames) -> list[tuple[str, float, np.ndarray | None, tuple | None]]:
+        """(device, timestamp, signal matrix (3, 3) or None, reported pose (position m, rotation) or None) of the
+        usable tracking messages, in arrival order: NDARRAY messages carry signals, TRANSFORM messages poses."""
+        names, times, signals, poses = [], [], [], []
         problems = _unusable(frames, self.length_unit)
         for k, f in enumerate(frames):
             if f.message_type not in ("TRANSFORM", "NDARRAY"):
@@ -249,9 +255,9 @@ class LiveCorrector:
                 continue
             self._last_time[name] = f.timestamp
             if f.message_type == "TRANSFORM":
-                poses.append(len(signals))
-                positions.append(f.payload[:3, 3] * self.length_unit)
-                rotations_.append(f.payload[:3, :3])
+                # float32 matrices are not quite orthonormal: take the nearest rotation
+                rotation = rotations.to_matrix(rotations.from_matrix(np.asarray(f.payload[:3, :3], float)))
+                poses.append((np.asarray(f.payload[:3, 3], float) * self.length_unit, rotation))
                 signals.append(None)
             else:
                 a = f.payload
@@ -260,16 +266,10 @@ class LiveCorrector:
                                "matrix; dropped")
                     continue
                 signals.append(a)
+                poses.append(None)
             names.append(name)
             times.append(f.timestamp)
-        if not names:
-            return []
-        if poses:
-            # float32 matrices are not quite orthonormal: take the nearest rotation
-            T = rotations.to_matrix(rotations.from_matrix(np.array(rotations_)))
-            for n, S in zip(poses, dipole.signal(np.array(positions), T), strict=True):
-                signals[n] = S
-        return list(zip(names, times, signals, strict=True))
+        return list(zip(names, times, signals, poses, strict=True))
 
     def _process(self, frames, arrived: float) -> None:
         samples = self._samples(frames)
@@ -291,10 +291,30 @@ class LiveCorrector:
         q = stream.predict(self.horizon)[0]
         return q if np.all(np.isfinite(q)) else None
 
+    def _correct(self, samples, names) -> Correction:
+        """Signals through the signal path, reported poses through the pose path, in the samples' order."""
+        by_pose = np.array([s[3] is not None for s in samples])
+        if not by_pose.any():
+            return self.corrector.update(np.array([s[2] for s in samples]), sensors=names)
+        if by_pose.all():
+            return self.pose_corrector.update(np.array([s[3][0] for s in samples]),
+                                              np.array([s[3][1] for s in samples]), sensors=names)
+        parts = {}
+        for flag in (False, True):
+            idx = np.flatnonzero(by_pose == flag)
+            parts[flag] = (idx, self._correct([samples[i] for i in idx], [names[i] for i in idx]))
+        n = len(samples)
+        merged = Correction(np.empty((n, 3)), np.empty((n, 4)), np.empty(n, np.uint8), np.empty(n),
+                            np.empty(n, np.int64))
+        for idx, out in parts.values():
+            for key in ("position", "quaternion", "flags", "residual", "iterations"):
+                getattr(merged, key)[idx] = getattr(out, key)
+        return merged
+
     def _correct_round(self, samples) -> None:
         names = [s[0] for s in samples]
         stamps = [s[1] for s in samples]
-        out = self.corrector.update(np.array([s[2] for s in samples]), sensors=names)
+        out = self._correct(samples, names)
         ok = out.flags == 0
         self.stats.corrected += int(ok.sum())
         self.stats.flagged += int((~ok).sum())

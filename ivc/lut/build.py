@@ -233,12 +233,20 @@ def _check_data_grid(session: Session, spacing: float) -> None:
 
 
 def fit_lut(session: Session, options: FitOptions | None = None, source: str | Path | None = None,
-            progress: Progress | None = None) -> LookupTable:
+            progress: Progress | None = None, tracker: str = "closed-form") -> LookupTable:
     """Build the look-up table of ``session`` (which must hold the fixture steps and the sweep).
 
     ``source``: the session's file, recorded (with its SHA-256) in the table's provenance.
-    ``progress(description, total)`` returns an update callback per stage.
+    ``progress(description, total)`` returns an update callback per stage. A session whose cube
+    survey or sweep holds reported poses only is fitted from them through the model of the
+    tracker's solver ``tracker`` (:func:`ivc.lut.pose_build.fit_pose_lut`).
     """
+    from ivc.fixtures.pose_mapping import has_signals
+
+    if not session.missing_for_fit() and not has_signals(session):
+        from ivc.lut.pose_build import fit_pose_lut
+
+        return fit_pose_lut(session, options, source, progress, solver=tracker)
     options = options or FitOptions()
     progress = progress or _noop
     missing = session.missing_for_fit()

@@ -1,5 +1,6 @@
 """Stage 3: sensor pose with a known secondary field (inside the cube, or anywhere a LUT covers)."""
 
+from ivc.pose.reported import Inversion, invert_distortion
 from ivc.pose.solver import (
     METHODS,
     PoseSolution,
@@ -12,5 +13,5 @@ from ivc.pose.solver import (
 )
 from ivc.pose.tracker import tracker_pose
 
-__all__ = ["METHODS", "PoseSolution", "damped_step", "dipole_plus", "levenberg_marquardt",
-           "procrustes", "signal_residual", "solve_pose", "tracker_pose"]
+__all__ = ["METHODS", "Inversion", "PoseSolution", "damped_step", "dipole_plus", "levenberg_marquardt",
+           "invert_distortion", "procrustes", "signal_residual", "solve_pose", "tracker_pose"]

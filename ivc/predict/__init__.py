@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from ivc.predict.auto import AutoPredictor
 from ivc.predict.base import Predictor, PredictorError, Stream
 from ivc.predict.dq import DQPredictor, dqekf_ca, dqekf_cv, mmdq2, mmdq3
 from ivc.predict.evaluate import NoPrediction
@@ -20,6 +21,7 @@ from ivc.predict.tuning import Tuning
 
 #: name -> factory(rate_hz) of every orientation predictor
 FILTERS: dict[str, Callable[[float], Predictor]] = {
+    "auto": AutoPredictor,
     "none": NoPrediction,
     "dqekf-cv": dqekf_cv,
     "dqekf-ca": dqekf_ca,
@@ -34,6 +36,9 @@ FILTERS: dict[str, Callable[[float], Predictor]] = {
     "nasa-ekf": NasaEKF,
 }
 
+
+#: the filter used when none is named (``ivc predict``, ``ivc correct --predict``): :mod:`ivc.predict.auto`
+DEFAULT_FILTER = "auto"
 
 #: the predictors :func:`ivc.predict.tuning.estimate` tunes (seed 001's): measurement noise, and process noise
 #: at the λ each model is defined by (the Q-EKF uses the CV model's, λ = 0.5, as with the thesis's values)
@@ -59,5 +64,5 @@ def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Pre
     return FILTERS[name](rate_hz, sigma_w=tuning.sigma_w, sigma_v=tuple(tuning.sigma_v_dq))
 
 
-__all__ = ["DQPredictor", "FILTERS", "LinearPredictor", "MMAE",
-           "NasaEKF", "NoPrediction", "Predictor", "PredictorError", "QEKF", "Stream", "TUNABLE", "Tuning", "make"]
+__all__ = ["AutoPredictor", "DEFAULT_FILTER", "DQPredictor", "FILTERS", "LinearPredictor", "MMAE", "NasaEKF",
+           "NoPrediction", "Predictor", "PredictorError", "QEKF", "Stream", "TUNABLE", "Tuning", "make"]

@@ -8,11 +8,18 @@ mixing of notes §8.3). The measurement is ``Δq(k) = q(k) ⊗ q(k−1)*`` (scal
 Per-sensor state arrays (leading axis = sensor):
   x (M, 6), P (M, 6, 6), probs (3, M) = [μ(k), μ(k−1), normalised likelihoods L(k)],
   tpm (2, M, M) = [Π, γ (Dirichlet counts)], q_prev (4,), status (2,) = [initialised, have_prev],
-  est (6,) = the combined [ω̄, ᾱ].
+  est (6,) = the combined [ω̄, ᾱ], clock (4,) = [age: s since q_prev was measured, s since the
+  last valid sample, restarts at gaps, repeated samples dropped].
+
+Time steps are the actual ones: each step takes the time since the previous frame, dt (s). An
+invalid sample is bridged (q_prev is kept and the next Δq spans the whole time); a gap without a
+valid sample longer than cfg's max gap restarts the filter from the next Δq; a sample that
+repeats q_prev exactly is not a measurement (a stale frame): it is dropped and the prediction made
+from q_prev, ``age`` seconds old.
 Configuration: kinds (M,) 0 = CV, 1 = CA; qvar (M, 3) process-noise variances (rad/s²)² for CV
 or (rad/s³)² for CA; R (4,) measurement variances; cfg = [τ, ε_mix, ε_μ, adaptive TPM,
 mode-weight form (0 c̄_j, 1 μ_j(k−1)), H of CA (0 standard [J, 0], 1 thesis [J, τJ], 2 midpoint
-[J, −τJ/2]), P0 of ω, P0 of α]; mu0 (M,), Pi0 (M, M).
+[J, −τJ/2]), P0 of ω, P0 of α, max gap (s)]; mu0 (M,), Pi0 (M, M). τ is the nominal frame period.
 """
 
 from __future__ import annotations
@@ -26,7 +33,8 @@ from ivc.predict._quat import delta_q_jacobian, predict_orientation, qmul_conj, 
 LOG_2PI = np.log(2.0 * np.pi)
 TPM_FLOOR = 1e-50  # notes §8.2, eq. 47 [SEED]
 
-CFG_TAU, CFG_EPS_MIX, CFG_EPS_MU, CFG_ADAPTIVE, CFG_WEIGHTS, CFG_H, CFG_P0W, CFG_P0A = range(8)
+CFG_TAU, CFG_EPS_MIX, CFG_EPS_MU, CFG_ADAPTIVE, CFG_WEIGHTS, CFG_H, CFG_P0W, CFG_P0A, CFG_MAX_GAP = range(9)
+CLOCK_AGE, CLOCK_MISSING, CLOCK_RESTARTS, CLOCK_REPEATS = range(4)
 
 
 @numba.njit(cache=True)
@@ -43,7 +51,7 @@ def make_work(n_models):
 
 
 @numba.njit(cache=True)
-def reset(x, P, probs, tpm, q_prev, status, est, mu0, Pi0):
+def reset(x, P, probs, tpm, q_prev, status, est, clock, mu0, Pi0):
     """Forget everything (start of a stream or after a restart)."""
     x[:] = 0.0
     P[:] = 0.0
@@ -55,11 +63,12 @@ def reset(x, P, probs, tpm, q_prev, status, est, mu0, Pi0):
     q_prev[:] = 0.0
     status[:] = 0
     est[:] = 0.0
+    clock[:] = 0.0
 
 
 @numba.njit(cache=True, inline="always")
-def _ekf(n, hcols, qv, z, R, cfg, x0, P0, x, P, vecs, mats):
-    """One EKF predict+update from the mixed (x0, P0) into (x, P); returns the log-likelihood of z.
+def _ekf(n, hcols, qv, z, R, cfg, tau, x0, P0, x, P, vecs, mats):
+    """One EKF predict+update over tau s from the mixed (x0, P0) into (x, P); returns the log-likelihood of z.
 
     n = 3 (CV) or 6 (CA) states; H = [J, cJ] has hcols = 6 non-zero columns, or 3 when c = 0
     (CV, and CA with the standard H). Both are compile-time constants at each call site, so the
@@ -68,7 +77,6 @@ def _ekf(n, hcols, qv, z, R, cfg, x0, P0, x, P, vecs, mats):
     """
     xp, h, nu, w = vecs[0], vecs[1], vecs[2], vecs[3]
     Pp, J, H, PHt, S, L, U = mats[0], mats[1], mats[2], mats[3], mats[4], mats[5], mats[6]
-    tau = cfg[CFG_TAU]
     ca = n == 6
     for a in range(n):
         xp[a] = x0[a]
@@ -136,13 +144,13 @@ def _ekf(n, hcols, qv, z, R, cfg, x0, P0, x, P, vecs, mats):
 
 
 @numba.njit(cache=True, _nrt=False)
-def _ekf_model(kind, qv, z, R, cfg, x0, P0, x, P, vecs, mats):
+def _ekf_model(kind, qv, z, R, cfg, tau, x0, P0, x, P, vecs, mats):
     """:func:`_ekf` for a CV (kind 0) or CA (kind 1) model, with the sizes as constants."""
     if kind == 0:
-        return _ekf(3, 3, qv, z, R, cfg, x0, P0, x, P, vecs, mats)
+        return _ekf(3, 3, qv, z, R, cfg, tau, x0, P0, x, P, vecs, mats)
     if cfg[CFG_H] == 0.0:
-        return _ekf(6, 3, qv, z, R, cfg, x0, P0, x, P, vecs, mats)
-    return _ekf(6, 6, qv, z, R, cfg, x0, P0, x, P, vecs, mats)
+        return _ekf(6, 3, qv, z, R, cfg, tau, x0, P0, x, P, vecs, mats)
+    return _ekf(6, 6, qv, z, R, cfg, tau, x0, P0, x, P, vecs, mats)
 
 
 @numba.njit(cache=True, inline="always")
@@ -178,22 +186,34 @@ def _update_tpm(probs, tpm, M):
 
 
 @numba.njit(cache=True, inline="always")
-def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work):
-    """Feed one measured orientation q (4,) of one sensor; ok = False skips it (a gap).
+def step(q, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R, cfg, work):
+    """Feed one measured orientation q (4,) of one sensor, dt s after the previous frame; ok = False skips it.
 
-    Returns True when the filter has an estimate (est holds ω̄, ᾱ).
+    Returns True when the filter has an estimate (est holds ω̄, ᾱ; the prediction starts from q_prev,
+    clock[CLOCK_AGE] s old).
     """
     M = kinds.shape[0]
-    tau = cfg[CFG_TAU]
     x0, P0, mix, ell, cbar, z, vecs, mats = work
-    if not ok:
-        status[1] = 0
+    clock[CLOCK_AGE] += dt
+    clock[CLOCK_MISSING] += dt
+    if not ok:  # bridged: q_prev is kept, the next Δq spans the gap
         return status[0] == 1
+    if status[1] == 1 and clock[CLOCK_MISSING] > cfg[CFG_MAX_GAP]:  # too long to bridge: start again
+        status[0] = 0
+        status[1] = 0
+        clock[CLOCK_RESTARTS] += 1.0
+    clock[CLOCK_MISSING] = 0.0
     if status[1] == 0:
         for i in range(4):
             q_prev[i] = q[i]
         status[1] = 1
+        clock[CLOCK_AGE] = 0.0
         return status[0] == 1
+    if q[0] == q_prev[0] and q[1] == q_prev[1] and q[2] == q_prev[2] and q[3] == q_prev[3]:
+        clock[CLOCK_REPEATS] += 1.0  # a stale frame, not a measurement of no motion
+        return status[0] == 1
+    tau = clock[CLOCK_AGE]
+    clock[CLOCK_AGE] = 0.0
     qmul_conj(q, q_prev, z)
     if z[0] < 0.0:
         for i in range(4):
@@ -218,7 +238,7 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
         _update_tpm(probs, tpm, M)
     Pi = tpm[0]
     if M == 1:  # a single filter: no mixing, the mode probability stays 1
-        if _ekf_model(kinds[0], qvar[0], z, R, cfg, x[0], P[0], x[0], P[0], vecs, mats) == -np.inf:
+        if _ekf_model(kinds[0], qvar[0], z, R, cfg, tau, x[0], P[0], x[0], P[0], vecs, mats) == -np.inf:
             status[0] = 0  # lost positive definiteness: restart from the next Δq, as the IMM does
             return False
         for a in range(6):
@@ -253,7 +273,7 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
     # filters, log-likelihoods, mode probabilities
     best = -np.inf
     for j in range(M):
-        ell[j] = _ekf_model(kinds[j], qvar[j], z, R, cfg, x0[j], P0[j], x[j], P[j], vecs, mats)
+        ell[j] = _ekf_model(kinds[j], qvar[j], z, R, cfg, tau, x0[j], P0[j], x[j], P[j], vecs, mats)
         best = max(best, ell[j])
     if best == -np.inf:  # every filter lost positive definiteness: restart from this Δq
         status[0] = 0
@@ -280,8 +300,8 @@ def step(q, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work
 
 
 @numba.njit(cache=True, _nrt=False)
-def filter_sensor(s, qs, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work, q, out_est, out_ok,
-                  out_mu):
+def filter_sensor(s, qs, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R, cfg, work, q,
+                  out_est, out_ok, out_mu, out_age):
     """Every frame of sensor s (see :func:`run`), with thread-local state and scratch.
 
     Compiled without reference counting (nothing here allocates or keeps an array): the
@@ -291,8 +311,9 @@ def filter_sensor(s, qs, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar,
     for k in range(qs.shape[0]):
         for i in range(4):
             q[i] = qs[k, s, i]
-        good = step(q, ok[k, s], x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, work)
+        good = step(q, ok[k, s], dt[k], x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R, cfg, work)
         out_ok[s, k] = good and ok[k, s]
+        out_age[s, k] = clock[CLOCK_AGE]
         for a in range(6):
             out_est[s, k, a] = est[a]
         for j in range(M):
@@ -300,24 +321,27 @@ def filter_sensor(s, qs, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar,
 
 
 @numba.njit(cache=True, parallel=True)
-def run(qs, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, out_est, out_ok, out_mu):
-    """Filter frames (F, S, 4) for S sensors, parallel over sensors; writes ω̄, ᾱ per frame to out_est (S, F, 6).
+def run(qs, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R, cfg, out_est, out_ok, out_mu,
+        out_age):
+    """Filter frames (F, S, 4), dt (F,) s apart, for S sensors, parallel over sensors; writes ω̄, ᾱ per frame to
+    out_est (S, F, 6) and the age of the sample the prediction starts from to out_age (S, F).
 
     The outputs are sensor-major (out_ok (S, F), out_mu (S, F, M)) so that threads never write
     to the same cache line. Each sensor's state and the configuration are copied to
     thread-local arrays first.
     """
     for s in numba.prange(qs.shape[1]):
-        xs, Ps, pr, tp, qp, st, es = (x[s].copy(), P[s].copy(), probs[s].copy(), tpm[s].copy(), q_prev[s].copy(),
-                                      status[s].copy(), est[s].copy())
-        filter_sensor(s, qs, ok, xs, Ps, pr, tp, qp, st, es, kinds.copy(), qvar.copy(), R.copy(), cfg.copy(),
-                      make_work(kinds.shape[0]), np.empty(4), out_est, out_ok, out_mu)
-        x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s] = xs, Ps, pr, tp, qp, st, es
+        xs, Ps, pr, tp, qp, st, es, cl = (x[s].copy(), P[s].copy(), probs[s].copy(), tpm[s].copy(),
+                                          q_prev[s].copy(), status[s].copy(), est[s].copy(), clock[s].copy())
+        filter_sensor(s, qs, ok, dt.copy(), xs, Ps, pr, tp, qp, st, es, cl, kinds.copy(), qvar.copy(), R.copy(),
+                      cfg.copy(), make_work(kinds.shape[0]), np.empty(4), out_est, out_ok, out_mu, out_age)
+        x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s], clock[s] = xs, Ps, pr, tp, qp, st, es, cl
 
 
 @numba.njit(cache=True)
-def update_frame(qs, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, cfg, ready):
-    """One live frame for every sensor (qs (S, 4), ok (S,)); ready[s] says whether sensor s has an estimate.
+def update_frame(qs, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R, cfg, ready):
+    """One live frame, dt s after the previous one, for every sensor (qs (S, 4), ok (S,)); ready[s] says whether
+    sensor s has an estimate.
 
     The scratch arrays are made here: cheaper than passing a tuple of them in from Python.
     Returns −1, or the first sensor whose valid sample is not a unit quaternion (then nothing is updated).
@@ -334,19 +358,20 @@ def update_frame(qs, ok, x, P, probs, tpm, q_prev, status, est, kinds, qvar, R, 
             n = np.sqrt(qs[s, 0] ** 2 + qs[s, 1] ** 2 + qs[s, 2] ** 2 + qs[s, 3] ** 2)
             for i in range(4):
                 qs[s, i] /= n
-        ready[s] = step(qs[s], good, x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s], kinds, qvar, R,
-                        cfg, work) and good
+        ready[s] = step(qs[s], good, dt, x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s], clock[s],
+                        kinds, qvar, R, cfg, work) and good
     return -1
 
 
 @numba.njit(cache=True)
-def predict_frame(last, est, ready, delta, tau, out):
-    """Orientations (S, 4) ``delta`` s after the last frame, NaN where a sensor has no estimate."""
+def predict_frame(last, est, clock, ready, delta, tau, out):
+    """Orientations (S, 4) ``delta`` s after the last frame, NaN where a sensor has no estimate (from the last
+    measured sample, ``age`` s older when the last frames repeated it)."""
     tmp = np.empty(4)
     dq = np.empty(4)
     for s in range(last.shape[0]):
         if not ready[s]:
             out[s, :] = np.nan
             continue
-        predict_orientation(last[s], est[s, 0], est[s, 1], est[s, 2], est[s, 3], est[s, 4], est[s, 5], delta, tau,
-                            out[s], tmp, dq)
+        predict_orientation(last[s], est[s, 0], est[s, 1], est[s, 2], est[s, 3], est[s, 4], est[s, 5],
+                            delta + clock[s, CLOCK_AGE], tau, out[s], tmp, dq)

@@ -1,9 +1,10 @@
 """What every orientation predictor offers: batch prediction of a recorded stream and a streaming form.
 
 Shapes: a stream of orientations is ``(frames, 4)`` or ``(frames, sensors, 4)`` unit
-quaternions (scalar first) sampled at ``rate_hz``; ``valid`` (same leading shape) marks the
-samples to use (missing or bad samples are skipped and their predictions are NaN). A horizon
-is in seconds and need not be a whole number of frames.
+quaternions (scalar first) at times ``time`` (frames,) s, or sampled at ``rate_hz`` when no
+times are given; ``valid`` (same leading shape) marks the samples to use (missing or bad samples
+are skipped and their predictions are NaN). A horizon is in seconds and need not be a whole number
+of frames. Repeated samples and gaps follow :mod:`ivc.predict.timing`.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ivc.errors import PredictorError
+from ivc.predict.timing import MAX_GAP_S, check_time, repeats, restarts
 
 FloatArray = NDArray[np.float64]
 
@@ -95,14 +97,17 @@ class Stream(ABC):
     """A predictor running live on ``n_sensors`` sensors: feed each frame, ask for the pose at any horizon."""
 
     n_sensors: int
+    #: restarts at gaps so far (summed over the sensors; every sensor at once for a fixed-rate design)
+    restarts: int = 0
 
     def __init__(self, predictor: Predictor | None, n_sensors: int):
         self.predictor, self.n_sensors = predictor, int(n_sensors)
         self.last = np.full((self.n_sensors, 4), np.nan)  # the latest frame fed
 
     @abstractmethod
-    def update(self, q: ArrayLike, valid: ArrayLike | None = None) -> None:
-        """Feed one frame: q (sensors, 4); valid (sensors,) marks the samples to use."""
+    def update(self, q: ArrayLike, valid: ArrayLike | None = None, time: float | None = None) -> None:
+        """Feed one frame: q (sensors, 4); valid (sensors,) marks the samples to use; ``time`` (s) its time stamp
+        (None: one nominal frame period after the previous frame)."""
 
     @abstractmethod
     def predict(self, horizon: float) -> FloatArray:
@@ -129,9 +134,11 @@ class Predictor(ABC):
         return 1.0 / self.rate_hz
 
     @abstractmethod
-    def predict(self, q: ArrayLike, horizons: float | Sequence[float], valid: ArrayLike | None = None) -> FloatArray:
+    def predict(self, q: ArrayLike, horizons: float | Sequence[float], valid: ArrayLike | None = None,
+                time: ArrayLike | None = None) -> FloatArray:
         """Predictions (H, F, [S,] 4): entry [h, k] is the orientation expected ``horizons[h]`` s after frame k,
-        from frames 0..k only. NaN where the filter has no estimate yet or the frame is invalid."""
+        from frames 0..k only. NaN where the filter has no estimate yet or the frame is invalid. ``time`` (F,) s:
+        the frames' time stamps (None: 1 / rate_hz apart)."""
 
     @abstractmethod
     def stream(self, n_sensors: int = 1) -> Stream:
@@ -140,3 +147,89 @@ class Predictor(ABC):
     def rates(self, q: ArrayLike, valid: ArrayLike | None = None) -> FloatArray | None:
         """Estimated angular velocity (F, [S,] 3) rad/s per frame, or None if the predictor has none."""
         return None
+
+
+class _Clock:
+    """A live stream's time keeping: the frame's dt, and the last time each sensor had a valid sample."""
+
+    def __init__(self, rate_hz: float, n_sensors: int):
+        self.rate_hz, self.now, self.frames = rate_hz, None, 0
+        self.last_valid = np.full(n_sensors, -np.inf)
+
+    def tick(self, time: float | None) -> float:
+        """dt (s) since the previous frame; refuses a time that does not move forward. Without a time stamp,
+        frame n is at n / rate_hz, as :func:`ivc.predict.timing.check_time` has it for a batch."""
+        self.frames += 1
+        if time is None:
+            before = self.now
+            self.now = (self.frames - 1) / self.rate_hz
+            return 0.0 if before is None else self.now - before
+        t = float(time)
+        if not np.isfinite(t) or (self.now is not None and t <= self.now):
+            raise PredictorError(f"frame time {t!r} s does not come after the previous frame's ({self.now!r} s): "
+                                 "feed frames in time order, without repeated time stamps")
+        dt = 0.0 if self.now is None else t - self.now
+        self.now = t
+        return dt
+
+
+class FixedRatePredictor(Predictor):
+    """A predictor designed for one sample rate (its gains or transition matrices are fixed at ``rate_hz``).
+
+    On a stream with time stamps it follows :mod:`ivc.predict.timing` as far as a fixed-rate design can:
+    exact repeats are dropped (treated as missing frames: no prediction there), and a gap longer than
+    ``max_gap_s`` restarts the filter; the steps in between are taken as 1 / rate_hz. Subclasses implement
+    :meth:`_predict_uniform` and :meth:`_stream_uniform`.
+    """
+
+    max_gap_s: float = MAX_GAP_S
+
+    @abstractmethod
+    def _predict_uniform(self, q: FloatArray, horizons, valid: NDArray[np.bool_]) -> FloatArray:
+        """Predictions (H, F, S, 4) of a stream (F, S, 4) sampled at rate_hz."""
+
+    @abstractmethod
+    def _stream_uniform(self, n_sensors: int) -> Stream:
+        """The live form at rate_hz."""
+
+    def predict(self, q, horizons, valid=None, time=None):
+        check_horizons(horizons)
+        qs, ok, single = check_stream(q, valid)
+        t = check_time(time, qs.shape[0], self.rate_hz)
+        use = ok & ~repeats(qs, ok)
+        cuts = np.flatnonzero(np.any(restarts(t, ok, self.max_gap_s), axis=1))
+        bounds = [0, *cuts.tolist(), qs.shape[0]]
+        parts = [self._predict_uniform(qs[a:b], horizons, use[a:b]) for a, b in zip(bounds[:-1], bounds[1:],
+                                                                                     strict=True) if b > a]
+        return as_given(np.concatenate(parts, axis=1), single)
+
+    def stream(self, n_sensors: int = 1) -> Stream:
+        return FixedRateStream(self, n_sensors)
+
+
+class FixedRateStream(Stream):
+    """The live form of a :class:`FixedRatePredictor`: drops repeats, restarts after a gap (every sensor)."""
+
+    def __init__(self, predictor: FixedRatePredictor, n_sensors: int):
+        super().__init__(predictor, n_sensors)
+        self.inner = predictor._stream_uniform(n_sensors)
+        self.clock = _Clock(predictor.rate_hz, n_sensors)
+        self.previous = np.full((self.n_sensors, 4), np.nan)  # each sensor's last valid sample
+        self.restarts = 0
+
+    def update(self, q, valid=None, time=None):
+        qs, ok = self._check_frame(q, valid)
+        self.clock.tick(time)
+        now = self.clock.now
+        if np.any(ok & (now - self.clock.last_valid > self.predictor.max_gap_s)
+                  & np.isfinite(self.clock.last_valid)):
+            self.inner = self.predictor._stream_uniform(self.n_sensors)
+            self.restarts += 1
+        same = ok & np.all(qs == self.previous, axis=1)
+        self.previous = np.where(ok[:, None], qs, self.previous)
+        self.clock.last_valid = np.where(ok, now, self.clock.last_valid)
+        self.inner.update(qs, ok & ~same)
+        self.last = self.inner.last
+
+    def predict(self, horizon):
+        return self.inner.predict(horizon)

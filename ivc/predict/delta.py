@@ -86,3 +86,24 @@ def extrapolate(q: ArrayLike, omega: ArrayLike, alpha: ArrayLike | None, delta: 
             break
         out = rotations.multiply(delta_q(omega + n * tau * alpha, span), out)
     return out / np.linalg.norm(out, axis=-1, keepdims=True)
+
+
+def extrapolate_each(q: ArrayLike, omega: ArrayLike, alpha: ArrayLike | None, delta: ArrayLike,
+                     tau: float) -> FloatArray:
+    """:func:`extrapolate` with a horizon per sample: δ (...) s, broadcast against q's leading shape."""
+    q = np.asarray(q, dtype=float)
+    omega = np.asarray(omega, dtype=float)
+    delta = np.broadcast_to(np.asarray(delta, dtype=float), q.shape[:-1])
+    if np.any(delta < 0.0):
+        raise InputError("the prediction horizons must be >= 0 s")
+    if alpha is None or not np.any(alpha):
+        return rotations.multiply(delta_q(omega, delta), q)
+    alpha = np.asarray(alpha, dtype=float)
+    finite = np.where(np.isfinite(delta), delta, 0.0)
+    steps = np.floor(finite / tau + 1e-9)
+    rest = finite - steps * tau
+    out = q
+    for n in range(1, int(np.max(steps, initial=0)) + 2):
+        span = np.where(n <= steps, tau, np.where(n == steps + 1, rest, 0.0))
+        out = rotations.multiply(delta_q(omega + n * tau * alpha, span), out)
+    return out / np.linalg.norm(out, axis=-1, keepdims=True)

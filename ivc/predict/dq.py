@@ -33,7 +33,8 @@ from ivc.predict.base import (
     check_rate,
     check_stream,
 )
-from ivc.predict.delta import extrapolate
+from ivc.predict.delta import extrapolate_each
+from ivc.predict.timing import MAX_GAP_S, check_time, steps
 
 #: Table 10 process-noise standard deviations: CV in rad/s², CA in rad/s³
 SIGMA_CV1 = (1.48, 0.63, 0.72)
@@ -92,6 +93,7 @@ class DQPredictor(Predictor):
     eps_mu: float = EPS
     p0_omega: float = 1.0
     p0_alpha: float = 100.0
+    max_gap_s: float = MAX_GAP_S
     name: str = "dq"
     _config: tuple = field(init=False, repr=False)
 
@@ -113,8 +115,11 @@ class DQPredictor(Predictor):
             raise PredictorError(f"sigma_v must be 4 positive standard deviations, got {self.sigma_v}")
         kinds = np.array([1 if m.kind == "ca" else 0 for m in self.models], dtype=np.int64)
         qvar = np.array([np.square(m.sigma_w) for m in self.models], dtype=float)
+        if not self.max_gap_s > 0:
+            raise PredictorError(f"max_gap_s must be a positive number of seconds, got {self.max_gap_s}")
         cfg = np.array([self.tau, self.eps_mix, self.eps_mu, float(self.adaptive_tpm),
-                        MODE_WEIGHTS[self.mode_weights], H_JACOBIANS[self.h_jacobian], self.p0_omega, self.p0_alpha])
+                        MODE_WEIGHTS[self.mode_weights], H_JACOBIANS[self.h_jacobian], self.p0_omega, self.p0_alpha,
+                        self.max_gap_s])
         self._config = (kinds, qvar, sigma_v**2, cfg, stationary(Pi), Pi)
 
     def _state(self, n_sensors: int) -> list[np.ndarray]:
@@ -122,33 +127,39 @@ class DQPredictor(Predictor):
         M = len(kinds)
         state = [np.zeros((n_sensors, M, 6)), np.zeros((n_sensors, M, 6, 6)), np.zeros((n_sensors, 3, M)),
                  np.zeros((n_sensors, 2, M, M)), np.zeros((n_sensors, 4)), np.zeros((n_sensors, 2), np.int64),
-                 np.zeros((n_sensors, 6))]
+                 np.zeros((n_sensors, 6)), np.zeros((n_sensors, 4))]
         for s in range(n_sensors):
             K.reset(*(a[s] for a in state), mu0, Pi0)
         return state
 
-    def filter(self, q: ArrayLike,
-               valid: ArrayLike | None = None) -> tuple[FloatArray, FloatArray, np.ndarray, FloatArray]:
-        """Run over a stream: (q (F, S, 4) checked, [ω̄, ᾱ] (F, S, 6), usable (F, S), mode probabilities (F, S, M))."""
+    def filter(self, q: ArrayLike, valid: ArrayLike | None = None, time: ArrayLike | None = None,
+               ages: bool = False) -> tuple:
+        """Run over a stream: (q (F, S, 4) checked, [ω̄, ᾱ] (F, S, 6), usable (F, S), mode probabilities (F, S, M)),
+        and with ``ages`` the age (F, S) s of the sample each prediction starts from (non-zero after repeats)."""
         qs, ok, _ = check_stream(q, valid)
         kinds, qvar, R, cfg, _, _ = self._config
         F, S = ok.shape
+        dt = steps(check_time(time, F, self.rate_hz))
+        if time is None:
+            dt[1:] = self.tau  # exactly the nominal period, as the live form's default
         est = np.empty((S, F, 6))
         usable = np.empty((S, F), bool)
         mu = np.empty((S, F, len(kinds)))
-        K.run(qs, ok, *self._state(S), kinds, qvar, R, cfg, est, usable, mu)
-        return qs, est.transpose(1, 0, 2), usable.T, mu.transpose(1, 0, 2)
+        age = np.empty((S, F))
+        K.run(qs, ok, dt, *self._state(S), kinds, qvar, R, cfg, est, usable, mu, age)
+        out = (qs, est.transpose(1, 0, 2), usable.T, mu.transpose(1, 0, 2))
+        return out + (age.T,) if ages else out
 
-    def rates(self, q, valid=None):
-        qs, est, usable, _ = self.filter(q, valid)
+    def rates(self, q, valid=None, time=None):
+        qs, est, usable, _ = self.filter(q, valid, time)
         out = np.where(usable[..., None], est[..., :3], np.nan)
         return as_given(out, np.ndim(q) == 2)
 
-    def predict(self, q, horizons, valid=None):
+    def predict(self, q, horizons, valid=None, time=None):
         h = check_horizons(horizons)
-        qs, est, usable, _ = self.filter(q, valid)
-        has_alpha = bool(np.any(est[..., 3:]))
-        out = np.stack([extrapolate(qs, est[..., :3], est[..., 3:] if has_alpha else None, d, self.tau) for d in h])
+        qs, est, usable, _, age = self.filter(q, valid, time, ages=True)
+        alpha = est[..., 3:] if np.any(est[..., 3:]) else None
+        out = np.stack([extrapolate_each(qs, est[..., :3], alpha, d + age, self.tau) for d in h])
         out[:, ~usable] = np.nan
         return as_given(out, np.ndim(q) == 2)
 
@@ -164,14 +175,27 @@ class DQStream(Stream):
         self.state = predictor._state(self.n_sensors)
         self.ready = np.zeros(self.n_sensors, bool)
         self._all = np.ones(self.n_sensors, bool)
+        self.now: float | None = None  # the last frame's time (s), when frames come with time stamps
+        self._step = 0.0  # dt of the next frame fed without a time stamp (0 for the first)
 
-    def update(self, q, valid=None):
+    def update(self, q, valid=None, time=None):
         q = np.array(q, dtype=float, order="C")  # a copy: normalised in place by the kernel
         if q.shape != (self.n_sensors, 4):
             raise PredictorError(f"a frame has shape ({self.n_sensors}, 4), got {q.shape}")
         ok = self._all if valid is None else np.asarray(valid, dtype=bool).reshape(self.n_sensors)
+        if time is None:  # the live path's default: one nominal period, no clock kept
+            dt = self._step
+            self._step = self.predictor.tau
+        else:
+            t = float(time)
+            if self.now is not None and not t > self.now:
+                raise PredictorError(f"frame time {t!r} s does not come after the previous frame's ({self.now!r} s): "
+                                     "feed frames in time order, without repeated time stamps")
+            dt = 0.0 if self.now is None else t - self.now
+            self.now = t
+            self._step = self.predictor.tau
         kinds, qvar, R, cfg, _, _ = self.predictor._config
-        bad = K.update_frame(q, ok, *self.state, kinds, qvar, R, cfg, self.ready)
+        bad = K.update_frame(q, ok, dt, *self.state, kinds, qvar, R, cfg, self.ready)
         if bad >= 0:
             raise PredictorError(f"sensor {bad}: not a unit quaternion (norm {np.linalg.norm(q[bad]):.6g}); "
                                  "pass unit quaternions [w, x, y, z]")
@@ -182,8 +206,13 @@ class DQStream(Stream):
         if not 0.0 <= d <= MAX_HORIZON:
             check_horizons(horizon)
         out = np.empty((self.n_sensors, 4))
-        K.predict_frame(self.last, self.state[6], self.ready, d, self.predictor.tau, out)
+        K.predict_frame(self.last, self.state[6], self.state[7], self.ready, d, self.predictor.tau, out)
         return out
+
+    @property
+    def restarts(self) -> int:
+        """Restarts at gaps so far, summed over the sensors."""
+        return int(self.state[7][:, K.CLOCK_RESTARTS].sum())
 
     @property
     def omega(self) -> FloatArray:

@@ -97,7 +97,7 @@ class LastSample(Stream):
     def __init__(self, n_sensors: int):
         super().__init__(None, n_sensors)
 
-    def update(self, q, valid=None):
+    def update(self, q, valid=None, time=None):
         qs, ok = self._check_frame(q, valid)
         self.last = np.where(ok[:, None], qs, np.nan)
 
@@ -113,7 +113,7 @@ class NoPrediction(Predictor):
     def __init__(self, rate_hz: float = 120.0):
         self.rate_hz = rate_hz
 
-    def predict(self, q, horizons, valid=None):
+    def predict(self, q, horizons, valid=None, time=None):
         h = check_horizons(horizons)
         qs, _, single = check_stream(q, valid)  # invalid samples are NaN
         out = np.broadcast_to(qs, (len(h),) + qs.shape).copy()

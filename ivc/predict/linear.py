@@ -18,15 +18,19 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 from scipy.signal import lfilter, ss2tf
 
 from ivc import rotations
+from ivc.predict._quat import delta_q, qmul, qmul_conj, rate_of
 from ivc.predict.base import (
+    MAX_HORIZON,
+    FixedRatePredictor,
     FloatArray,
-    Predictor,
     PredictorError,
     Stream,
+    _Clock,
     as_given,
     check_horizons,
     check_rate,
@@ -34,17 +38,24 @@ from ivc.predict.base import (
 )
 from ivc.predict.delta import deltas
 from ivc.predict.frequency import kinematic_gain
+from ivc.predict.timing import check_time, repeats, restarts
 
 
 @dataclass
-class LinearPredictor(Predictor):
-    """Per-axis linear predictor: X(k) = G X(k−1) + K θ(k), θ̂(k + p) = D(p) X(k)."""
+class LinearPredictor(FixedRatePredictor):
+    """Per-axis linear predictor: X(k) = G X(k−1) + K θ(k), θ̂(k + p) = D(p) X(k).
+
+    The α-β and kinematic filters are steady-state designs at ``rate_hz`` (:class:`FixedRatePredictor`).
+    A polynomial predictor (``order`` 1 or 2) instead fits its last ``window`` samples at their actual
+    times, so it follows a stream's own time steps; on a uniform stream it is the same linear filter.
+    """
 
     G: FloatArray
     K: FloatArray
     D: Callable[[float], FloatArray]
     rate_hz: float = 120.0
     name: str = "linear"
+    order: int = 0  # 1 or 2 for a polynomial predictor, 0 otherwise
     _cache: dict = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self):
@@ -73,9 +84,47 @@ class LinearPredictor(Predictor):
         steps = rotations.to_rotvec(deltas(filled))
         return np.concatenate([np.zeros((1,) + steps.shape[1:]), np.cumsum(steps, axis=0)])
 
-    def predict(self, q, horizons, valid=None):
+    def predict(self, q, horizons, valid=None, time=None):
+        if not self.order:
+            return super().predict(q, horizons, valid, time)
         h = check_horizons(horizons)
         qs, ok, single = check_stream(q, valid)
+        t = check_time(time, qs.shape[0], self.rate_hz)
+        use = ok & ~repeats(qs, ok)
+        segment = np.cumsum(restarts(t, ok, self.max_gap_s), axis=0)
+        out = np.full((len(h),) + qs.shape, np.nan)
+        window = self.K.size
+        for s in range(qs.shape[1]):
+            idx = np.flatnonzero(use[:, s])
+            if len(idx) < window:
+                continue
+            seg = segment[idx, s]
+            dq = rotations.multiply(qs[idx[1:], s], rotations.conjugate(qs[idx[:-1], s]))
+            theta = np.concatenate([np.zeros((1, 3)), np.cumsum(rotations.to_rotvec(np.where(dq[:, :1] < 0, -dq, dq)),
+                                                                axis=0)])
+            ends = np.arange(window - 1, len(idx))
+            rows = ends[:, None] - np.arange(window)[None, :]  # newest first
+            whole = seg[rows[:, -1]] == seg[ends]  # the window lies within one stretch between gaps
+            ends, rows = ends[whole], rows[whole]
+            coef = polynomial_fit(t[idx[rows]] - t[idx[ends]][:, None], theta[rows], self.order)
+            # every valid frame predicts from the latest accepted sample (itself, or the one it repeats)
+            latest = np.maximum.accumulate(np.where(use[:, s], np.arange(len(t)), -1))
+            frames = np.flatnonzero(ok[:, s] & (latest >= 0))
+            pos = np.searchsorted(idx, latest[frames])
+            fitted = np.full(len(idx), -1)
+            fitted[ends] = np.arange(len(ends))
+            has = (fitted[pos] >= 0) & (segment[frames, s] == seg[pos])
+            frames, pos = frames[has], pos[has]
+            c = coef[fitted[pos]]  # (n, order + 1, 3)
+            age = t[frames] - t[idx[pos]]
+            for i, d in enumerate(h):
+                p = (d + age)[:, None] ** np.arange(self.order + 1)[None, :]
+                ahead = np.einsum("nj,njc->nc", p, c) - theta[pos]
+                out[i, frames, s] = rotations.multiply(rotations.from_rotvec(ahead), qs[idx[pos], s])
+        return as_given(out, single)
+
+    def _predict_uniform(self, qs, horizons, ok):
+        h = check_horizons(horizons)
         theta = self.angles(qs, ok)
         out = []
         for d in h:
@@ -84,13 +133,147 @@ class LinearPredictor(Predictor):
             out.append(rotations.multiply(rotations.from_rotvec(ahead), qs))
         out = np.stack(out)
         out[:, ~ok] = np.nan
-        return as_given(out, single)
+        return out
 
-    def stream(self, n_sensors: int = 1) -> LinearStream:
+    def stream(self, n_sensors: int = 1) -> Stream:
+        return PolynomialStream(self, n_sensors) if self.order else super().stream(n_sensors)
+
+    def _stream_uniform(self, n_sensors: int) -> LinearStream:
         return LinearStream(self, n_sensors)
 
 
+def polynomial_fit(times: FloatArray, theta: FloatArray, order: int) -> FloatArray:
+    """Least-squares polynomial coefficients (n, order + 1, 3) of θ (n, w, 3) at ``times`` (n, w) s, lowest first."""
+    V = times[..., None] ** np.arange(order + 1)  # (n, w, order + 1)
+    if V.shape[1] == order + 1:  # as many samples as coefficients: the interpolating polynomial
+        return np.linalg.solve(V, theta)
+    return np.linalg.solve(np.einsum("nwi,nwj->nij", V, V), np.einsum("nwi,nwc->nic", V, theta))
+
+
+@numba.njit(cache=True)
+def _solve_small(A, b, n):
+    """b := A⁻¹ b for an n x n (n <= 3) symmetric positive definite A, by Gaussian elimination (in place)."""
+    for i in range(n):
+        for r in range(i + 1, n):
+            f = A[r, i] / A[i, i]
+            for c in range(i, n):
+                A[r, c] -= f * A[i, c]
+            for k in range(3):
+                b[r, k] -= f * b[i, k]
+    for i in range(n - 1, -1, -1):
+        for k in range(3):
+            acc = b[i, k]
+            for c in range(i + 1, n):
+                acc -= A[i, c] * b[c, k]
+            b[i, k] = acc / A[i, i]
+
+
+@numba.njit(cache=True)
+def _poly_update(qs, new, now, theta, times, count, base, coef, order):
+    """Push each new sample into its sensor's window (newest first) and refit the polynomial where it is full."""
+    S, w = times.shape
+    dq = np.empty(4)
+    step = np.empty(3)
+    A = np.empty((3, 3))
+    for s in range(S):
+        if not new[s]:
+            continue
+        if count[s] > 0:
+            qmul_conj(qs[s], base[s], dq)
+            if dq[0] < 0.0:
+                for i in range(4):
+                    dq[i] = -dq[i]
+            rate_of(dq, 1.0, step)
+        for j in range(w - 1, 0, -1):
+            times[s, j] = times[s, j - 1]
+            for k in range(3):
+                theta[s, j, k] = theta[s, j - 1, k]
+        times[s, 0] = now
+        for k in range(3):
+            theta[s, 0, k] = theta[s, 1, k] + step[k] if count[s] > 0 else 0.0
+        for i in range(4):
+            base[s, i] = qs[s, i]
+        count[s] += 1
+        if count[s] < w:
+            continue
+        n = order + 1
+        for i in range(n):
+            for j in range(n):
+                acc = 0.0
+                for m in range(w):
+                    acc += (times[s, m] - now) ** (i + j)
+                A[i, j] = acc
+            for k in range(3):
+                acc = 0.0
+                for m in range(w):
+                    acc += (times[s, m] - now) ** i * theta[s, m, k]
+                coef[s, i, k] = acc
+        _solve_small(A, coef[s], n)
+
+
+@numba.njit(cache=True)
+def _poly_predict(base, theta, times, coef, ok, now, delta, order, out):
+    """exp(x̂(δ + age) − θ) ⊗ base per sensor, NaN where ``ok`` is False."""
+    step = np.empty(3)
+    dq = np.empty(4)
+    for s in range(base.shape[0]):
+        if not ok[s]:
+            out[s, :] = np.nan
+            continue
+        p = delta + now - times[s, 0]
+        for k in range(3):
+            acc = 0.0
+            for i in range(order + 1):
+                acc += coef[s, i, k] * p**i
+            step[k] = acc - theta[s, 0, k]
+        delta_q(step[0], step[1], step[2], 1.0, dq)
+        qmul(dq, base[s], out[s])
+
+
+class PolynomialStream(Stream):
+    """The live polynomial predictor: the last ``window`` accepted samples of each sensor at their times."""
+
+    def __init__(self, predictor: LinearPredictor, n_sensors: int):
+        super().__init__(predictor, n_sensors)
+        w = predictor.K.size
+        self.window = w
+        self.clock = _Clock(predictor.rate_hz, n_sensors)
+        self.theta = np.zeros((n_sensors, w, 3))  # newest first
+        self.times = np.zeros((n_sensors, w))
+        self.count = np.zeros(n_sensors, np.int64)  # accepted samples since the start or the last gap
+        self.base = np.full((n_sensors, 4), np.nan)  # the latest accepted sample
+        self.previous = np.full((n_sensors, 4), np.nan)  # the latest valid sample
+        self.coef = np.zeros((n_sensors, predictor.order + 1, 3))
+        self.ok = np.zeros(n_sensors, bool)
+
+    def update(self, q, valid=None, time=None):
+        qs, ok = self._check_frame(q, valid)
+        self.clock.tick(time)
+        now = self.clock.now
+        gap = ok & (now - self.clock.last_valid > self.predictor.max_gap_s) & np.isfinite(self.clock.last_valid)
+        if gap.any():
+            self.restarts += int(gap.sum())
+            self.count[gap] = 0
+        new = ok & ~np.all(qs == self.previous, axis=1)
+        self.previous = np.where(ok[:, None], qs, self.previous)
+        self.clock.last_valid = np.where(ok, now, self.clock.last_valid)
+        _poly_update(qs, new, now, self.theta, self.times, self.count, self.base, self.coef, self.predictor.order)
+        self.ok = ok & (self.count >= self.window)
+        self.last = qs
+
+    def predict(self, horizon):
+        d = float(horizon)
+        if not 0.0 <= d <= MAX_HORIZON:
+            check_horizons(horizon)
+        out = np.empty((self.n_sensors, 4))
+        _poly_predict(self.base, self.theta, self.times, self.coef, self.ok, self.clock.now, d,
+                      self.predictor.order, out)
+        return out
+
+
 class LinearStream(Stream):
+    """The steady-state filter at the nominal rate (the inner stream of :class:`FixedRateStream`)."""
+
     def __init__(self, predictor: LinearPredictor, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.X = np.zeros((n_sensors, predictor.K.size, 3))
@@ -98,7 +281,7 @@ class LinearStream(Stream):
         self.started = np.zeros(n_sensors, bool)
         self.ok = np.zeros(n_sensors, bool)
 
-    def update(self, q, valid=None):
+    def update(self, q, valid=None, time=None):
         qs, ok = self._check_frame(q, valid)
         step = np.zeros((self.n_sensors, 3))
         moving = ok & self.started
@@ -151,7 +334,7 @@ def polynomial(rate_hz: float = 120.0, order: int = 2, window: int | None = None
         return (float(p) ** np.arange(order + 1)) @ fit
 
     name = f"poly{order}" if window == default else f"poly{order}-w{window}"
-    return LinearPredictor(G, K, D, rate_hz, name=name)
+    return LinearPredictor(G, K, D, rate_hz, name=name, order=order)
 
 
 def alpha_beta(rate_hz: float = 120.0, alpha: float = 0.568) -> LinearPredictor:

@@ -32,8 +32,8 @@ from scipy.linalg import expm
 
 from ivc import rotations
 from ivc.predict.base import (
+    FixedRatePredictor,
     FloatArray,
-    Predictor,
     PredictorError,
     Stream,
     as_given,
@@ -218,7 +218,7 @@ DEFAULT_BANK = (Elemental("cp", 0.1, threshold=8.0), Elemental("fogmv", 1.0, tau
 
 
 @dataclass
-class MMAE(Predictor):
+class MMAE(FixedRatePredictor):
     """Kyger's MMAE bank on the sensor's x and z axes; ``r`` the measurement variance per component."""
 
     rate_hz: float = 120.0
@@ -257,7 +257,7 @@ class MMAE(Predictor):
         return (np.zeros((S, 2, J, 3, 3)), P, np.full((S, 2, J), -np.log(J)), np.zeros((S, 2, 1), np.int64),
                 np.full((S, 2, J), 1.0 / J))
 
-    def predict(self, q, horizons, valid=None):
+    def _predict_uniform(self, q, horizons, valid=None):
         h = check_horizons(horizons)
         qs, ok, single = check_stream(q, valid)
         F, S = ok.shape
@@ -271,7 +271,7 @@ class MMAE(Predictor):
         pred = np.moveaxis(pred, 2, 0)
         return as_given(pred, single)
 
-    def stream(self, n_sensors: int = 1) -> MMAEStream:
+    def _stream_uniform(self, n_sensors: int = 1) -> MMAEStream:
         return MMAEStream(self, n_sensors)
 
 

@@ -25,7 +25,15 @@ import numpy as np
 
 from ivc._linalg import congruence
 from ivc.predict._quat import normalise, qmul
-from ivc.predict.base import Predictor, PredictorError, Stream, as_given, check_horizons, check_rate, check_stream
+from ivc.predict.base import (
+    FixedRatePredictor,
+    PredictorError,
+    Stream,
+    as_given,
+    check_horizons,
+    check_rate,
+    check_stream,
+)
 from ivc.predict.qekf import quaternion_update
 
 #: V_r of the paper: variance of each measured quaternion component
@@ -185,7 +193,7 @@ def extrapolate(x: np.ndarray, usable: np.ndarray, t: float) -> np.ndarray:
 
 
 @dataclass
-class NasaEKF(Predictor):
+class NasaEKF(FixedRatePredictor):
     """Seed 003's 10-state quaternion EKF; ``W`` (10,) its diagonal process noise per step, ``V`` the
     measurement variance of each quaternion component, ``p0`` the initial ω and α variances."""
 
@@ -213,18 +221,18 @@ class NasaEKF(Predictor):
         _run(qs, ok, np.zeros((S, N)), np.zeros((S, N, N)), np.zeros((S, 2), np.int64), *self._config, out_x, out_ok)
         return qs, out_x, out_ok
 
-    def rates(self, q, valid=None):
+    def rates(self, q, valid=None, time=None):  # a fixed-rate design: the nominal rate
         _, x, usable = self.filter(q, valid)
         out = np.where(usable[..., None], x[..., 4:7], np.nan)
         return as_given(out, np.ndim(q) == 2)
 
-    def predict(self, q, horizons, valid=None):
+    def _predict_uniform(self, q, horizons, valid=None):
         h = check_horizons(horizons)
         _, x, usable = self.filter(q, valid)
         out = np.stack([extrapolate(x, usable, d) for d in h])
         return as_given(out, np.ndim(q) == 2)
 
-    def stream(self, n_sensors: int = 1) -> NasaStream:
+    def _stream_uniform(self, n_sensors: int = 1) -> NasaStream:
         return NasaStream(self, n_sensors)
 
 

@@ -16,23 +16,51 @@ import numpy as np
 
 from ivc._linalg import cholesky, congruence, factored_update
 from ivc.predict._quat import delta_q_jacobian, normalise, qmul, qmul_conj, rate_of
-from ivc.predict.base import Predictor, PredictorError, Stream, as_given, check_horizons, check_rate, check_stream
-from ivc.predict.delta import extrapolate
+from ivc.predict.base import (
+    Predictor,
+    PredictorError,
+    Stream,
+    _Clock,
+    as_given,
+    check_horizons,
+    check_rate,
+    check_stream,
+)
+from ivc.predict.delta import extrapolate_each
 from ivc.predict.dq import SIGMA_CV1
+from ivc.predict.timing import MAX_GAP_S, check_time, steps
 
 #: Table 3, Q column: measurement variances of the 4 quaternion components
 R_QUATERNION = (2.55e-07, 4.67e-07, 4.10e-07, 3.28e-07)
 
 
 @numba.njit(cache=True)
-def _step(z_in, ok, x, P, status, qvar, R, tau, p0w, work):
-    """One Q-EKF cycle for one sensor; x = [q(4), ω(3)], status = [initialised, have_prev]."""
+def _step(z_in, ok, dt, x, P, status, clock, qvar, R, max_gap, p0w, work):
+    """One Q-EKF cycle for one sensor, dt s after the previous frame; x = [q(4), ω(3)], status = [initialised,
+    have_prev], clock = [age of x (s), s since the last valid sample, restarts, repeats, the last valid sample (4)].
+
+    The time rules of :mod:`ivc.predict.timing`: an invalid sample is bridged (the next cycle spans the time), a
+    stretch without one longer than ``max_gap`` s restarts the filter, an exact repeat of the last valid sample is
+    dropped (the prediction then starts from x, ``age`` s old)."""
     z, dq, J, RJ, A, W, T, Pp, S, L, nu, xp, U, Rq = work
+    clock[0] += dt
+    clock[1] += dt
     if not ok:
+        return status[0] == 1
+    if status[1] == 1 and clock[1] > max_gap:
+        status[0] = 0
         status[1] = 0
+        clock[2] += 1.0
+    clock[1] = 0.0
+    if status[1] == 1 and z_in[0] == clock[4] and z_in[1] == clock[5] and z_in[2] == clock[6] \
+            and z_in[3] == clock[7]:
+        clock[3] += 1.0
         return status[0] == 1
     for i in range(4):
         z[i] = z_in[i]
+        clock[4 + i] = z_in[i]
+    tau = clock[0]
+    clock[0] = 0.0
     if status[1] == 0 or status[0] == 0:
         if status[1] == 1:  # second frame: ω from the first Δq
             qmul_conj(z, x, dq)
@@ -132,24 +160,28 @@ def _work():
 
 
 @numba.njit(cache=True, parallel=True)
-def _run(qs, ok, x, P, status, qvar, R, tau, p0w, out_x, out_ok):
+def _run(qs, ok, dt, x, P, status, clock, qvar, R, max_gap, p0w, out_x, out_ok, out_age):
     for s in numba.prange(qs.shape[1]):
         work = _work()
         for k in range(qs.shape[0]):
-            good = _step(qs[k, s], ok[k, s], x[s], P[s], status[s], qvar, R, tau, p0w, work)
+            good = _step(qs[k, s], ok[k, s], dt[k], x[s], P[s], status[s], clock[s], qvar, R, max_gap, p0w, work)
             out_ok[k, s] = good and ok[k, s]
             out_x[k, s] = x[s]
+            out_age[k, s] = clock[s, 0]
 
 
 @dataclass
 class QEKF(Predictor):
-    """7-state quaternion EKF (seed 001 Ch. 2 "Q"); ``base`` = "state" (default) or "measurement"."""
+    """7-state quaternion EKF (Himberg 2010 ch. 2 "Q"); ``base`` = "state" (default) or "measurement".
+
+    Runs at the stream's own time steps (:mod:`ivc.predict.timing`)."""
 
     rate_hz: float = 120.0
     sigma_w: tuple[float, float, float] = SIGMA_CV1
     sigma_v: tuple[float, float, float, float] = tuple(np.sqrt(R_QUATERNION))
     base: str = "state"
     p0_omega: float = 1.0
+    max_gap_s: float = MAX_GAP_S
     name: str = "q-ekf"
     _config: tuple = field(init=False, repr=False)
 
@@ -162,25 +194,31 @@ class QEKF(Predictor):
             raise PredictorError("sigma_w needs 3 and sigma_v 4 positive standard deviations")
         self._config = (qvar, R)
 
-    def filter(self, q, valid=None):
-        """(checked q (F, S, 4), states [q̂, ω̂] (F, S, 7), usable (F, S))."""
+    def filter(self, q, valid=None, time=None, ages=False):
+        """(checked q (F, S, 4), states [q̂, ω̂] (F, S, 7), usable (F, S)), and with ``ages`` the age (F, S) s of
+        the state each prediction starts from."""
         qs, ok, _ = check_stream(q, valid)
         F, S = ok.shape
-        out_x, out_ok = np.zeros((F, S, 7)), np.zeros((F, S), bool)
-        _run(qs, ok, np.zeros((S, 7)), np.zeros((S, 7, 7)), np.zeros((S, 2), np.int64), *self._config, self.tau,
-             self.p0_omega, out_x, out_ok)
-        return qs, out_x, out_ok
+        dt = steps(check_time(time, F, self.rate_hz))
+        if time is None:
+            dt[1:] = self.tau
+        out_x, out_ok, age = np.zeros((F, S, 7)), np.zeros((F, S), bool), np.zeros((F, S))
+        _run(qs, ok, dt, np.zeros((S, 7)), np.zeros((S, 7, 7)), np.zeros((S, 2), np.int64), np.zeros((S, 8)),
+             *self._config, self.max_gap_s, self.p0_omega, out_x, out_ok, age)
+        return (qs, out_x, out_ok, age) if ages else (qs, out_x, out_ok)
 
-    def rates(self, q, valid=None):
-        _, x, usable = self.filter(q, valid)
+    def rates(self, q, valid=None, time=None):
+        _, x, usable = self.filter(q, valid, time)
         out = np.where(usable[..., None], x[..., 4:], np.nan)
         return as_given(out, np.ndim(q) == 2)
 
-    def predict(self, q, horizons, valid=None):
+    def predict(self, q, horizons, valid=None, time=None):
         h = check_horizons(horizons)
-        qs, x, usable = self.filter(q, valid)
+        qs, x, usable, age = self.filter(q, valid, time, ages=True)
         base = x[..., :4] if self.base == "state" else qs
-        out = np.stack([extrapolate(base, x[..., 4:], None, d, self.tau) for d in h])
+        if self.base == "measurement":
+            age = np.zeros_like(age)  # the measurement itself is the latest sample (a repeat equals it)
+        out = np.stack([extrapolate_each(base, x[..., 4:], None, d + age, self.tau) for d in h])
         out[:, ~usable] = np.nan
         return as_given(out, np.ndim(q) == 2)
 
@@ -193,20 +231,33 @@ class QStream(Stream):
         super().__init__(predictor, n_sensors)
         self.x, self.P = np.zeros((n_sensors, 7)), np.zeros((n_sensors, 7, 7))
         self.status = np.zeros((n_sensors, 2), np.int64)
+        self.clock_state = np.zeros((n_sensors, 8))
+        self.clock = _Clock(predictor.rate_hz, n_sensors)
         self.work = _work()
         self.ready = np.zeros(n_sensors, bool)
 
-    def update(self, q, valid=None):
+    @property
+    def restarts(self) -> int:
+        return int(self.clock_state[:, 2].sum())
+
+    def update(self, q, valid=None, time=None):
         qs, ok = self._check_frame(q, valid)
+        dt = self.clock.tick(time)
+        if time is None and self.clock.frames > 1:
+            dt = self.predictor.tau  # exactly the nominal period, as the batch without time stamps
         qvar, R = self.predictor._config
+        p = self.predictor
         for s in range(self.n_sensors):
-            self.ready[s] = _step(qs[s], ok[s], self.x[s], self.P[s], self.status[s], qvar, R, self.predictor.tau,
-                                  self.predictor.p0_omega, self.work) and ok[s]
+            self.ready[s] = _step(qs[s], ok[s], dt, self.x[s], self.P[s], self.status[s], self.clock_state[s], qvar,
+                                  R, p.max_gap_s, p.p0_omega, self.work) and ok[s]
         self.last = qs
 
     def predict(self, horizon):
         d = float(check_horizons(horizon)[0])
-        base = self.x[:, :4] if self.predictor.base == "state" else self.last
-        out = extrapolate(base, self.x[:, 4:], None, d, self.predictor.tau)
+        if self.predictor.base == "state":
+            base, age = self.x[:, :4], self.clock_state[:, 0]
+        else:
+            base, age = self.last, np.zeros(self.n_sensors)
+        out = extrapolate_each(base, self.x[:, 4:], None, d + age, self.predictor.tau)
         out[~self.ready] = np.nan
         return out

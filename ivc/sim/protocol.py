@@ -114,9 +114,10 @@ class Simulator:
             rng=rng,
             description=f"simulated: {STEP_DESCRIPTIONS[name]} (scene {scene.name!r}, seed {self.seed})",
             sensor_prefix="cube" if name.startswith("cube") else ("wand" if name.startswith("wand") else "check"),
+            solver=scene.tracker,
             tracker=self.tracker,
         )
-        step.attrs.update(attrs)
+        step.attrs.update(attrs, tracker_solver=scene.tracker)
         return step, Truth(positions, quaternions)
 
     def protocol(self, frames: Mapping[str, int | None] | None = None, *, steps: Sequence[str] = STEPS,

@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from ivc import rotations
 from ivc.dipole import HEMISPHERES
+from ivc.dipole.tracker_solver import SOLVERS
 from ivc.errors import SceneError
 from ivc.sim import eddy, meshes
 from ivc.sim.field import FerrousSphere, SecondaryField
@@ -114,6 +115,8 @@ class Scene:
     description: str = ""
     frequency_hz: float = 10_000.0
     hemisphere: str = "+x"
+    #: the solver the simulated tracker reports poses with (ivc.dipole.tracker_solver.SOLVERS)
+    tracker: str = "closed-form"
     conductors: list[Conductor] = field(default_factory=list)
     spheres: list[FerrousSphere] = field(default_factory=list)
     cube: CubeSpec = field(default_factory=CubeSpec)
@@ -180,6 +183,9 @@ def scene_from_dict(data: dict, name: str = "scene", base: Path | None = None) -
     hemisphere = data.get("hemisphere", "+x")
     if hemisphere not in HEMISPHERES:
         raise SceneError(f"{name}: hemisphere {hemisphere!r}; use one of {', '.join(HEMISPHERES)}")
+    tracker = data.get("tracker", "closed-form")
+    if tracker not in SOLVERS:
+        raise SceneError(f"{name}: tracker {tracker!r}; use one of {', '.join(SOLVERS)}")
     cube_t, wand_t, noise_t, sweep_t = (data.get(k, {}) for k in ("cube", "wand", "noise", "sweep"))
     cube = CubeSpec(
         center=_vector(cube_t, "center", f"{name}.cube", [0.5, 0.0, 0.0]),
@@ -212,6 +218,7 @@ def scene_from_dict(data: dict, name: str = "scene", base: Path | None = None) -
         description=data.get("description", ""),
         frequency_hz=float(data.get("frequency_hz", 10_000.0)),
         hemisphere=hemisphere,
+        tracker=tracker,
         conductors=conductors,
         spheres=spheres,
         cube=cube,

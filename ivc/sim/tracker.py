@@ -2,13 +2,14 @@
 
 For each sample it forms ``S = Tᵀ (f_D(r) + G(r))`` (zero G in free space), applies
 the scene's noise model (gain drift, white noise, dropouts, saturation close to the
-source) and, like a commercial unit, also reports the pose of its own closed-form
-dipole solver (MATH.md §3), which is distorted wherever G is not zero.
+source) and, like a commercial unit, also reports the pose of its own solver, which is
+distorted wherever G is not zero: the closed-form dipole solver (docs/math.md §3) by default,
+or the least-squares one (``ivc.dipole.tracker_solver``).
 
 With an imperfect ``tracker`` (:class:`ivc.dipole.tracker.Tracker`: coil gains,
 cross-talk, coil offsets) the free-space part is the tracker's own model and the
 secondary field is driven by its source moments, ``Bᵀ Tᵀ G A``; the reported pose is
-then the closed form on the raw signal (a solver that assumes an ideal device). The
+then its solver's on the raw signal (a solver that assumes an ideal device). The
 ideal tracker (the default) takes exactly the code path it always took.
 """
 
@@ -18,6 +19,7 @@ import numpy as np
 
 from ivc import dipole, rotations
 from ivc.dipole.tracker import Tracker
+from ivc.dipole.tracker_solver import reported_pose
 from ivc.session import Step
 from ivc.sim.field import SecondaryField
 from ivc.sim.scene import NoiseSpec
@@ -39,6 +41,7 @@ def measure(
     rng: np.random.Generator,
     description: str = "",
     sensor_prefix: str = "sensor",
+    solver: str = "closed-form",
     tracker: Tracker | None = None,
 ) -> Step:
     """Simulate a tracker recording of true sensor poses ``positions`` (F, N, 3), ``quaternions`` (F, N, 4)."""
@@ -61,7 +64,7 @@ def measure(
     dropped = rng.random((frames, sensors)) < noise.dropout_rate
     valid = ~(saturated | dropped)
     S[~valid] = np.nan
-    position, T_reported = dipole.closed_form_pose(S, hemisphere)
+    position, T_reported = reported_pose(S, solver, hemisphere)
     with np.errstate(invalid="ignore"):
         quaternion = rotations.from_matrix(T_reported)
     quaternion[~valid] = np.nan

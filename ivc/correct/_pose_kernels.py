@@ -1,0 +1,182 @@
+"""Compiled pose-only correction for the closed-form tracker solver: solve ``φ(r) = v`` per sample.
+
+``φ(r)`` is the closed-form dipole position of ``F = f_D(r) + g(r)`` (g from the table), and
+``C(r)`` its orientation (docs/math.md §3). Per sample: from the given start and initial
+inverse-Jacobian estimate ``H`` (:class:`ivc.correct.pose_domain.SeedMap` gives both), step
+``r ← r + H (v − φ(r))``, halving a step that does not lower the miss, with Broyden's good
+update of ``H``; stop when ``|v − φ(r)| ≤ tolerance``. The steps need the position only; ``C``
+is computed once, at the solution. The reference
+(NumPy, any solver) is :func:`ivc.pose.reported.invert_distortion`.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from ivc.dipole._kernels import _principal_eigenvector, closed_form_one, field_matrix
+from ivc.lut._kernels import _cell, _weights
+
+_OPTS = dict(parallel=True, cache=True, nogil=True)
+#: step halvings tried before a sample is given up
+BACKTRACKS = 12
+
+
+@numba.njit(inline="always")
+def _grid_value(padded, valid_cells, origin, spacing, shape, p, cubic, value, wx, wy, wz, dx, dy, dz):
+    """Value (C,) of the table at p (no gradient); returns whether p is in a valid cell."""
+    i, tx, in_x = _cell(p[0], origin[0], spacing, shape[0])
+    j, ty, in_y = _cell(p[1], origin[1], spacing, shape[1])
+    k, tz, in_z = _cell(p[2], origin[2], spacing, shape[2])
+    _weights(tx, cubic, wx, dx)
+    _weights(ty, cubic, wy, dy)
+    _weights(tz, cubic, wz, dz)
+    C = padded.shape[3]
+    for c in range(C):
+        value[c] = 0.0
+    for a in range(4):
+        if wx[a] == 0.0:
+            continue
+        for b in range(4):
+            if wy[b] == 0.0:
+                continue
+            for d in range(4):
+                if wz[d] == 0.0:
+                    continue
+                w = wx[a] * wy[b] * wz[d]
+                node = padded[i + a, j + b, k + d]
+                for c in range(C):
+                    value[c] += w * node[c]
+    return in_x and in_y and in_z and valid_cells[i, j, k]
+
+
+@numba.njit(inline="always")
+def _field_at(r, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, wz, dx, dy, dz, F):
+    """F = f_D(r) + g(r) (3, 3); returns (usable, mapped)."""
+    rho2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+    if not (rho2 > 1e-12) or not np.isfinite(rho2):
+        return False, False
+    mapped = _grid_value(padded, valid_cells, origin, spacing, shape, r, cubic, g, wx, wy, wz, dx, dy, dz)
+    field_matrix(r[0], r[1], r[2], F)
+    tr = 0.0
+    for i in range(3):
+        for j in range(3):
+            F[i, j] += g[3 * i + j]
+            tr += F[i, j] * F[i, j]
+    return (tr > 0.0) and np.isfinite(tr), mapped
+
+
+@numba.njit(inline="always")
+def _position(F, h, B, wa, wb, ev, phi):
+    """The closed-form dipole position of F (docs/math.md §3: range from tr FᵀF, direction its principal
+    eigenvector on the hemisphere's side) into phi (3,)."""
+    for i in range(3):
+        for j in range(3):
+            B[i, j] = F[0, i] * F[0, j] + F[1, i] * F[1, j] + F[2, i] * F[2, j]
+    tr = B[0, 0] + B[1, 1] + B[2, 2]
+    _principal_eigenvector(B, wa, wb, ev)
+    sign = 1.0
+    if ev[0] * h[0] + ev[1] * h[1] + ev[2] * h[2] < 0.0:
+        sign = -1.0
+    rng = sign * (6.0 / tr) ** (1.0 / 6.0)
+    for a in range(3):
+        phi[a] = rng * ev[a]
+
+
+@numba.njit(inline="always")
+def invert_one(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance, r, C,
+               miss_out, converged_out, iterations_out, mapped_out, n):
+    """Invert one sample from ``start`` (3,) with the inverse-Jacobian estimate H (3, 3, updated in place) into
+    r (3,) and C (3, 3); writes miss, converged, iterations and mapped at index n."""
+    nc = padded.shape[3]
+    g = np.empty(nc)
+    wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
+    F, wa, wb, B, Fd, K = (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+                           np.empty((3, 3)))
+    ev, phi, trial, e, e_t, step, Hdy, sH = (np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3),
+                                             np.empty(3), np.empty(3), np.empty(3))
+    for a in range(3):
+        r[a] = start[a] if np.isfinite(start[a]) else v[a]
+    usable, mapped = _field_at(r, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, wz, dx, dy, dz, F)
+    if not usable:
+        for a in range(3):
+            r[a] = np.nan
+            for b in range(3):
+                C[a, b] = np.nan
+        miss_out[n], converged_out[n], iterations_out[n], mapped_out[n] = np.nan, False, 0, False
+        return
+    _position(F, h, B, wa, wb, ev, phi)
+    miss = 0.0
+    for a in range(3):
+        e[a] = v[a] - phi[a]
+        miss += e[a] * e[a]
+    miss = np.sqrt(miss)
+    iterations = 0
+    converged = miss <= tolerance
+    while not converged and iterations < max_iterations:
+        for a in range(3):
+            step[a] = H[a, 0] * e[0] + H[a, 1] * e[1] + H[a, 2] * e[2]
+        iterations += 1
+        # backtracking: halve the step until the miss decreases (far from the solution H may be poor)
+        accepted = False
+        miss_t = miss
+        mapped_t = mapped
+        for _ in range(BACKTRACKS):
+            for a in range(3):
+                trial[a] = r[a] + step[a]
+            usable, mapped_t = _field_at(trial, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, wz,
+                                         dx, dy, dz, F)
+            if usable:
+                _position(F, h, B, wa, wb, ev, phi)
+                miss_t = 0.0
+                for a in range(3):
+                    e_t[a] = v[a] - phi[a]
+                    miss_t += e_t[a] * e_t[a]
+                miss_t = np.sqrt(miss_t)
+                if miss_t < miss:
+                    accepted = True
+                    break
+            for a in range(3):
+                step[a] *= 0.5
+        if not accepted:
+            break
+        # Broyden (good) update of the inverse Jacobian: H += (Δx − H Δy) Δxᵀ H / (Δxᵀ H Δy), Δy = Δφ = e − e_t
+        den = 0.0
+        for a in range(3):
+            Hdy[a] = H[a, 0] * (e[0] - e_t[0]) + H[a, 1] * (e[1] - e_t[1]) + H[a, 2] * (e[2] - e_t[2])
+            den += step[a] * Hdy[a]
+        if abs(den) > 1e-300:
+            for b in range(3):
+                sH[b] = step[0] * H[0, b] + step[1] * H[1, b] + step[2] * H[2, b]
+            for a in range(3):
+                c = (step[a] - Hdy[a]) / den
+                for b in range(3):
+                    H[a, b] += c * sH[b]
+        for a in range(3):
+            r[a] = trial[a]
+            e[a] = e_t[a]
+        mapped = mapped_t
+        miss = miss_t
+        converged = miss <= tolerance
+    # the orientation part, once, at the solution: C(r) of the closed form
+    _field_at(r, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, wz, dx, dy, dz, F)
+    closed_form_one(F, h, phi, C, wa, wb, ev, B, Fd, K)
+    miss_out[n], converged_out[n], iterations_out[n], mapped_out[n] = miss, converged, iterations, mapped
+
+
+@numba.njit(**_OPTS)
+def invert_kernel(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance, r,
+                  C, miss, converged, iterations, mapped):  # pragma: no cover - compiled
+    """Invert every sample n from ``start[n]`` with the inverse-Jacobian estimates ``H[n]`` (updated in place)."""
+    for n in numba.prange(v.shape[0]):
+        invert_one(v[n], start[n], H[n], h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
+                   tolerance, r[n], C[n], miss, converged, iterations, mapped, n)
+
+
+@numba.njit(cache=True, nogil=True)
+def invert_serial(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance, r,
+                  C, miss, converged, iterations, mapped):  # pragma: no cover - compiled
+    """:func:`invert_kernel` without threads: for a few samples at a time (a live frame)."""
+    for n in range(v.shape[0]):
+        invert_one(v[n], start[n], H[n], h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
+                   tolerance, r[n], C[n], miss, converged, iterations, mapped, n)

@@ -1,0 +1,270 @@
+"""Corrected poses from reported poses alone: the inverse of the tracker's pose-domain distortion.
+
+A rotation-equivariant tracker reports ``v = φ(r)`` and ``Q = C(r) T`` for a sensor at ``(r, T)``,
+with ``(φ, C)`` its solver applied to ``f_D + g`` (:mod:`ivc.dipole.tracker_solver`). With the
+table's ``g``, the correction ``r = φ⁻¹(v)``, ``T = C(r)ᵀ Q`` is exact: no signal is rebuilt and
+no signal residual is asked for. Same :class:`~ivc.correct.solver.Correction` and flags as the
+signal path, with these meanings:
+
+``OUTSIDE``        the corrected position is outside the table's mapped volume
+``NOT_CONVERGED``  the inversion did not reproduce the reported position to ``tolerance``
+``HIGH_RESIDUAL``  the map does not produce the reported position, or not uniquely: the nearest
+                   the inversion got, ``residual`` = |v − φ(r)| (m), is above ``max_residual``
+                   (another room, a moved source, another hemisphere), or two distinct mapped
+                   true positions produce it (see below)
+``INVALID_INPUT``  the reported pose is not finite, or the sample was marked invalid
+
+Where the inversion starts: at the reported position itself (a stream's sensor: moved by its
+previous correction). Next to metal the map can send two distant true regions to the same
+reported positions (measured on the default scene: about 0.2 % of the check poses), and pose-only
+data cannot tell them apart. So each sample is also inverted from its nearest probe of a
+:class:`SeedMap` (``φ`` and ``(∂φ/∂r)⁻¹`` tabulated at probe points over the mapped volume, the
+table's grid refined twice), and from that probe's *partner* when its image lies among the
+images of a distant region; when two starts give distinct mapped solutions the pose is
+ambiguous and flagged HIGH_RESIDUAL (a reported pose the map does not produce uniquely). A
+stream's continuing track skips that test: its history says which branch it is on.
+
+For the closed-form tracker solver a compiled kernel does the inversion; for the
+least-squares solver, :func:`ivc.pose.reported.invert_distortion` (NumPy) does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ivc import rotations
+from ivc.correct import _pose_kernels
+from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE, Correction
+from ivc.dipole.pose import hemisphere_vector
+from ivc.dipole.tracker_solver import check_solver, distortion
+from ivc.errors import InputError
+from ivc.lut.grid import GridField
+from ivc.lut.table import LookupTable
+from ivc.pose.reported import invert_distortion
+
+#: the inversion stops when it reproduces the reported position to this (m)
+TOLERANCE = 1e-11
+#: HIGH_RESIDUAL above this miss of the reported position (m)
+MAX_RESIDUAL_M = 1e-6
+MAX_ITERATIONS = 40
+#: two solutions farther apart than this (m) make a reported pose ambiguous
+AMBIGUITY = 1e-3
+#: probes per table cell edge
+SUBDIVISION = 2
+
+
+class SeedMap:
+    """Where to start inverting ``φ``: probe points ``P`` (M, 3) m over the mapped volume, their images
+    ``φ(P)`` (M, 3), inverse Jacobians ``(∂φ/∂r)⁻¹`` (M, 3, 3) (central differences), and for each probe
+    the index of a distant probe whose image lies near its own (−1: none), see the module docstring."""
+
+    def __init__(self, field: GridField, solver: str = "closed-form", hemisphere: str = "+x",
+                 subdivision: int = SUBDIVISION):
+        grid = field.grid
+        self.spacing = grid.spacing / subdivision
+        axes = [grid.origin[a] + self.spacing * np.arange((grid.shape[a] - 1) * subdivision + 1) for a in range(3)]
+        fine = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        probes = fine[field.evaluate(fine)[2]]
+        if len(probes) == 0:
+            raise InputError("the table has no mapped cell to correct in")
+
+        def phi(points):
+            return distortion(points, field.evaluate(points)[0], solver=solver, hemisphere=hemisphere)[0]
+
+        h = 1e-5
+        J = np.empty((len(probes), 3, 3))
+        for k in range(3):
+            step = np.zeros(3)
+            step[k] = h
+            J[..., k] = (phi(probes + step) - phi(probes - step)) / (2 * h)
+        images = phi(probes)
+        good = np.all(np.isfinite(images), axis=1) & np.all(np.isfinite(J.reshape(-1, 9)), axis=1)
+        good &= np.abs(np.linalg.det(np.where(good[:, None, None], J, np.eye(3)))) > 1e-6
+        self.probes, self.images, J = probes[good], images[good], J[good]
+        self.inverse = np.linalg.inv(J)
+        self.tree = cKDTree(self.images)
+        # a probe's image neighbourhood: one probe spacing, stretched as the map stretches it there
+        stretch = np.linalg.norm(J, ord=2, axis=(1, 2))
+        radius = stretch * self.spacing
+        self.partner = np.full(len(self.probes), -1)
+        near = self.tree.query_ball_point(self.images, radius)
+        counts = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
+        i = np.repeat(np.arange(len(near)), counts)
+        j = np.fromiter((k for n in near for k in n), dtype=np.int64, count=int(counts.sum()))
+        apart = self.probes[j] - self.probes[i]
+        linear = np.einsum("nij,nj->ni", self.inverse[i], self.images[j] - self.images[i])
+        distance = np.linalg.norm(apart, axis=1)
+        # another branch: far apart, and not where the local linear map puts it
+        far = (distance > 2 * self.spacing) & (np.linalg.norm(apart - linear, axis=1) > 0.5 * distance)
+        i, j = i[far], j[far]
+        if len(i):
+            order = np.lexsort((np.linalg.norm(self.images[j] - self.images[i], axis=1), i))
+            i, j = i[order], j[order]
+            first = np.r_[True, i[1:] != i[:-1]]  # per probe, its partner with the nearest image
+            self.partner[i[first]] = j[first]
+        self.reach = 4.0 * self.spacing * max(float(np.max(stretch)), 1.0)
+
+    @property
+    def ambiguous_fraction(self) -> float:
+        """Share of the probes whose images overlap those of a distant region."""
+        return float(np.mean(self.partner >= 0))
+
+    def starts(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """For reported positions v (n, 3): start (n, 3) and H (n, 3, 3) from the nearest probe image, and the
+        partner's start and H (NaN and I where there is none). Far from every image: v and I."""
+        n = len(v)
+        eye = np.broadcast_to(np.eye(3), (n, 3, 3))
+        distance, index = self.tree.query(np.where(np.isfinite(v), v, 0.0))
+        near = np.isfinite(distance) & (distance <= self.reach) & np.all(np.isfinite(v), axis=1)
+        index = np.where(near, index, 0)
+
+        def from_probe(i):
+            H = self.inverse[i]
+            return self.probes[i] + np.einsum("nij,nj->ni", H, v - self.images[i]), H
+
+        start, H = from_probe(index)
+        start = np.where(near[:, None], start, v)
+        H = np.where(near[:, None, None], H, eye)
+        partner = np.where(near, self.partner[index], -1)
+        has = partner >= 0
+        p_start, p_H = from_probe(np.where(has, partner, 0))
+        p_start = np.where(has[:, None], p_start, np.nan)
+        p_H = np.where(has[:, None, None], p_H, eye)
+        return np.ascontiguousarray(start), np.ascontiguousarray(H), np.ascontiguousarray(p_start), \
+            np.ascontiguousarray(p_H)
+
+
+def table_solver(table: LookupTable) -> str:
+    """The tracker solver a table was fitted for (``closed-form`` for tables fitted from signals)."""
+    return str(table.fit.get("tracker_solver", "closed-form"))
+
+
+class PoseCorrector:
+    """Applies a table to reported poses: :meth:`batch` for arrays of frames, :meth:`update` for a stream.
+
+    ``solver``: the tracker's pose solver (default: the one the table was fitted for, else
+    ``closed-form``). ``hemisphere``: default the table's. ``max_residual``: the HIGH_RESIDUAL
+    threshold in metres. ``check_ambiguity``: also invert each sample (not a stream's continuing
+    track) from its nearest probe and that probe's partner, and flag distinct mapped solutions.
+    """
+
+    def __init__(self, table: LookupTable | GridField, hemisphere: str | None = None, interpolation: str = "cubic",
+                 solver: str | None = None, max_residual: float = MAX_RESIDUAL_M,
+                 max_iterations: int = MAX_ITERATIONS, tolerance: float = TOLERANCE, check_ambiguity: bool = True):
+        self.field = table.field(interpolation) if isinstance(table, LookupTable) else table
+        if solver is None:
+            solver = table_solver(table) if isinstance(table, LookupTable) else "closed-form"
+        self.solver = check_solver(solver)
+        self.hemisphere = hemisphere or (table.hemisphere if isinstance(table, LookupTable) else "+x")
+        self._h = hemisphere_vector(self.hemisphere)
+        if not max_residual > 0:
+            raise InputError(f"max_residual must be positive (metres), got {max_residual}")
+        self.max_residual = float(max_residual)
+        self.max_iterations = int(max_iterations)
+        self.tolerance = float(tolerance)
+        self._previous: dict = {}
+        self._seeds: SeedMap | None = None
+        self.check_ambiguity = bool(check_ambiguity)
+
+    def _secondary(self, r: np.ndarray) -> np.ndarray:
+        return self.field.evaluate(r)[0]
+
+    @property
+    def seeds(self) -> SeedMap:
+        """The probe map the inversions start from (built on first use)."""
+        if self._seeds is None:
+            # starts only: the closed form's map is close to any equivariant solver's and far cheaper
+            self._seeds = SeedMap(self.field, "closed-form", self.hemisphere)
+        return self._seeds
+
+    def _invert(self, v, start, H, serial):
+        n = len(v)
+        if self.solver == "closed-form":
+            f = self.field
+            r, C = np.empty((n, 3)), np.empty((n, 3, 3))
+            miss, converged = np.empty(n), np.empty(n, dtype=bool)
+            iterations, mapped = np.empty(n, dtype=np.int64), np.empty(n, dtype=bool)
+            kernel = _pose_kernels.invert_serial if serial else _pose_kernels.invert_kernel
+            kernel(v, start, H.copy(), self._h, f._padded, f.valid_cells, f._origin, f.grid.spacing, f._shape,
+                   f.interpolation == "cubic", self.max_iterations, self.tolerance, r, C, miss, converged, iterations,
+                   mapped)
+            return r, C, miss, converged, iterations, mapped
+        inv = invert_distortion(v, self._secondary, self.solver, self.hemisphere, start, self.tolerance,
+                                self.max_iterations)
+        ok = np.all(np.isfinite(inv.position), axis=1)
+        mapped = self.field.evaluate(np.where(ok[:, None], inv.position, 0.0))[2] & ok
+        return inv.position, inv.turn, inv.miss, inv.converged, inv.iterations, mapped
+
+    def _run(self, v: np.ndarray, Q: np.ndarray, previous: np.ndarray, serial: bool) -> Correction:
+        """Correct reported positions v (n, 3) and rotations Q (n, 3, 3); ``previous`` (n, 3): each sample's
+        previous good correction offset r − v (NaN: none), which then starts the inversion."""
+        n = len(v)
+        finite = np.all(np.isfinite(v), axis=1) & np.all(np.isfinite(Q.reshape(n, 9)), axis=1)
+        v = np.ascontiguousarray(np.where(finite[:, None], v, 1.0))
+        tracked = np.all(np.isfinite(previous), axis=1)
+        start = np.where(tracked[:, None], v + np.where(tracked[:, None], previous, 0.0), v)
+        eye = np.broadcast_to(np.eye(3), (n, 3, 3))
+        r, C, miss, converged, iterations, mapped = self._invert(v, start, eye, serial)
+        ambiguous = np.zeros(n, dtype=bool)
+        check = np.flatnonzero(finite & ~tracked) if self.check_ambiguity else np.zeros(0, int)
+        if len(check):  # a stream's continuing track needs no other start: its history tells which branch
+            p_start, p_H, q_start, q_H = self.seeds.starts(v[check])
+            other = [(check, p_start, p_H)]
+            has = np.all(np.isfinite(q_start), axis=1)
+            if has.any():
+                other.append((check[has], q_start[has], q_H[has]))
+            for idx, s0, H0 in other:
+                r2, C2, miss2, conv2, it2, mapped2 = self._invert(v[idx], s0, H0, serial)
+                good1 = converged[idx] & mapped[idx]
+                good2 = conv2 & mapped2
+                # a second solution elsewhere makes the pose ambiguous; where the first start failed, another
+                # start's solution is not taken either (measured: it is most often the wrong branch)
+                ambiguous[idx] |= good1 & good2 & (np.linalg.norm(r[idx] - r2, axis=1) > AMBIGUITY)
+                iterations[idx] += it2
+        with np.errstate(invalid="ignore"):
+            T = np.swapaxes(C, -1, -2) @ Q
+            q = rotations.from_matrix(T)
+        flags = (np.where(mapped, 0, OUTSIDE) | np.where(converged, 0, NOT_CONVERGED)
+                 | np.where((miss <= self.max_residual) & ~ambiguous, 0, HIGH_RESIDUAL)).astype(np.uint8)
+        flags[~finite] = INVALID_INPUT
+        r[~finite], q[~finite], miss[~finite] = np.nan, np.nan, np.nan
+        return Correction(r, q, flags, miss, iterations)
+
+    def batch(self, position: np.ndarray, quaternion: np.ndarray, valid: np.ndarray | None = None) -> Correction:
+        """Correct reported poses: positions (..., 3) m and quaternions (..., 4) [w, x, y, z], each sample on
+        its own. Samples with ``valid`` False are flagged INVALID_INPUT. ``residual`` is |v − φ(r)| in m."""
+        position, quaternion = np.asarray(position, float), np.asarray(quaternion, float)
+        if position.shape[-1:] != (3,) or quaternion.shape != position.shape[:-1] + (4,):
+            raise InputError(f"reported poses need positions (..., 3) and quaternions (..., 4) of the same leading "
+                             f"shape, got {position.shape} and {quaternion.shape}")
+        lead = position.shape[:-1]
+        v = position.reshape(-1, 3)
+        with np.errstate(invalid="ignore"):
+            Q = rotations.to_matrix(quaternion.reshape(-1, 4))
+        if valid is not None:
+            bad = ~np.asarray(valid, bool).reshape(-1)
+            v = np.where(bad[:, None], np.nan, v)
+        out = self._run(v, Q, np.full((len(v), 3), np.nan), serial=len(v) < 64)
+        return Correction(out.position.reshape(*lead, 3), out.quaternion.reshape(*lead, 4), out.flags.reshape(lead),
+                          out.residual.reshape(lead), out.iterations.reshape(lead))
+
+    def update(self, position: np.ndarray, rotation: np.ndarray, sensors: list | tuple | None = None) -> Correction:
+        """Correct the latest frame of a stream: positions (N, 3) m and rotation matrices (N, 3, 3), one per
+        sensor. Each sensor starts from its reported position moved by its own previous good correction
+        (keyed by ``sensors``, default 0..N−1), or from the reported position."""
+        v = np.ascontiguousarray(np.asarray(position, float).reshape(-1, 3))
+        Q = np.asarray(rotation, float).reshape(-1, 3, 3)
+        keys = range(len(v)) if sensors is None else sensors
+        offsets = np.array([self._previous.get(k, (np.nan, np.nan, np.nan)) for k in keys], float).reshape(-1, 3)
+        out = self._run(v, Q, offsets, serial=True)
+        for n, key in enumerate(keys):
+            if out.flags[n] == 0:
+                self._previous[key] = out.position[n] - v[n]
+            else:
+                self._previous.pop(key, None)
+        return out
+
+    def reset(self) -> None:
+        """Forget every sensor's warm start (after a gap in the stream)."""
+        self._previous.clear()

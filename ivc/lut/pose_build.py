@@ -1,0 +1,128 @@
+"""A look-up table from reported poses alone (``ivc fit`` on a session without signals).
+
+Stages (docs/lut.md, "Pose-only trackers"): the cube's field is fitted through the tracker model
+from the survey's vertex poses and wand sensor 0 solved in it (:mod:`ivc.fixtures.pose_mapping`);
+the wand's other sensors give (true pose, reported pose) pairs over the room; a harmonic
+secondary field ``G`` is fitted so that the tracker model of ``f_D + G`` reproduces the reported
+poses (:mod:`ivc.lut.pose_fit`); and ``G`` is tabulated on the grid. The table is the same kind of
+table as the signal path's (the secondary field), so it corrects signals and poses alike.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+
+from ivc import __version__
+from ivc.dipole.tracker_solver import check_solver
+from ivc.errors import InputError
+from ivc.fixtures.pose_mapping import DROP_REASONS, PoseFixtureModel, map_sweep_poses
+from ivc.lut import harmonics
+from ivc.lut.build import MIN_KEPT_FRACTION, MIN_SAMPLES, FitOptions, _mapped_nodes, file_digest
+from ivc.lut.fit_harmonic import HarmonicModel
+from ivc.lut.grid import Grid
+from ivc.lut.pose_fit import fit_through_tracker
+from ivc.lut.support import node_support
+from ivc.lut.table import LookupTable
+from ivc.session import Session, SessionError
+
+#: the largest harmonic degree tried (cross-validated below it)
+MAX_DEGREE = 8
+#: pairs used by the fit at most (every k-th kept pair): the Gauss-Newton passes cost per pair
+MAX_PAIRS = 40_000
+
+Progress = Callable[[str, int], Callable[[int], None]]
+
+_ADVICE = {
+    "invalid sample": "the sweep's samples are mostly invalid (dropped or saturated): redo `ivc collect wand_sweep`",
+    "sensor 0 invalid": "wand sensor 0 was mostly invalid: redo `ivc collect wand_sweep`",
+    "not converged": "sensor 0's reported poses could not be traced back into the cube: check the declared cube "
+                     "pose and redo cube_survey",
+    "outside the cube": "sensor 0 was mostly outside the cube: redo `ivc collect wand_sweep` keeping wand sensor 0 "
+                        "inside the cube",
+}
+
+
+def _noop(desc: str, total: int) -> Callable[[int], None]:
+    return lambda n: None
+
+
+def fit_pose_lut(session: Session, options: FitOptions | None = None, source: str | Path | None = None,
+                 progress: Progress | None = None, solver: str = "closed-form",
+                 max_pairs: int = MAX_PAIRS) -> LookupTable:
+    """Build the look-up table of a pose-only ``session`` (fixture steps and sweep as reported poses).
+
+    ``solver``: the tracker's own pose solver (``ivc.dipole.tracker_solver.SOLVERS``), recorded in the
+    table so that corrections invert the same model. ``options``: as :func:`ivc.lut.fit_lut` (the
+    method is always harmonic here; ``refine`` does not apply).
+    """
+    check_solver(solver)
+    options = options or FitOptions()
+    progress = progress or _noop
+    if options.method != "harmonic":
+        raise InputError("a pose-only session is fitted with the harmonic method only (through the tracker model)")
+    missing = session.missing_for_fit()
+    if missing:
+        raise SessionError("cannot fit a map; the session is missing:\n  " + "\n  ".join(missing))
+    model = PoseFixtureModel.from_session(session, solver)
+    recorded = session.steps["wand_sweep"].n_frames
+    stride = max(1, -(-recorded // options.max_frames))
+    if stride > 1:
+        session = session.select_frames("wand_sweep", slice(None, None, stride))
+    sweep = session.steps["wand_sweep"]
+    mapping = map_sweep_poses(session, model, progress("tracing sensor 0 into the cube", sweep.n_frames))
+    total = int(mapping.keep.size)
+    if mapping.kept < MIN_SAMPLES or mapping.kept < MIN_KEPT_FRACTION * total:
+        reason = max(DROP_REASONS, key=lambda k: mapping.dropped.get(k, 0))
+        raise SessionError(f"only {mapping.kept} of {total} wand samples passed the gates; most were dropped as "
+                           f"{reason!r}: {_ADVICE[reason]}")
+    pairs = mapping.pairs
+    thin = max(1, -(-len(pairs) // max_pairs))
+    used = pairs.subset(slice(None, None, thin)) if thin > 1 else pairs
+    centre = 0.5 * (used.position.min(axis=0) + used.position.max(axis=0))
+    scale = float(np.max(np.linalg.norm(used.position - centre, axis=1)))
+    top = MAX_DEGREE if options.degree is None else int(options.degree)
+    if not 1 <= top <= 12:
+        raise InputError(f"harmonic degree {top}: use 1 to 12")
+    counts = {d: harmonics.count(d) for d in range(1, top + 1)}
+
+    def basis(r: np.ndarray) -> np.ndarray:
+        return harmonics.gradients((r - centre) / scale, top)
+
+    coefficients, report = fit_through_tracker(used, basis, counts, solver, session.hemisphere, options.degree,
+                                               options.folds, progress=progress("fitting through the tracker "
+                                                                                "model", 0))
+    K = harmonics.count(report["degree"])
+    harmonic = HarmonicModel(centre, scale, report["degree"], coefficients[:K])
+    if options.origin is not None:
+        grid = Grid(np.asarray(options.origin, float), options.spacing, tuple(options.shape))
+    else:
+        grid = Grid.around(pairs.position, options.spacing)
+    values = harmonic(grid.nodes())
+    support = node_support(grid, pairs.position)
+    valid = _mapped_nodes(values, support, options.min_support)
+    dropped = dict(mapping.dropped)
+    fit = {
+        "method": "harmonic", **report, "input": "reported poses", "tracker_solver": solver,
+        "frames": {"recorded": recorded, "used": sweep.n_frames, "stride": stride},
+        "samples": {"total": total, "kept": mapping.kept, "used": len(used),
+                    "outside_grid": int(np.sum(~grid.contains(pairs.position))), "dropped": dropped},
+        "cube": {k: model.report[k] for k in ("degree", "vertex_position_rms_mm", "vertex_orientation_rms_mrad")},
+        "refinement": [],
+        "grid_from": "user" if options.origin is not None else "data (one-cell margin)",
+        "min_support": options.min_support,
+        "valid_nodes": int(valid.sum()),
+    }
+    provenance = {
+        "ivc_version": __version__,
+        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "parameters": {**asdict(options), "tracker_solver": solver, "max_pairs": max_pairs},
+        "fixtures": {"vertices": model.vertices, "interpolant": "HarmonicField (through the tracker model)"},
+    }
+    if source is not None:
+        provenance.update(input=str(source), input_sha256=file_digest(source))
+    return LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance)

@@ -1,0 +1,304 @@
+"""``auto``, the default predictor: a bank of simple and thesis filters, each sensor shown the one that has
+lately predicted its own stream best.
+
+No fixed set of noise values suits every stream: the thesis's filters are tuned to its 120 Hz
+electromagnetic tracker and to aggressive head motion, while a headset's fused poses at 60 Hz are
+smoother and a static sensor's are noise only. ``auto`` runs every filter of :data:`CANDIDATES` on the
+stream and scores each, causally, against the stream's own later samples: the prediction made at
+frame k for t(k) + h is compared, once the sample after t(k) + h has arrived, with the orientation
+slerped there (the rule of :mod:`ivc.predict.recording`; references between samples more than
+40 ms apart are not scored). Each candidate's geodesic errors are summed with an exponential
+forgetting of time constant ``memory_s`` (1 s), and each frame shows the candidates' turns from the
+measured orientation averaged with weights (smallest sum / the candidate's sum)^``power`` (8),
+normalised: in effect the best candidate, blended with the nearly as good ones (while nothing is
+scored, ``none``; a sum of exactly 0 takes all the weight, ties to the earlier candidate). Where a
+candidate has no prediction yet, its turn is 0 (the measured orientation). In batch the weights are
+kept per horizon; the live form scores at ``horizon_s`` and uses those weights at any horizon.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+
+from ivc import rotations
+from ivc.predict.base import (
+    FloatArray,
+    Predictor,
+    PredictorError,
+    Stream,
+    _Clock,
+    as_given,
+    check_horizons,
+    check_rate,
+    check_stream,
+)
+from ivc.predict.dq import SIGMA_CV1, dqekf_ca, dqekf_cv, mmdq2
+from ivc.predict.evaluate import NoPrediction
+from ivc.predict.linear import polynomial
+from ivc.predict.recording import REFERENCE_MAX_STEP_S, future_reference
+from ivc.predict.timing import check_time, repeats
+
+
+def _cv_brisk(rate_hz: float) -> Predictor:
+    """DQ-EKF CV with 3x Table 10's process noise: the bandwidth of a smoother, less noisy tracker."""
+    p = dqekf_cv(rate_hz, sigma_w=lambda kind, lam: tuple(3.0 * np.asarray(SIGMA_CV1)))
+    p.name = "dqekf-cv-x3"
+    return p
+
+
+#: the bank: name -> factory(rate_hz). Order matters only for ties (the first wins) and the start (the first).
+CANDIDATES = {
+    "none": NoPrediction,
+    "poly1": lambda rate_hz: polynomial(rate_hz, 1),
+    "dqekf-cv": dqekf_cv,
+    "dqekf-cv-x3": _cv_brisk,
+    "dqekf-ca": dqekf_ca,
+    "mmdq2": mmdq2,
+}
+#: time constant (s) of the forgetting of past errors
+MEMORY_S = 1.0
+#: a candidate's weight is (smallest error sum / its error sum) to this power, normalised
+POWER = 8.0
+
+
+#: error sums within this relative difference are a tie, won by the earlier candidate: candidates that make the
+#: same prediction (a DQ filter's first rate is the backward difference) must not be told apart by rounding
+TIE = 1e-9
+
+
+@numba.njit(cache=True)
+def _first_best(total):
+    """The first index whose value is within TIE (relative) of the smallest."""
+    low = total[0]
+    for c in range(1, total.shape[0]):
+        low = min(low, total[c])
+    for c in range(total.shape[0]):
+        if total[c] <= low + TIE * abs(low):
+            return c
+    return 0
+
+
+@numba.njit(cache=True)
+def _weights(total, power, out):
+    """out (C,) = (smallest sum / each sum)^power, normalised; all on the first best while the smallest is 0."""
+    low = total[0]
+    for c in range(1, total.shape[0]):
+        low = min(low, total[c])
+    if not low > 0.0:
+        out[:] = 0.0
+        out[_first_best(total)] = 1.0
+        return
+    acc = 0.0
+    for c in range(total.shape[0]):
+        out[c] = (low / total[c]) ** power
+        acc += out[c]
+    for c in range(total.shape[0]):
+        out[c] /= acc
+
+
+@numba.njit(cache=True)
+def _weigh(total, power, out):
+    """out[s] = :func:`_weights` of each sensor's row of total (S, C)."""
+    for s in range(total.shape[0]):
+        _weights(total[s], power, out[s])
+
+
+@numba.njit(cache=True)
+def _select(err, known, dt, memory, power, out):
+    """out[k] (C,) = the candidates' weights at frame k from their forgotten error sums (err (C, F) mrad, NaN =
+    unscored; known (F,) the frame each error is first known at, −1 never; dt (F,) s between frames)."""
+    C, F = err.shape
+    order = np.argsort(known, kind="mergesort")
+    total = np.zeros(C)
+    e = 0
+    while e < F and known[order[e]] < 0:
+        e += 1
+    for j in range(F):
+        if dt[j] > 0.0:
+            decay = np.exp(-dt[j] / memory)
+            for c in range(C):
+                total[c] *= decay
+        while e < F and known[order[e]] == j:
+            k = order[e]
+            if np.isfinite(err[0, k]):
+                for c in range(C):
+                    total[c] += err[c, k]
+            e += 1
+        _weights(total, power, out[j])
+
+
+@numba.njit(cache=True)
+def _score(shown, sensors, q, knot_q, knot_t, now, target, max_step, total):
+    """Add the errors (mrad) of one frame's pending predictions shown (S, C, 4) for ``target`` s to total (S, C),
+    for the sensors whose sample q (S, 4) at ``now`` just arrived: the reference is slerped between each one's
+    previous usable sample (knot_q, knot_t) and q, as :func:`ivc.predict.recording.future_reference` does."""
+    S, C = total.shape
+    ref = np.empty(4)
+    d = np.empty(4)
+    for s in range(S):
+        if not sensors[s]:
+            continue
+        if target == now:
+            for i in range(4):
+                ref[i] = q[s, i]
+        elif np.isfinite(knot_t[s]) and target >= knot_t[s] and now - knot_t[s] <= max_step:
+            u = (target - knot_t[s]) / (now - knot_t[s])
+            _slerp(knot_q[s], q[s], u, ref)
+        else:
+            continue
+        for c in range(C):
+            _qmul_conj(shown[s, c], ref, d)
+            v = np.sqrt(d[1] ** 2 + d[2] ** 2 + d[3] ** 2)
+            total[s, c] += 1e3 * 2.0 * np.arctan2(v, abs(d[0]))
+
+
+@numba.njit(cache=True, inline="always")
+def _qmul_conj(p, q, out):
+    """out = p ⊗ q*."""
+    out[0] = p[0] * q[0] + p[1] * q[1] + p[2] * q[2] + p[3] * q[3]
+    out[1] = -p[0] * q[1] + p[1] * q[0] - p[2] * q[3] + p[3] * q[2]
+    out[2] = -p[0] * q[2] + p[1] * q[3] + p[2] * q[0] - p[3] * q[1]
+    out[3] = -p[0] * q[3] - p[1] * q[2] + p[2] * q[1] + p[3] * q[0]
+
+
+@numba.njit(cache=True)
+def _slerp(q0, q1, u, out):
+    """out = slerp from q0 to q1 at u along the shorter arc (exp(u log(q1 q0*)) q0)."""
+    d = np.empty(4)
+    _qmul_conj(q1, q0, d)
+    if d[0] < 0.0:
+        for i in range(4):
+            d[i] = -d[i]
+    v = np.sqrt(d[1] ** 2 + d[2] ** 2 + d[3] ** 2)
+    half = np.arctan2(v, d[0]) * u
+    scale = np.sin(half) / v if v > 1e-300 else u
+    w, x, y, z = np.cos(half), scale * d[1], scale * d[2], scale * d[3]
+    out[0] = w * q0[0] - x * q0[1] - y * q0[2] - z * q0[3]
+    out[1] = w * q0[1] + x * q0[0] + y * q0[3] - z * q0[2]
+    out[2] = w * q0[2] - x * q0[3] + y * q0[0] + z * q0[1]
+    out[3] = w * q0[3] + x * q0[2] - y * q0[1] + z * q0[0]
+
+
+def blend(shown: FloatArray, weights: FloatArray, q: FloatArray) -> FloatArray:
+    """exp(Σ_c w_c log(shown_c ⊗ q*)) ⊗ q: the candidates' turns from the measured q (..., 4), weighted (C, ...)."""
+    turn = rotations.to_rotvec(rotations.multiply(shown, rotations.conjugate(q)))
+    mean = np.einsum("c...,c...k->...k", weights, turn)
+    return rotations.multiply(rotations.from_rotvec(mean), np.broadcast_to(q, shown.shape[1:]))
+
+
+@dataclass
+class AutoPredictor(Predictor):
+    """The bank of :data:`CANDIDATES`, each sensor and horizon shown its best recent candidate (module docstring)."""
+
+    rate_hz: float = 120.0
+    candidates: tuple[str, ...] = tuple(CANDIDATES)
+    memory_s: float = MEMORY_S
+    power: float = POWER
+    horizon_s: float = 0.05  # the live form's scoring horizon
+    max_step_s: float = REFERENCE_MAX_STEP_S
+    name: str = "auto"
+    bank: list = field(init=False, repr=False)
+
+    def __post_init__(self):
+        self.rate_hz = check_rate(self.rate_hz)
+        unknown = [c for c in self.candidates if c not in CANDIDATES]
+        if unknown or not self.candidates:
+            raise PredictorError(f"auto's candidates are among {', '.join(CANDIDATES)}; got {self.candidates}")
+        if not (self.memory_s > 0 and self.max_step_s > 0 and self.power >= 0):
+            raise PredictorError("memory_s and max_step_s must be positive numbers of seconds, power >= 0")
+        check_horizons(self.horizon_s)
+        self.bank = [CANDIDATES[c](self.rate_hz) for c in self.candidates]
+
+    def selections(self, q, horizons, valid=None, time=None) -> tuple[FloatArray, np.ndarray]:
+        """(predictions (H, F, S, 4) as :meth:`predict`, the candidates' weights (H, F, S, C), in candidates' order)."""
+        h = check_horizons(horizons)
+        qs, ok, _ = check_stream(q, valid)
+        F, S = ok.shape
+        t = check_time(time, F, self.rate_hz)
+        dt = np.diff(t, prepend=t[:1])
+        usable = ok & ~repeats(qs, ok)
+        shown = []
+        for p in self.bank:
+            P = p.predict(qs, h, ok, time=t)
+            shown.append(np.where(np.all(np.isfinite(P), axis=-1, keepdims=True), P, qs[None]))
+        shown = np.stack(shown)  # (C, H, F, S, 4)
+        weights = np.zeros((len(h), F, S, len(self.bank)))
+        for i, d in enumerate(h):
+            for s in range(S):
+                ref, inside, known = future_reference(t, qs[:, s], usable[:, s], d, self.max_step_s, known_at=True)
+                scored = inside & ok[:, s]
+                err = np.full((len(self.bank), F), np.nan)
+                err[:, scored] = 1e3 * rotations.angle_between(shown[:, i, scored, s], ref[scored][None])
+                _select(err, np.where(scored, known, -1), dt, self.memory_s, self.power, weights[i, :, s])
+        out = blend(shown, np.moveaxis(weights, -1, 0), qs[None])
+        out[:, ~ok] = np.nan
+        return out, weights
+
+    def predict(self, q, horizons, valid=None, time=None):
+        out, _ = self.selections(q, horizons, valid, time)
+        return as_given(out, np.ndim(q) == 2)
+
+    def stream(self, n_sensors: int = 1) -> AutoStream:
+        return AutoStream(self, n_sensors)
+
+
+class AutoStream(Stream):
+    """The live ``auto``: every candidate's stream, the pending predictions of each sensor, the error sums."""
+
+    def __init__(self, predictor: AutoPredictor, n_sensors: int):
+        super().__init__(predictor, n_sensors)
+        self.streams = [p.stream(n_sensors) for p in predictor.bank]
+        self.clock = _Clock(predictor.rate_hz, n_sensors)
+        self.total = np.zeros((n_sensors, len(self.streams)))
+        self.weights = np.zeros((n_sensors, len(self.streams)))
+        self.weights[:, 0] = 1.0
+        self.pending = deque()  # (target time, shown (S, C, 4), the sensors still to score (S,)), in time order
+        self.previous = np.full((n_sensors, 4), np.nan)  # the latest valid sample (repeat test)
+        self.knot_t = np.full(n_sensors, np.nan)  # the latest usable sample: time, orientation
+        self.knot_q = np.full((n_sensors, 4), np.nan)
+        self.ok = np.zeros(n_sensors, bool)
+
+    @property
+    def restarts(self) -> int:
+        return max(s.restarts for s in self.streams)
+
+    def update(self, q, valid=None, time=None):
+        qs, ok = self._check_frame(q, valid)
+        for s in self.streams:
+            s.update(qs, ok, time)
+        dt = self.clock.tick(time)
+        now = self.clock.now
+        p = self.predictor
+        if dt > 0:
+            self.total *= np.exp(-dt / p.memory_s)
+        usable = ok & ~np.all(qs == self.previous, axis=1)
+        self.previous = np.where(ok[:, None], qs, self.previous)
+        if np.any(usable):
+            for target, shown, waiting in self.pending:  # each scored at the sensor's first usable sample after it
+                if target > now:
+                    break
+                _score(shown, waiting & usable, qs, self.knot_q, self.knot_t, now, target, p.max_step_s, self.total)
+                waiting &= ~usable
+            while self.pending and self.pending[0][0] <= now and not self.pending[0][2].any():
+                self.pending.popleft()
+        self.knot_t = np.where(usable, now, self.knot_t)
+        self.knot_q = np.where(usable[:, None], qs, self.knot_q)
+        _weigh(self.total, p.power, self.weights)
+        if np.any(ok):
+            ahead = np.stack([s.predict(p.horizon_s) for s in self.streams], axis=1)  # (S, C, 4)
+            ahead = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, qs[:, None])
+            self.pending.append((now + p.horizon_s, ahead, ok.copy()))
+        self.ok = ok
+        self.last = qs
+
+    def predict(self, horizon):
+        d = float(check_horizons(horizon)[0])
+        ahead = np.stack([s.predict(d) for s in self.streams])  # (C, S, 4)
+        ahead = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, self.last[None])  # as the batch
+        out = blend(ahead, self.weights.T, self.last)
+        out[~self.ok] = np.nan
+        return out
