@@ -4,7 +4,7 @@ import numpy as np
 
 from ivc import dipole, rotations
 from ivc import rotations as R
-from ivc.dipole.calibrate import Fixtures, _transform
+from ivc.dipole.calibrate import Fixtures, rigid_transform
 from ivc.dipole.tracker import Tracker
 from ivc.lut import harmonics
 from ivc.lut.samples import FieldSamples
@@ -112,6 +112,6 @@ def rig_fixtures(rng):
     """A stage rig's fixtures: the stage 0.25 m out along +y, small tilts and offsets."""
 
     def small(t):
-        return _transform(rotations.to_matrix(rotations.from_rotvec(0.03 * rng.standard_normal(3))), t)
+        return rigid_transform(rotations.to_matrix(rotations.from_rotvec(0.03 * rng.standard_normal(3))), t)
 
     return Fixtures(np.eye(4), small(np.array([0.01, 0.25, -0.01])), small(0.005 * rng.standard_normal(3)))

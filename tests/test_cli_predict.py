@@ -102,21 +102,20 @@ def test_compensators_prints_table1_and_the_designs_it_scored():
 
 def test_correct_predict_tune_tunes_to_the_trusted_samples():
     """`ivc correct --predict NAME --tune`: the filter tuned on the corrected step's trusted samples only."""
-    from ivc.cli.correct import _predicted
-    from ivc.correct.solver import OUTSIDE, Correction
+    from ivc.correct.solver import OUTSIDE
+    from ivc.predict.steps import predicted_step
     from ivc.predict.tuning import estimate
 
     step = motion_step(frames=1500)
     flags = np.zeros(step.valid_mask.shape, np.uint8)
     flags[700:760, 0] = OUTSIDE  # untrusted: must neither tune nor drive the filter
-    out = Correction(step.position, step.quaternion, flags, np.zeros(flags.shape), np.ones(flags.shape))
-    got = _predicted(step, out, "mmdq2", 0.05, tune=True)
+    got, _ = predicted_step(step, "mmdq2", 0.05, tune=True, valid=flags == 0)
     tuning = estimate(step.quaternion, 120.0, valid=flags == 0)
     expected = make("mmdq2", 120.0, tuning).predict(step.quaternion, 0.05, flags == 0)[0]
     usable = np.all(np.isfinite(expected), axis=-1)
     assert np.allclose(got.quaternion[usable], expected[usable], atol=1e-12)
     assert got.attrs["tuned_from_input"] and got.attrs["predicted_with"] == "mmdq2"
-    plain = _predicted(step, out, "mmdq2", 0.05, tune=False)
+    plain, _ = predicted_step(step, "mmdq2", 0.05, tune=False, valid=flags == 0)
     assert not plain.attrs["tuned_from_input"] and not np.allclose(plain.quaternion[usable], got.quaternion[usable])
 
 

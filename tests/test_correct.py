@@ -11,7 +11,7 @@ from ivc import session as session_io
 from ivc.cli import cli
 from ivc.collect.replay import write_csv
 from ivc.correct import HIGH_RESIDUAL, INVALID_INPUT, OUTSIDE, Corrector
-from ivc.correct._kernels import quaternion_of
+from ivc.correct.kernels import quaternion_of
 from tests.helpers import distorted, quadratic_field
 
 
@@ -143,7 +143,7 @@ def test_cli_fit_correct_evaluate(small_session, tmp_path):
 
 
 def test_correct_advice_names_the_dominant_flag():
-    from ivc.cli.correct import _advice
+    from ivc.cli.correct import correction_advice
     from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE, Correction
 
     def out(flags):
@@ -151,9 +151,10 @@ def test_correct_advice_names_the_dominant_flag():
         n = len(flags)
         return Correction(np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)), flags, np.full(n, 0.01), np.ones(n))
 
-    assert _advice(out([0, 0, OUTSIDE, INVALID_INPUT]), 1e-3) is None  # most valid samples trusted
-    assert "outside the table's mapped volume" in _advice(out([OUTSIDE, OUTSIDE, 0, INVALID_INPUT]), 1e-3)
-    assert "67% of the valid samples" in _advice(out([OUTSIDE, OUTSIDE, 0, INVALID_INPUT]), 1e-3)
-    assert "median residual 0.01" in _advice(out([HIGH_RESIDUAL, HIGH_RESIDUAL | OUTSIDE, HIGH_RESIDUAL]), 1e-3)
-    assert "did not converge" in _advice(out([NOT_CONVERGED, NOT_CONVERGED, 0]), 1e-3)
-    assert "invalid" in _advice(out([INVALID_INPUT, INVALID_INPUT]), 1e-3)
+    assert correction_advice(out([0, 0, OUTSIDE, INVALID_INPUT]), 1e-3) is None  # most valid samples trusted
+    assert "outside the table's mapped volume" in correction_advice(out([OUTSIDE, OUTSIDE, 0, INVALID_INPUT]), 1e-3)
+    assert "67% of the valid samples" in correction_advice(out([OUTSIDE, OUTSIDE, 0, INVALID_INPUT]), 1e-3)
+    high = out([HIGH_RESIDUAL, HIGH_RESIDUAL | OUTSIDE, HIGH_RESIDUAL])
+    assert "median residual 0.01" in correction_advice(high, 1e-3)
+    assert "did not converge" in correction_advice(out([NOT_CONVERGED, NOT_CONVERGED, 0]), 1e-3)
+    assert "invalid" in correction_advice(out([INVALID_INPUT, INVALID_INPUT]), 1e-3)

@@ -34,8 +34,8 @@ def test_compiled_cube_solve_equals_numpy_on_a_batch(cube):
 def test_compiled_basis_equals_the_interpolants(rng):
     import numba
 
-    from ivc.fixtures._kernels import cube_basis
-    from ivc.fixtures.interpolant import _harmonic_gradients
+    from ivc.fixtures.interpolant import harmonic_gradients
+    from ivc.fixtures.kernels import cube_basis
 
     @numba.njit
     def basis(x, G, H):
@@ -45,7 +45,7 @@ def test_compiled_basis_equals_the_interpolants(rng):
     x = rng.standard_normal((50, 3))
     G, H = np.empty((50, 15, 3)), np.empty((50, 15, 3, 3))
     basis(x, G, H)
-    G_ref, H_ref = _harmonic_gradients(x)
+    G_ref, H_ref = harmonic_gradients(x)
     np.testing.assert_allclose(G, G_ref, atol=1e-14)
     np.testing.assert_allclose(H, H_ref, atol=1e-14)
 

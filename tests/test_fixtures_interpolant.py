@@ -25,9 +25,9 @@ def test_local_coordinates_invert_the_trilinear_map(rng):
     field = TrilinearField(vertices, np.zeros((8, 3, 3)))
     np.testing.assert_allclose(field.local(vertices), CUBE_BITS, atol=1e-12)
     uvw = rng.uniform(-0.2, 1.2, (500, 3))
-    from ivc.fixtures.interpolant import _weights
+    from ivc.fixtures.interpolant import trilinear_weights
 
-    points = np.einsum("fn,ni->fi", _weights(uvw)[0], vertices)
+    points = np.einsum("fn,ni->fi", trilinear_weights(uvw)[0], vertices)
     np.testing.assert_allclose(field.local(points), uvw, atol=1e-11)
     inside = field.inside(points)
     np.testing.assert_array_equal(inside, np.all((uvw >= 0) & (uvw <= 1), axis=1))
@@ -52,7 +52,7 @@ def test_jacobian_against_central_differences(rng):
 
 
 def test_harmonic_field_is_curl_and_divergence_free_and_exact_for_its_basis(rng):
-    from ivc.fixtures.interpolant import HarmonicField, _harmonic_gradients
+    from ivc.fixtures.interpolant import HarmonicField, harmonic_gradients
 
     vertices = skewed_cube(rng)
     centre = vertices.mean(axis=0)
@@ -60,7 +60,7 @@ def test_harmonic_field_is_curl_and_divergence_free_and_exact_for_its_basis(rng)
     coefficients = rng.standard_normal((15, 3))
 
     def true(r):
-        return np.einsum("...bi,bj->...ij", _harmonic_gradients((r - centre) / scale)[0], coefficients)
+        return np.einsum("...bi,bj->...ij", harmonic_gradients((r - centre) / scale)[0], coefficients)
 
     field = HarmonicField(vertices, true(vertices))
     points = centre + 0.02 * rng.standard_normal((100, 3))

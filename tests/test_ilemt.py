@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from ivc.cli import cli
 from ivc.collect.ilemt import compensate_stage, fixture_rotation, read_ilemt, stack
-from ivc.dipole.calibrate import Fixtures, _transform, calibrate
+from ivc.dipole.calibrate import Fixtures, calibrate, rigid_transform
 from ivc.dipole.tracker import Tracker, load_tracker
 from ivc.errors import CsvError, InputError
 from ivc.sim.stage import stage_recording
@@ -120,7 +120,7 @@ def _synthetic_recordings(tmp_path, rng):
     truth = Tracker(np.diag([-0.9, 0.5, -0.6]) + 0.02 * rng.standard_normal((3, 3)),
                     np.eye(3) + 0.02 * rng.standard_normal((3, 3)), 1e-3 * rng.standard_normal((3, 3)),
                     5e-4 * rng.standard_normal((3, 3)))
-    fixtures = Fixtures(stage=_transform(t=np.array([0.002, 0.24, 0.003])))
+    fixtures = Fixtures(stage=rigid_transform(t=np.array([0.002, 0.24, 0.003])))
     grid = [-40.0, 0.0, 40.0]
     stage = np.array([(0, 0, 0, 0, 0, 0)] + [(x, y, z, 0, 0, rz) for rz in (-90, 0, 90) for z in grid
                                               for y in grid for x in grid] + [(0, 0, 0, 0, 0, 0)], dtype=float)
@@ -180,7 +180,7 @@ def test_rig_csv_round_trip_and_cli(tmp_path, rng):
     from ivc.sim.stage import stage_pattern
 
     truth = Tracker(np.eye(3) + 0.03 * rng.standard_normal((3, 3)), np.eye(3) + 0.03 * rng.standard_normal((3, 3)))
-    fixtures = Fixtures(stage=_transform(t=np.array([0.0, 0.26, 0.0])))
+    fixtures = Fixtures(stage=rigid_transform(t=np.array([0.0, 0.26, 0.0])))
     J_so, J_st = stage_pattern(rz_deg=(-90.0, 0.0, 90.0))
     S = stage_recording(truth, fixtures, J_so, J_st, noise_relative=1e-5, rng=rng)
     path = tmp_path / "rig.csv"

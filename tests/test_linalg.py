@@ -1,10 +1,10 @@
-"""The small compiled linear-algebra kernels (ivc._linalg) against NumPy."""
+"""The small compiled linear-algebra kernels (ivc.linalg) against NumPy."""
 
 import numba
 import numpy as np
 import pytest
 
-from ivc import _linalg as la
+from ivc import linalg as la
 
 
 @numba.njit(cache=True)

@@ -180,7 +180,7 @@ def test_a_large_body_is_crc_checked_piecewise_as_it_arrives():
 
 def test_every_kind_of_unusable_message_is_named():
     from ivc.live.igtl import Frame
-    from ivc.live.loop import _unusable
+    from ivc.live.loop import unusable_frames
 
     good = np.eye(4)
     good[:3, 3] = [300.0, 0, 0]
@@ -192,7 +192,7 @@ def test_every_kind_of_unusable_message_is_named():
     frames = [Frame("TRANSFORM", "a", 0.0, m) for m in (good, scaled, flipped, far, nan)]
     frames += [Frame("NDARRAY", "b", 0.0, np.zeros((3, 3))), Frame("NDARRAY", "b", 0.0, np.eye(3)),
                Frame("STRING", "c", 0.0, None), Frame("TRANSFORM", "d", 0.0, None)]
-    problems = _unusable(frames, 1e-3)
+    problems = unusable_frames(frames, 1e-3)
     assert problems == {1: "its rotation part is not a rotation matrix",
                         2: "its rotation part is not a rotation matrix",
                         3: "its translation is 200 m from the source (more than 100 m)",

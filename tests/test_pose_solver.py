@@ -13,10 +13,10 @@ def cube_vertices(rng):
 
 
 def points_in_cube(field, n, rng):
-    from ivc.fixtures.interpolant import _weights
+    from ivc.fixtures.interpolant import trilinear_weights
 
     uvw = rng.uniform(0.02, 0.98, (n, 3))
-    return np.einsum("fn,ni->fi", _weights(uvw)[0], field.vertices)
+    return np.einsum("fn,ni->fi", trilinear_weights(uvw)[0], field.vertices)
 
 
 @pytest.mark.parametrize("method", ["joint", "two-stage"])

@@ -6,7 +6,7 @@ from scipy.linalg import expm
 
 from ivc import rotations
 from ivc.predict import FILTERS, PredictorError, make
-from ivc.predict import _quat as Q
+from ivc.predict import quat as Q
 from ivc.predict.delta import delta_q, delta_q_jacobian, deltas, extrapolate, rate_from_delta
 from ivc.predict.dq import PI_MMDQ3, SIGMA_CA, SIGMA_CV1, SIGMA_DQ, DQPredictor, Model, dqekf_cv, mmdq2, mmdq3
 from ivc.predict.motion import head_motion

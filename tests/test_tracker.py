@@ -11,11 +11,11 @@ from ivc.dipole.calibrate import (
     Fixtures,
     _jacobian,
     _Layout,
-    _transform,
     calibrate,
     canonical_gauge,
     pose_errors,
     predicted_signal,
+    rigid_transform,
 )
 from ivc.dipole.tracker import Tracker, load_tracker, model, save_tracker
 from ivc.errors import TrackerError
@@ -138,7 +138,7 @@ def test_calibration_jacobian_matches_finite_differences(rng, source_fixture):
     tr = imperfect_tracker(rng)
     tr.bias = 1e-3 * rng.standard_normal((3, 3))
     fixtures = rig_fixtures(rng)
-    fixtures.source = _transform(rotations.to_matrix(rotations.from_rotvec(0.02 * rng.standard_normal(3))),
+    fixtures.source = rigid_transform(rotations.to_matrix(rotations.from_rotvec(0.02 * rng.standard_normal(3))),
                                  0.003 * rng.standard_normal(3))
     J_so, J_st = stage_pattern(xyz_mm=(-40.0, 40.0), rz_deg=(-60.0, 30.0), sensor_fixtures=("YoutZup", "ZinYup"))
     if source_fixture:
@@ -264,7 +264,7 @@ def test_tracker_file_round_trip_and_errors(tmp_path, rng):
 
 def test_calibration_start_finds_a_rig_along_another_axis(rng):
     truth = imperfect_tracker(rng, offsets=False)
-    fixtures = Fixtures(stage=_transform(t=np.array([0.0, 0.01, 0.3])))  # the stage out along source z
+    fixtures = Fixtures(stage=rigid_transform(t=np.array([0.0, 0.01, 0.3])))  # the stage out along source z
     J_so, J_st = stage_pattern(rz_deg=(-90.0, 0.0, 90.0))
     S = stage_recording(truth, fixtures, J_so, J_st)
     result = calibrate(S, J_so, J_st, offsets=False, output_correction=False)
@@ -278,7 +278,7 @@ def test_nominal_source_motions_get_their_own_errors(rng):
     turn = rotations.to_matrix(rotations.from_rotvec([0.0, 0.0, np.pi / 2]))
     J_so[len(J_so) // 2 :, :3, :3] = turn
     actual = J_so.copy()
-    error = _transform(rotations.to_matrix(rotations.from_rotvec(np.radians([0.2, -0.3, 0.5]))),
+    error = rigid_transform(rotations.to_matrix(rotations.from_rotvec(np.radians([0.2, -0.3, 0.5]))),
                        np.array([0.001, -0.002, 0.0005]))
     actual[len(J_so) // 2 :] = actual[len(J_so) // 2 :] @ error
     S = stage_recording(truth, fixtures, actual, J_st)
@@ -301,12 +301,12 @@ def test_calibration_jacobian_with_free_source_motions(rng):
     J_so, J_st = stage_pattern(xyz_mm=(-40.0, 40.0), rz_deg=(-60.0, 30.0), sensor_fixtures=("YoutZup", "ZinYup"))
     J_so[1::3, :3, :3] = rotations.to_matrix(rotations.from_rotvec([0.0, 0.0, np.pi / 2]))
     J_so[2::3, :3, :3] = rotations.to_matrix(rotations.from_rotvec([np.pi, 0.0, 0.0]))
-    from ivc.dipole.calibrate import _distinct
+    from ivc.dipole.calibrate import distinct_source_motions
 
-    motions = _distinct(J_so)
+    motions = distinct_source_motions(J_so)
     fixtures.motions = motions
     fixtures.motion_errors = [np.eye(4)] + [
-        _transform(rotations.to_matrix(rotations.from_rotvec(0.01 * rng.standard_normal(3))),
+        rigid_transform(rotations.to_matrix(rotations.from_rotvec(0.01 * rng.standard_normal(3))),
                    0.002 * rng.standard_normal(3)) for _ in motions[1:]]
     layout = _Layout(True, False, motion_groups=len(motions))
     _, J = _jacobian(layout, tr, fixtures, J_so, J_st)

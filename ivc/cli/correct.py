@@ -12,7 +12,7 @@ from ivc import lut
 from ivc import session as session_io
 from ivc.cli.options import POSITIVE
 from ivc.cli.paths import input_and_output
-from ivc.cli.predict import check_tuning_rate, echo_timing, parse_horizon, predicted_quaternions, requested_tuning
+from ivc.cli.predict import check_tuning_rate, echo_timing, parse_horizon, requested_tuning
 from ivc.cli.tracker import tracker_option, with_tracker
 from ivc.collect.checks import rate_warning
 from ivc.collect.plus import is_plus_sequence, read_plus, write_plus
@@ -24,7 +24,7 @@ from ivc.dipole.tracker_solver import SOLVERS
 from ivc.lut.build import file_digest
 from ivc.lut.grid import INTERPOLATIONS
 from ivc.predict import DEFAULT_FILTER, FILTERS, Tuning
-from ivc.predict.steps import prediction_attrs
+from ivc.predict.steps import predicted_step
 from ivc.session import Session, Step
 from ivc.units import LENGTH_UNITS
 
@@ -43,14 +43,13 @@ def corrected_step(step: Step, out: Correction, lut_file: str) -> Step:
 
 def _predicted(step: Step, out: Correction, name: str, horizon: float, tune: bool, tuning: Tuning | None = None,
                tuning_file: str | None = None) -> Step:
-    """Corrected orientations predicted ``horizon`` s ahead from the trusted (unflagged) samples.
-
-    ``tune``: the seed-001 filters are tuned to the corrected step itself (its trusted samples);
-    or ``tuning`` (from ``tuning_file``) gives their noise."""
+    """Corrected orientations predicted ``horizon`` s ahead from the trusted (unflagged) samples
+    (:func:`ivc.predict.steps.predicted_step`), with the stream's timing on stderr."""
     echo_timing(f"{step.description or 'step'} (trusted samples)", step, out.ok)
-    quaternion = predicted_quaternions(step, name, horizon, out.ok, tune=tune, tuning=tuning)
-    return Step(step.time, step.signal, step.position, quaternion, step.valid_mask, step.sample_rate_hz,
-                step.sensor_ids, step.description, prediction_attrs(step, name, horizon, tune, tuning_file))
+    predicted, used = predicted_step(step, name, horizon, tune, tuning, tuning_file, valid=out.ok)
+    if tune and used is not None:
+        click.echo(used.summary())
+    return predicted
 
 
 def _correct_step(table, step: Step, hemisphere: str, interpolation: str, max_residual: float,
@@ -88,7 +87,7 @@ def _warn(advice: str | None) -> None:
         click.echo(f"warning: {advice}", err=True)
 
 
-def _advice(out: Correction, max_residual: float, pose_only: bool = False) -> str | None:
+def correction_advice(out: Correction, max_residual: float, pose_only: bool = False) -> str | None:
     """What to check when most valid samples carry one flag; None when most are trusted."""
     flags = out.flags.reshape(-1)
     valid = (flags & INVALID_INPUT) == 0
@@ -217,7 +216,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         with session_io.atomic_path(output_path) as tmp:
             write_csv(fixed, tmp, extra, length_unit=columns.length_unit)
         click.echo(_summary(input_path.name, out))
-        _warn(_advice(out, max_residual, step.signal is None))
+        _warn(correction_advice(out, max_residual, step.signal is None))
         click.echo(f"wrote {output_path}")
         return
     data = session_io.read(input_path)
@@ -231,7 +230,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         step = data.steps[name]
         results[name] = _correct_step(table, step, data.hemisphere, interpolation, max_residual, tracker)
         click.echo(_summary(name, results[name]))
-        _warn(_advice(results[name], max_residual, step.signal is None))
+        _warn(correction_advice(results[name], max_residual, step.signal is None))
     fixed = {n: corrected_step(data.steps[n], results[n], lut_file) for n in names}
     if predictor:
         fixed = {n: _predicted(fixed[n], results[n], predictor, delta, tune, tuning, tune_from) for n in names}
@@ -272,7 +271,7 @@ def _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpol
         else:
             write_plus(sequence, tmp, {PLUS_CORRECTED: (fixed.position, fixed.quaternion, out.flags)})
     click.echo(_summary(input_path.name, out))
-    _warn(_advice(out, max_residual))
+    _warn(correction_advice(out, max_residual))
     if sequence.other_transforms:
         _warn(f"not corrected (not to the {sequence.tracker} frame): {', '.join(sequence.other_transforms)}")
     click.echo(f"wrote {output_path}")

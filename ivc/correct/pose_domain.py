@@ -34,7 +34,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ivc import rotations
-from ivc.correct import _pose_kernels
+from ivc.correct import pose_kernels as _pose_kernels
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE, Correction
 from ivc.dipole.pose import hemisphere_vector
 from ivc.dipole.tracker_solver import check_solver, distortion

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ivc import dipole
-from ivc.correct import _kernels
+from ivc.correct import kernels as _kernels
 from ivc.dipole.pose import hemisphere_vector
 from ivc.errors import InputError
 from ivc.lut.grid import GridField

@@ -36,7 +36,7 @@ __all__ = ["CalibrationResult", "Fixtures", "calibrate", "canonical_gauge", "cha
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
-def _transform(R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
+def rigid_transform(R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
     X = np.eye(4)
     if R is not None:
         X[:3, :3] = R
@@ -108,7 +108,7 @@ class Fixtures:
         return J_so @ np.asarray(self.motion_errors)[self.groups(J_so)]
 
 
-def _distinct(J_so: np.ndarray) -> list[np.ndarray]:
+def distinct_source_motions(J_so: np.ndarray) -> list[np.ndarray]:
     """The distinct source motions, the first point's first."""
     out: list[np.ndarray] = []
     for m in J_so:
@@ -171,16 +171,16 @@ def canonical_gauge(tracker: Tracker, fixtures: Fixtures, J_so0: np.ndarray | No
 
     Q, A = _qr_rotation(A)
     p = p @ Q
-    change_source(_transform(Q.T))
+    change_source(rigid_transform(Q.T))
     c = p.mean(axis=0)
     p = p - c
-    change_source(_transform(t=-c))
+    change_source(rigid_transform(t=-c))
     Q, B = _qr_rotation(B)
     q = q @ Q
-    F_se = F_se @ _transform(Q)
+    F_se = F_se @ rigid_transform(Q)
     c = q.mean(axis=0)
     q = q - c
-    F_se = F_se @ _transform(t=c)
+    F_se = F_se @ rigid_transform(t=c)
     s = B[2, 2]
     A, B = A * s, B / s
     clean = Tracker(A, B, p, q, dict(tracker.calibration), tracker.bias.copy())
@@ -236,7 +236,7 @@ class _Layout:
         steps = theta[self.fix : self.motion_at].reshape(-1, 6)
 
         def moved(X, eta):
-            return X @ _transform(rotations.to_matrix(rotations.from_rotvec(eta[:3])), eta[3:])
+            return X @ rigid_transform(rotations.to_matrix(rotations.from_rotvec(eta[:3])), eta[3:])
 
         F_se = moved(fixtures.sensor, steps[0])
         F_st = moved(fixtures.stage, steps[1])
@@ -316,7 +316,7 @@ def _initial(S, J_so, J_st, source_fixture, stage_offsets, motions=()) -> tuple[
     model cannot tell +d from −d); A and B by alternating linear fits. The best start is kept."""
     best = None
     for d, axis in itertools.product(stage_offsets, (1, 0, 2)):
-        fixtures = Fixtures(stage=_transform(t=d * np.eye(3)[axis]), motions=list(motions),
+        fixtures = Fixtures(stage=rigid_transform(t=d * np.eye(3)[axis]), motions=list(motions),
                             motion_errors=[np.eye(4) for _ in motions])
         P = chain(fixtures, J_so, J_st)
         R, t = P[:, :3, :3], P[:, :3, 3]
@@ -430,7 +430,7 @@ def calibrate(
         raise TrackerError(f"{len(S)} points cannot fix a tracker model and its fixtures; record at least 12")
     if source_motions not in ("exact", "free"):
         raise TrackerError(f"source_motions must be 'exact' or 'free', got {source_motions!r}")
-    distinct = _distinct(J_so)
+    distinct = distinct_source_motions(J_so)
     motions = distinct if source_motions == "free" and len(distinct) > 1 else []
     if motions:
         fit_source_fixture = False

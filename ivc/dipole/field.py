@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ivc import rotations
-from ivc.dipole import _kernels
+from ivc.dipole import kernels as _kernels
 from ivc.errors import InputError
 
 FloatArray = NDArray[np.float64]

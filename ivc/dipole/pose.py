@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ivc.dipole import _kernels
+from ivc.dipole import kernels as _kernels
 from ivc.dipole.field import _flat
 from ivc.errors import InputError
 

@@ -50,7 +50,7 @@ MAX_RANGE_M = 100.0
 MAX_ORTHONORMALITY_ERROR = 1e-2
 
 
-def _unusable(frames, length_unit: float) -> dict[int, str]:
+def unusable_frames(frames, length_unit: float) -> dict[int, str]:
     """{index in ``frames``: why that decoded TRANSFORM or NDARRAY cannot be corrected}, checked for all the
     frames of a read at once (NaN or inf, a translation beyond MAX_RANGE_M, a rotation part that is not a
     rotation, an all-zero signal matrix)."""
@@ -228,7 +228,7 @@ class LiveCorrector:
         """(device, timestamp, signal matrix (3, 3) or None, reported pose (position m, rotation) or None) of the
         usable tracking messages, in arrival order: NDARRAY messages carry signals, TRANSFORM messages poses."""
         names, times, signals, poses = [], [], [], []
-        problems = _unusable(frames, self.length_unit)
+        problems = unusable_frames(frames, self.length_unit)
         for k, f in enumerate(frames):
             if f.message_type not in ("TRANSFORM", "NDARRAY"):
                 self._once(("type", f.message_type), f"ignoring {f.message_type} messages (expected TRANSFORM poses "

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ivc.errors import InputError
-from ivc.lut import _kernels
+from ivc.lut import kernels as _kernels
 
 #: the seed's grid spacing (1.5 inch), metres
 DEFAULT_SPACING = 0.0381

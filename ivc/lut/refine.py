@@ -58,8 +58,8 @@ def _residuals(S, scale, valid, wand, cube_field, map_field, r0, T0):
 
 def _compiled(S, valid, scale, wand, field: HarmonicField, map_field: GridField, r, T, max_iterations,
               step_tolerance) -> np.ndarray:
-    """:func:`solve_rigid` in compiled code (``ivc.lut._refine_kernels``); r, T updated in place."""
-    from ivc.lut._refine_kernels import rigid_kernel
+    """:func:`solve_rigid` in compiled code (``ivc.lut.refine_kernels``); r, T updated in place."""
+    from ivc.lut.refine_kernels import rigid_kernel
 
     converged = np.empty(len(S), dtype=bool)
     m = map_field

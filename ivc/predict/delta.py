@@ -13,7 +13,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ivc import rotations
 from ivc.errors import InputError
-from ivc.predict._quat import SMALL_ANGLE
+from ivc.predict.quat import SMALL_ANGLE
 
 FloatArray = NDArray[np.float64]
 

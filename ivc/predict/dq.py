@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ivc.predict import _dq_kernels as K
+from ivc.predict import dq_kernels as K
 from ivc.predict.base import (
     MAX_HORIZON,
     FloatArray,

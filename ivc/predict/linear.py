@@ -23,7 +23,6 @@ import numpy as np
 from scipy.signal import lfilter, ss2tf
 
 from ivc import rotations
-from ivc.predict._quat import delta_q, qmul, qmul_conj, rate_of
 from ivc.predict.base import (
     MAX_HORIZON,
     FixedRatePredictor,
@@ -38,6 +37,7 @@ from ivc.predict.base import (
 )
 from ivc.predict.delta import deltas
 from ivc.predict.frequency import kinematic_gain
+from ivc.predict.quat import delta_q, qmul, qmul_conj, rate_of
 from ivc.predict.timing import check_time, repeats, restarts
 
 

@@ -27,7 +27,7 @@ from scipy.signal import lfilter
 
 from ivc import rotations
 from ivc.errors import InputError
-from ivc.predict._quat import delta_q, normalise, qmul
+from ivc.predict.quat import delta_q, normalise, qmul
 
 FloatArray = NDArray[np.float64]
 

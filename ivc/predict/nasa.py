@@ -23,8 +23,7 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from ivc._linalg import congruence
-from ivc.predict._quat import normalise, qmul
+from ivc.linalg import congruence
 from ivc.predict.base import (
     FixedRatePredictor,
     PredictorError,
@@ -35,6 +34,7 @@ from ivc.predict.base import (
     check_stream,
 )
 from ivc.predict.qekf import quaternion_update
+from ivc.predict.quat import normalise, qmul
 
 #: V_r of the paper: variance of each measured quaternion component
 V_QUATERNION = 1e-4

@@ -14,8 +14,7 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from ivc._linalg import cholesky, congruence, factored_update
-from ivc.predict._quat import delta_q_jacobian, normalise, qmul, qmul_conj, rate_of
+from ivc.linalg import cholesky, congruence, factored_update
 from ivc.predict.base import (
     Predictor,
     PredictorError,
@@ -28,6 +27,7 @@ from ivc.predict.base import (
 )
 from ivc.predict.delta import extrapolate_each
 from ivc.predict.dq import SIGMA_CV1
+from ivc.predict.quat import delta_q_jacobian, normalise, qmul, qmul_conj, rate_of
 from ivc.predict.timing import MAX_GAP_S, check_time, steps
 
 #: Table 3, Q column: measurement variances of the 4 quaternion components
@@ -132,7 +132,7 @@ def _step(z_in, ok, dt, x, P, status, clock, qvar, R, max_gap, p0w, work):
 def quaternion_update(z, xp, Pp, R, n, x, P, S, L, nu, U):
     """EKF update of an n-state filter whose first 4 states are the orientation, measured directly
     (z (4,), H = [I₄ 0], variances R (4,)): z's sign is aligned with the predicted xp[:4] (q ≡ −q),
-    x = xp + K ν with q̂ renormalised, P = P⁻ − K S Kᵀ (:func:`ivc._linalg.factored_update`).
+    x = xp + K ν with q̂ renormalised, P = P⁻ − K S Kᵀ (:func:`ivc.linalg.factored_update`).
     False (x, P untouched) when the innovation covariance, or the posterior, is not positive definite."""
     if z[0] * xp[0] + z[1] * xp[1] + z[2] * xp[2] + z[3] * xp[3] < 0.0:
         for i in range(4):

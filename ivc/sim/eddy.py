@@ -46,7 +46,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from ivc import dipole
-from ivc.dipole._kernels import _field_entries
+from ivc.dipole.kernels import _field_entries
 
 #: Dunavant's degree-5 rule on a triangle: barycentric points and weights (sum 1)
 _A1, _B1, _W1 = 0.059715871789770, 0.470142064105115, 0.132394152788506

@@ -12,9 +12,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc._linalg import cholesky, cholesky_solve
-from ivc.dipole._kernels import _rotation_polar_factor, closed_form_one, field_matrix
-from ivc.lut._kernels import grid_point
+from ivc.dipole.kernels import _rotation_polar_factor, closed_form_one, field_matrix
+from ivc.linalg import cholesky, cholesky_solve
+from ivc.lut.kernels import grid_point
 
 FIXED_POINT_STEPS = 2
 

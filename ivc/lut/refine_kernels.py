@@ -12,8 +12,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.correct._kernels import _model, _residual, _rotate_increment, _solve6
-from ivc.fixtures._kernels import cube_model
+from ivc.correct.kernels import _model, _residual, _rotate_increment, _solve6
+from ivc.fixtures.kernels import cube_model
 
 
 @numba.njit(inline="always")

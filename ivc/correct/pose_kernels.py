@@ -14,8 +14,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.dipole._kernels import _principal_eigenvector, closed_form_one, field_matrix
-from ivc.lut._kernels import _cell, _weights
+from ivc.dipole.kernels import _principal_eigenvector, closed_form_one, field_matrix
+from ivc.lut.kernels import _cell, _weights
 
 _OPTS = dict(parallel=True, cache=True, nogil=True)
 #: step halvings tried before a sample is given up

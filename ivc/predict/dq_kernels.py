@@ -27,8 +27,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc._linalg import cholesky, cholesky_logdet, factored_update
-from ivc.predict._quat import delta_q_jacobian, predict_orientation, qmul_conj, rate_of
+from ivc.linalg import cholesky, cholesky_logdet, factored_update
+from ivc.predict.quat import delta_q_jacobian, predict_orientation, qmul_conj, rate_of
 
 LOG_2PI = np.log(2.0 * np.pi)
 TPM_FLOOR = 1e-50  # notes §8.2, eq. 47 [SEED]
