@@ -1,9 +1,9 @@
 """Pose inside the interpolation cube (issue: fixtures), default scene and noise, against truth.
 
-Target: at every percentile at least 3x better than the seed's Table 18 (median 0.27 mm /
+Target: at every percentile at least 3x better than Himberg 2010's Table 18 (median 0.27 mm /
 1.50 mrad, 75th 0.50 mm / 2.40 mrad, max 4.9 mm / 23.4 mrad) and >= 99.9 % of frames
-converged. Errors are in the declared cube frame (MATH.md §5). Baselines, same run: the
-seed's trilinear interpolant (eq. 90), the seed's two-stage solve (eq. 92 then 93), and
+converged. Errors are in the declared cube frame (docs/math.md §5). Baselines, same run: the
+trilinear interpolant of Himberg 2010 (eq. 90), Himberg 2010's two-stage solve (eq. 92 then 93), and
 the tracker's own dipole solution.
 
 Speed (issue 25): the compiled solve of sensor 0 >= 50,000 frames/s and >= 100x

@@ -1,8 +1,8 @@
 """The secondary-field map and correction (issue: LUT), default scene, against truth.
 
-Targets (10,000 random check poses with random orientations in the mapped volume, seed ch.
+Targets (10,000 random check poses with random orientations in the mapped volume, Himberg 2010, ch.
 4.5.4): IVC position median <= 1.0 mm, 95th <= 3 mm, max <= 10 mm; orientation median <= 5
-mrad, 95th <= 15 mrad. Errors in the declared cube frame (MATH.md §5; docs/lut.md): the
+mrad, 95th <= 15 mrad. Errors in the declared cube frame (docs/math.md §5; docs/lut.md): the
 frame every sample and correction lives in. ``ivc fit`` <= 60 s on the 100,000-frame sweep;
 ``ivc fit`` with its default options (refinement on) <= 30 s, as accurate as before issue 25
 (``BEFORE``: its CV score and check-pose percentiles, measured on this session with the code of
@@ -12,7 +12,7 @@ with every frame warm-started at its answer (no seed search, one or two iteratio
 mean number of iterations.
 
 Baselines in the same run: the uncorrected dipole solution (Table 24's other column), the
-seed's local polynomial fit, and the batched NumPy Levenberg-Marquardt of ``ivc.pose``.
+local polynomial fit of Himberg 2010, and the batched NumPy Levenberg-Marquardt of ``ivc.pose``.
 The tables of poly, harmonic and refined fits are printed side by side, on the recorded
 (noisy) check poses and on noiseless ones, which isolate the map's own error.
 """
@@ -115,7 +115,7 @@ def run() -> list[Figure]:
     answers = np.where(np.isfinite(cold.position), cold.position, np.nan)
     warm = len(S) / best_time(lambda: corrector.batch(S, seeds=answers), repeat=3)
     figures.append(Figure("correction, batched, warm-started at answer", warm, "frames/s", "cold (seed search)", batch,
-                          "(reference: the seed's cost)"))
+                          "(reference: Himberg 2010's cost)"))
     figures.append(Figure("correction iterations per frame, mean", float(cold.iterations.mean()), "iterations",
                           "warm-started", float(corrector.batch(S, seeds=answers).iterations.mean()), "(reference)",
                           higher_is_better=False))

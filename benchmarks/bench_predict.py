@@ -7,8 +7,8 @@ above: one filter, one sensor, one sample) and the loop over frames of one 16-se
 as references only (the earlier 10x target is retired: the batch runs far beyond any recording);
 synthetic aggressive motion at 50 ms: MMDQ2 mean error <= 1/3 of DQ-EKF CV's; every predictor
 beats no prediction by >= 3x (mean error) on moderate and aggressive motion, each filter tuned to the
-synthetic tracker: the seed-001 filters' measurement noise, and process noise at each model's λ, from a
-separate synthetic tuning set by the thesis's procedure (ivc.predict.tuning). The seed-001 filters with
+synthetic tracker: Himberg 2010's filters' measurement noise, and process noise at each model's λ, from a
+separate synthetic tuning set by the thesis's procedure (ivc.predict.tuning). Himberg 2010's filters with
 the thesis's own values (the defaults, which describe its tracker) are printed beside them for reference.
 
 A step of ours is a full live frame: Δq from the new orientation, the filter cycle, and the
@@ -147,8 +147,8 @@ def run() -> list[Figure]:
                               "per-frame loop, 16 a call (extr.)", per_frame, "(stricter baseline)", None,
                               higher_is_better=False))
 
-    # Accuracy. The targets apply with every filter tuned to the (synthetic) tracker: the seed-001 filters'
-    # R and σ_w estimated by the thesis's own procedure (notes §9.1, §9.3) from a separate synthetic composite
+    # Accuracy. The targets apply with every filter tuned to the (synthetic) tracker: Himberg 2010's filters'
+    # R and σ_w estimated by the thesis's own procedure (docs/math.md §13.1, §13.3) from a separate synthetic composite
     # set (ivc.predict.tuning; never the evaluation data); the other filters have no such tuning. The same
     # filters with the thesis's values (the defaults: Table 3 and eq. 67 R, Table 10 σ_w, which describe the
     # thesis's tracker) are printed beside them for reference.

@@ -4,7 +4,7 @@ Conventions (docs/conventions.md):
 
 * A quaternion is ``[w, x, y, z]``: scalar first, Hamilton product, unit norm,
   canonical sign ``w >= 0`` (see :func:`canonical` for rotations by pi).
-* ``to_matrix(q)`` (the seed's ``QtoT``) is the rotation matrix ``T`` whose columns
+* ``to_matrix(q)`` (Himberg 2010's ``QtoT``) is the rotation matrix ``T`` whose columns
   are the sensor's axes written in the source frame, so ``T`` maps sensor-frame
   vectors into the source frame, and ``to_matrix(p ⊗ q) = to_matrix(p) @ to_matrix(q)``.
 * scipy's ``Rotation`` is scalar-last; :func:`to_scipy` and :func:`from_scipy`
@@ -131,7 +131,7 @@ def angle_between(qa: ArrayLike, qb: ArrayLike) -> FloatArray:
 
 
 def angle_between_matrices(Ta: ArrayLike, Tb: ArrayLike) -> FloatArray:
-    """Angle in radians of ``Ta @ Tb.T`` (MATH.md section 1's orientation error).
+    """Angle in radians of ``Ta @ Tb.T`` (docs/math.md §1's orientation error).
 
     ``atan2(sin, cos)`` with ``sin`` from the skew part and ``cos`` from the trace is
     accurate to rounding at every angle, where ``arccos((tr - 1) / 2)`` alone loses

@@ -36,7 +36,7 @@ def _refuse_existing(*paths: Path) -> None:
 
 
 def head(out: Path) -> None:
-    """``head_aggressive_120hz.csv``: one sensor's synthetic aggressive head motion (notes §13.2-13.3 noise)."""
+    """``head_aggressive_120hz.csv``: one sensor's synthetic aggressive head motion (docs/math.md §14.2-§14.3)."""
     path = out / "head_aggressive_120hz.csv"
     _refuse_existing(path)
     motion = head_motion("aggressive", HEAD_FRAMES, HEAD_RATE_HZ, seed=HEAD_SEED)

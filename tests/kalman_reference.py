@@ -4,12 +4,12 @@ Test code: the textbook filter against which Welch & Bishop 2001's worked exampl
 (tests/test_predict_kalman.py); the product's filters live in ivc/predict.
 
 The attribute surface follows FilterPy's (``x``, ``P``, ``F``, ``Q``, ``R``, ``H``, ``B``) so
-that code written against it reads the same, without depending on it. ``F`` is the seed's
+that code written against it reads the same, without depending on it. ``F`` is Welch & Bishop 2001's
 ``A``. Conventions: ``u_k`` is the control applied over ``(t_{k−1}, t_k]`` and ``Q`` the
-process covariance over the same interval (the notes' flags on eq. 4.1 and 4.28).
+process covariance over the same interval (docs/math.md §10 on eq. 4.1 and 4.28).
 
 The covariance update is the Joseph form ``(I − KH) P⁻ (I − KH)ᵀ + K R Kᵀ``, symmetrised,
-which stays positive definite under any gain; ``joseph=False`` gives the seed's short form
+which stays positive definite under any gain; ``joseph=False`` gives Welch & Bishop 2001's short form
 ``(I − KH) P⁻`` (eq. 4.13), which reproduces the paper's numbers exactly.
 """
 

@@ -73,7 +73,7 @@ def test_extrapolate_fractional_frames_and_zero_acceleration():
     q = rotations.random(3, 0)
     w = np.array([[0.3, -1, 2]] * 3)
     assert np.allclose(extrapolate(q, w, np.zeros((3, 3)), 0.0123, TAU), rotations.multiply(delta_q(w, 0.0123), q))
-    # with α, whole frames use ω + nτα and the rest of a frame the next rate (notes §7.2, corrected)
+    # with α, whole frames use ω + nτα and the rest of a frame the next rate (docs/math.md §11.4, corrected)
     a = np.array([[0.0, 0, 30]] * 3)
     got = extrapolate(q, w, a, 2.5 * TAU, TAU)
     ref = q
@@ -233,7 +233,7 @@ def test_synthetic_motion_matches_the_thesis_statistics():
     assert s["benign"]["omega_mean"] < 0.01 and s["benign"]["alpha_max"] < 1.5
     assert 0.25 < s["moderate"]["omega_mean"] < 0.40 and s["moderate"]["omega_max"] < 0.8
     assert 0.8 < s["aggressive"]["omega_mean"] < 1.3 and 10 < s["aggressive"]["alpha_max"] < 25
-    # full range (notes §13.2): α mean 1.0-1.2 rad/s²; its regimes last seconds, so it needs a long record
+    # full range (docs/math.md §14.2): α mean 1.0-1.2 rad/s²; its regimes last seconds, so it needs a long record
     full = statistics(head_motion("full", 100_000, seed=1).omega, 120.0)
     assert 1.0 < full["alpha_mean"] < 1.2 and full["alpha_std"] > full["alpha_mean"]
     clean = head_motion("moderate", 500, seed=1, noise_rad=None, dynamic_error=0.0)

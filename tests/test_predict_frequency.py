@@ -1,4 +1,4 @@
-"""Linear predictors (seeds 003/004) and Kyger's elemental filters (seed 000): closed forms and published values."""
+"""Linear predictors (A&B95, NASA) and Kyger's elemental filters (Kyger 1995): closed forms and published values."""
 
 import numpy as np
 import pytest
@@ -153,7 +153,7 @@ def test_kinematic_gain_matches_the_notes_example():
      {(0, 0): 4.94484e-6, (2, 2): 0.980264}),
 ])
 def test_gauss_markov_discretisation_matches_the_notes_test_vectors(element, dt, phi, qd):
-    """Van Loan Φ and Qd against the notes' verified values (the printed q11 of eq. 3.4 is wrong)."""
+    """Van Loan Φ and Qd against verified values (docs/math.md §15.2) (the printed q11 of eq. 3.4 is wrong)."""
     Phi, Qd = element.discrete(dt)
     assert np.allclose(Phi[:, :2] if element.kind == "fogmv" else Phi, np.asarray(phi)[:, :2]
                        if element.kind == "fogmv" else phi, atol=1e-6)

@@ -1,4 +1,4 @@
-"""The generic Kalman filters: the seed's random-constant example, FilterPy, and the EKF."""
+"""The generic Kalman filters: Welch & Bishop 2001's random-constant example, FilterPy, and the EKF."""
 
 import numpy as np
 import pytest
@@ -6,7 +6,7 @@ from filterpy.kalman import KalmanFilter as FilterPyKF
 
 from tests.kalman_reference import ExtendedKalmanFilter, KalmanFilter
 
-# notes/kalman_basics_scaat.md §3, deterministic vectors: (R, k) -> (P_k⁻, K_k, P_k); x̂₀ = 0, P₀ = 1, Q = 1e-5
+# docs/math.md §10, deterministic vectors: (R, k) -> (P_k⁻, K_k, P_k); x̂₀ = 0, P₀ = 1, Q = 1e-5
 RANDOM_CONSTANT = {
     (0.01, 1): (1.000010e00, 9.900991e-01, 9.900991e-03), (0.01, 2): (9.910991e-03, 4.977648e-01, 4.977648e-03),
     (0.01, 3): (4.987648e-03, 3.327839e-01, 3.327839e-03), (0.01, 10): (1.144937e-03, 1.027316e-01, 1.027316e-03),
@@ -28,7 +28,7 @@ def test_random_constant_recursion_values(R, joseph):
     kf.R[:] = R
     kf.H[:] = 1.0
     z = -0.37727 + 0.1 * np.random.default_rng(0).standard_normal(50)
-    for k in range(1, 51):  # 50 updates: x̂₀ seeds the first prediction (the notes' off-by-one trap)
+    for k in range(1, 51):  # 50 updates: x̂₀ seeds the first prediction (the off-by-one trap of docs/math.md §10)
         kf.predict()
         prior = kf.P[0, 0]
         kf.update(z[k - 1])

@@ -1,4 +1,4 @@
-"""Seed 003: the 10-state quaternion EKF and the predictive-compensator optimisation."""
+"""Adelstein, Jung & Ellis 2001: the 10-state quaternion EKF and the predictive-compensator optimisation."""
 
 import numpy as np
 import pytest
@@ -35,7 +35,7 @@ def test_jacobian_against_finite_differences_and_the_doubled_rate(rng):
     eps = 1e-6
     numeric = np.stack([(_kinematics(x + eps * e) - _kinematics(x - eps * e)) / (2 * eps) for e in np.eye(N)], 1)
     assert np.allclose(F, numeric, atol=1e-8)
-    # the notes' flag: F x is twice the quaternion rate (why eq. 20 must not propagate the state)
+    # docs/math.md §17.1: F x is twice the quaternion rate (why eq. 20 must not propagate the state)
     assert np.allclose((F @ x)[:4], 2 * _kinematics(x)[:4])
 
 
@@ -91,7 +91,7 @@ def test_high_pass_filter_matches_the_notes_magnitudes():
 
 
 def test_displacement_and_twist_of_a_two_degree_yaw():
-    """The notes' example: a 2° yaw error moves the target 0.8 m ahead by Δy = 27.92 mm, Δx = −0.49 mm."""
+    """docs/math.md §17.3: a 2° yaw error moves the target 0.8 m ahead by Δy = 27.92 mm, Δx = −0.49 mm."""
     error = rotations.from_rotvec([0.0, 0.0, np.radians(2.0)])
     d = compensator.displacement(error, rotations.IDENTITY)
     assert d == pytest.approx([-0.000487, 0.027919, 0.0], abs=2e-6)

@@ -1,4 +1,4 @@
-"""The qualitative outcomes of notes §13.4 on synthetic head motion (fixed seeds), at the thesis's 50 ms."""
+"""The qualitative outcomes of docs/math.md §14.4 on synthetic head motion (fixed seeds), at the thesis's 50 ms."""
 
 import numpy as np
 import pytest

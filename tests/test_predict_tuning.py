@@ -1,4 +1,4 @@
-"""Data-driven tuning of the seed-001 predictors (notes §9): noise estimates, λ, Π₀, and their use."""
+"""Data-driven tuning of Himberg 2010's predictors (docs/math.md §13): noise estimates, λ, Π₀, and their use."""
 
 import numpy as np
 import pytest
@@ -49,7 +49,7 @@ def test_lambda_orders_the_motions_and_the_transition_matrix_is_stochastic(recor
 
 
 def test_process_noise_scaling_reproduces_table_10():
-    """Notes §9.3: σ_w = λ σ_Δq / τ² (CV) and / τ³ (CA) with the implied σ_Δq give Table 10 at λ = 0.5."""
+    """docs/math.md §13.3: σ_w = λ σ_Δq / τ² (CV) and / τ³ (CA) with the implied σ_Δq give Table 10 at λ = 0.5."""
     t = Tuning(120.0, 1 / 60, 0, np.ones(4), np.array([0.0, 2.06e-4, 8.75e-5, 1.00e-4]), ())
     assert np.allclose(t.sigma_w_cv(0.5), SIGMA_CV1, rtol=0.01)
     t = Tuning(120.0, 1 / 60, 0, np.ones(4), np.array([0.0, 2.04e-4, 8.80e-5, 9.95e-5]), ())
@@ -122,7 +122,7 @@ def test_the_scalar_part_of_delta_q_repeats_the_vector_noise():
 def test_a_tracker_with_the_thesis_noise_is_tuned_near_table_10():
     """White noise of √2 x eq. 67 per axis gives eq. 67's Δq noise, and σ_w of every model near Table 10.
 
-    Table 10 implies σ_Δq = [2.06e-4, 8.75e-5, 1.00e-4] (notes §9.3), eq. 67 says [2.2e-4, 8.22e-5, 7.92e-5]:
+    Table 10 implies σ_Δq = [2.06e-4, 8.75e-5, 1.00e-4] (docs/math.md §13.3), eq. 67 says [2.2e-4, 8.22e-5, 7.92e-5]:
     the two differ by up to 26 %, hence the tolerance. A wrong λ or power of τ would be off by 2x or 120x.
     """
     noise = tuple(np.sqrt(2.0) * np.asarray(SIGMA_DQ[1:]))

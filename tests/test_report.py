@@ -137,7 +137,7 @@ def test_a_session_without_its_sweep_reports_the_table_and_check_poses_only(demo
     assert numbers["check"]["ivc"]["position_mm"] == pytest.approx(expected["ivc"]["position_mm"], abs=1e-4)
     assert numbers["sweep"]["missing"] == ["no wand_calibration step", "no wand_sweep step"]
     # distances run from the ideal cube at the declared pose: eq. 87 with the ideal vertices, a few mm
-    # from the calibrated cube (the simulated cube is built off-true, as the seed's was)
+    # from the calibrated cube (the simulated cube is built off-true, as Himberg 2010's was)
     ideal = FixtureModel.from_session(full, "ideal").placement.positions
     np.testing.assert_allclose(declared_cube(full), ideal, atol=1e-12)
     assert numbers["cube"]["centre_mm"] == pytest.approx(1000 * ideal.mean(axis=0), abs=1e-3)

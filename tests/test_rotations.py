@@ -84,7 +84,7 @@ def test_mean_recovers_orientation_of_spread_cloud(rng):
     samples = R.multiply(R.from_rotvec(np.concatenate([rotvecs, -rotvecs])), truth)
     samples[::2] *= -1  # the sign of a quaternion must not matter
     assert R.angle_between(R.mean(samples), truth) < 1e-3
-    # an Euler-angle average, as the seed did, is biased by the spread
+    # an Euler-angle average, as Himberg 2010 did, is biased by the spread
     euler = R.to_scipy(samples).as_euler("xyz").mean(axis=0)
     naive = R.from_scipy(Rotation.from_euler("xyz", euler))
     assert R.angle_between(naive, truth) > R.angle_between(R.mean(samples), truth)

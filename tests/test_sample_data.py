@@ -26,7 +26,7 @@ def test_shipped_table_corrects_the_shipped_check_poses():
     report = evaluate(lut.read(TABLE), session_io.read(CHECK))
     assert report["samples"] == 1000 and report["corrected"] >= 998
     assert report["frame"] == DECLARED_FRAME and abs(report["placement_error_mm"] - 1.25) < 0.05
-    # the seed's Table 24 scale: IVC to a fraction of a millimetre, the dipole solution tens of millimetres off
+    # Himberg 2010's Table 24 scale: IVC to a fraction of a millimetre, the dipole solution tens of millimetres off
     assert report["ivc"]["position_mm"]["p50"] < 0.2
     assert report["ivc"]["orientation_mrad"]["p50"] < 1.0
     assert report["dipole"]["position_mm"]["p50"] > 30.0

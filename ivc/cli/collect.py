@@ -154,7 +154,7 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
             declared_quaternion, force, tracker_file):
     """Record protocol STEP (or the whole `protocol`) into the session file OUTPUT.
 
-    The protocol (seed 001 ch. 4.4.3): cube_calibration (free space), cube_survey (cube at
+    The protocol (Himberg 2010, ch. 4.4.3): cube_calibration (free space), cube_survey (cube at
     its declared pose in the distorted room), wand_calibration (free space), wand_sweep
     (wand sensor 0 inside the cube, far end sweeping), check (independent poses).
     With --tracker-model the signals are stored in ideal-dipole units (a simulated device

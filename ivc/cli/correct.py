@@ -132,7 +132,7 @@ def correction_advice(out: Correction, max_residual: float, pose_only: bool = Fa
               help=f"Then predict each sensor's corrected orientation ahead with this filter (see `ivc predict`); "
               f"--predict alone: {DEFAULT_FILTER}.")
 @click.option("--horizon", default="50ms", show_default=True, help="Prediction horizon with --predict.")
-@click.option("--tune", is_flag=True, help="With --predict: tune the seed-001 filters (q-ekf, dqekf-*, mmdq*) to each "
+@click.option("--tune", is_flag=True, help="With --predict: tune Himberg's filters (q-ekf, dqekf-*, mmdq*) to each "
               "corrected step's trusted samples (see `ivc predict --tune`). Not with --live.")
 @click.option("--tune-from", "tune_from", type=click.Path(exists=True, dir_okay=False),
               help="With --predict: tune the filter from this recording (.csv) or session (.h5) instead, "

@@ -1,4 +1,4 @@
-"""``ivc evaluate LUT CHECKFILE``: corrected against true poses, in the layout of the seed's Table 24."""
+"""``ivc evaluate LUT CHECKFILE``: corrected against true poses, in the layout of Himberg 2010's Table 24."""
 
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ def render_table(report: dict) -> str:
 @click.argument("check_file", type=click.Path(dir_okay=False))
 @click.option("--step", default="check", show_default=True, help="Step of CHECK_FILE holding the check poses.")
 @click.option("--interpolation", type=click.Choice(INTERPOLATIONS), default="cubic", show_default=True,
-              help="Between grid nodes: Catmull-Rom cubic, or trilinear (the seed's).")
+              help="Between grid nodes: Catmull-Rom cubic, or trilinear (Himberg 2010's).")
 @click.option("--max-residual", type=POSITIVE, default=MAX_RESIDUAL, show_default=True,
               help="Flag corrections whose rms(M − T S)/rms(S) exceeds this.")
 @click.option("--tracker", type=click.Choice(SOLVERS), help="Check poses reported only: the tracker's own pose "
@@ -63,7 +63,7 @@ def render_table(report: dict) -> str:
 @click.option("--json", "as_json", is_flag=True, help="Print the table as JSON.")
 @tracker_option
 def evaluate(lut_file, check_file, step, interpolation, max_residual, tracker, as_json, tracker_file):
-    """Correct the check poses of CHECK_FILE with LUT_FILE and compare with their truth (seed Table 24)."""
+    """Correct the check poses of CHECK_FILE with LUT_FILE and compare with their truth (Himberg 2010's Table 24)."""
     if session_io.is_recording_csv(check_file):
         raise click.UsageError(f"{check_file}: a recording CSV holds no true poses; evaluate a session .h5 with "
                                "/truth/check (a simulation or a precision rig), or correct the CSV with `ivc correct`")

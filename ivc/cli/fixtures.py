@@ -63,7 +63,7 @@ def render(report: dict) -> str:
             lines.append(_row(f"wand sensor {n} position", values, "mm"))
     choices = report.get("cube_choices")
     if choices:
-        lines += ["", "Cube vertex choice (seed Table 22), farthest wand sensor position error, mm:"]
+        lines += ["", "Cube vertex choice (Himberg 2010's Table 22), farthest wand sensor position error, mm:"]
         for choice, values in choices.items():
             far = values["farthest_sensor_position_mm"]
             lines.append(f"  {choice:<10} median {far['p50']:.3f}  95% {far['p95']:.3f}  max {far['max']:.3f}")
@@ -75,9 +75,9 @@ def render(report: dict) -> str:
 @click.option("--vertices", type=click.Choice(VERTEX_CHOICES), default="averaged", show_default=True,
               help="Cube vertex positions: the sensors' averaged ones, the optimised perfect cube, or the ideal cube.")
 @click.option("--interpolant", type=click.Choice(list(INTERPOLANTS)), default="harmonic", show_default=True,
-              help="Field inside the cube: harmonic (curl/div-free, follows curvature) or trilinear (the seed's).")
+              help="Field inside the cube: harmonic (curl/div-free, follows curvature) or trilinear (Himberg 2010's).")
 @click.option("--method", type=click.Choice(METHODS), default="joint", show_default=True,
-              help="Pose solve in the cube: joint 6-DOF, or the seed's two-stage (eq. 92 then 93).")
+              help="Pose solve in the cube: joint 6-DOF, or Himberg 2010's two-stage (eq. 92 then 93).")
 @click.option("--max-residual", type=POSITIVE, default=Gates.max_residual, show_default=True,
               help="Gate: largest rms(Λ)/rms(S) of sensor 0's solve.")
 @click.option("--max-error-mm", type=POSITIVE, default=1000 * Gates.max_error, show_default=True,

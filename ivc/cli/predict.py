@@ -170,7 +170,7 @@ def _predict_plus(input_path, output_path, name, delta, tune, tuning, tune_from,
 
 
 def run_compensators(seed: int, evaluations: int, as_json: bool) -> None:
-    """Seed 003's designs (default, twist, hybrid) on synthetic 20 s yaw records; Table 1."""
+    """Adelstein, Jung & Ellis 2001's designs (default, twist, hybrid) on synthetic 20 s yaw records; Table 1."""
     from tqdm import tqdm
 
     from ivc.predict.nasa import DEFAULT_W
@@ -214,7 +214,7 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
                                 "rows": r.rows, "velocity": r.velocity} for r in results], indent=1))
     else:
         click.echo(f"synthetic head motion, {frames} frames at {rate:g} Hz, seed {seed}; errors against the "
-                   f"{'noiseless truth' if reference == 'truth' else 'time-shifted measurements'}; seed-001 filters "
+                   f"{'noiseless truth' if reference == 'truth' else 'time-shifted measurements'}; Himberg's filters "
                    f"{'tuned on the set above' if tune else 'with the thesis values (Table 3, eq. 67, Table 10)'}\n")
         click.echo(overshoot_table(results) + "\n")
         click.echo(error_table(results) + "\n")
@@ -254,14 +254,14 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
 @click.option("--plot", type=click.Path(dir_okay=False), help="--benchmark or --evaluate: write the error-vs-horizon "
               "PNG here.")
 @click.option("--json", "as_json", is_flag=True, help="--benchmark or --evaluate: print the figures as JSON.")
-@click.option("--tune", is_flag=True, help="Tune the seed-001 filters (q-ekf, dqekf-*, mmdq*) by the thesis's "
+@click.option("--tune", is_flag=True, help="Tune Himberg 2010's filters (q-ekf, dqekf-*, mmdq*) by the thesis's "
               "procedure (measurement noise from the data, process noise at each model's λ) instead of using the "
               "thesis's values: from each input step itself, or with --benchmark from a separate synthetic "
               "tuning set. Prints the estimates.")
 @click.option("--tune-from", "tune_from", type=click.Path(exists=True, dir_okay=False),
               help="As --tune, from another recording (.csv) or session (.h5, every step with orientations), "
               "at the input's sample rate: the thesis's separate tuning set.")
-@click.option("--compensators", is_flag=True, help="Seed 003: optimise the 10-state EKF's process noise by Powell's "
+@click.option("--compensators", is_flag=True, help="NASA: optimise the 10-state EKF's process noise by Powell's "
               "method for the twist and hybrid costs on synthetic yaw records, and print Table 1.")
 @click.option("--evaluations", type=int, default=1500, show_default=True,
               help="With --compensators: cost evaluations per design at most.")

@@ -1,4 +1,4 @@
-"""Plain-word checks of a recorded step, run while collecting (seed 001 ch. 4.4.3).
+"""Plain-word checks of a recorded step, run while collecting (Himberg 2010, ch. 4.4.3).
 
 They warn and do not refuse: a user may know better (a short test capture, say), and
 ``ivc fit`` refuses later what it cannot use.
@@ -11,7 +11,7 @@ import numpy as np
 from ivc import rotations
 from ivc.session import STEPS, Session, Step
 
-#: the seed's minimum frame counts
+#: Himberg 2010's minimum frame counts
 MIN_FRAMES = {"cube_calibration": 1000}
 DEFAULT_MIN_FRAMES = 100
 STATIC_STEPS = ("cube_calibration", "cube_survey", "wand_calibration")

@@ -1,6 +1,6 @@
-"""How good is a table? Corrected poses of a check recording against its truth (seed Table 24).
+"""How good is a table? Corrected poses of a check recording against its truth (Himberg 2010's Table 24).
 
-The table and its corrections live in the frame of the *declared* cube pose (MATH.md §5):
+The table and its corrections live in the frame of the *declared* cube pose (docs/math.md §5):
 every sample was placed through it. When the check file also holds the cube survey's
 truth (a simulated session, or a precision rig), the true poses are moved into that frame
 and IVC is judged there, which is the accuracy the method itself delivers; the error
@@ -141,7 +141,7 @@ def check_errors(table: LookupTable | Corrector | PoseCorrector, check: Session,
 
 def summarise(e: CheckErrors) -> dict:
     """Percentiles (25/50/75/95/99/max) of position (mm) and orientation (mrad) errors, IVC and dipole,
-    with the flag counts: the layout of seed Table 24 (``ivc evaluate``)."""
+    with the flag counts: the layout of Himberg 2010's Table 24 (``ivc evaluate``)."""
     ok, valid = e.ok, e.valid
     report = {
         "samples": int(valid.size),

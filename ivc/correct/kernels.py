@@ -1,5 +1,5 @@
 """Compiled per-frame correction: the pose that explains S with the dipole field plus the mapped
-secondary field (MATH.md §4 and §9), one frame at a time, parallel over frames.
+secondary field (docs/math.md §4 and §9), one frame at a time, parallel over frames.
 
 Per frame: a seed (the previous pose of the same sensor, or else a fixed-point start:
 closed-form dipole pose of ``S − Tᵀ g(r)``, repeated), then Levenberg-Marquardt over
@@ -148,7 +148,7 @@ def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape
             r[a] = seed[a]
     else:
         _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
-        for _ in range(FIXED_POINT_STEPS):  # MATH.md §9: subtract Tᵀ g(r), re-solve the dipole pose
+        for _ in range(FIXED_POINT_STEPS):  # docs/math.md §9: subtract Tᵀ g(r), re-solve the dipole pose
             grid_point(padded, valid_cells, origin, spacing, shape, r, cubic, g, dg, wx, wy, wz, dx, dy, dz)
             for i in range(3):
                 for j in range(3):

@@ -1,4 +1,4 @@
-"""Corrected poses from measured signals and a look-up table (MATH.md §9), batched or streaming.
+"""Corrected poses from measured signals and a look-up table (docs/math.md §9), batched or streaming.
 
 Every result carries per-sample flags; a pose is never returned without them:
 
@@ -108,7 +108,7 @@ class Corrector:
                           out.residual.reshape(lead), out.iterations.reshape(lead))
 
     def batch_poses(self, position: np.ndarray, quaternion: np.ndarray, valid: np.ndarray | None = None) -> Correction:
-        """Correct tracker-reported poses: the signal is rebuilt as ``S = Tᵀ f_D(r)`` (MATH.md §9)."""
+        """Correct tracker-reported poses: the signal is rebuilt as ``S = Tᵀ f_D(r)`` (docs/math.md §9)."""
         return self.batch(dipole.signal_from_pose(position, quaternion), valid)
 
     def update(self, S: np.ndarray, sensors: list | tuple | None = None) -> Correction:

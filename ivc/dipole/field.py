@@ -1,7 +1,7 @@
-"""The AC dipole field model (seed 001 eq. 71-73, MATH.md section 2).
+"""The AC dipole field model (Himberg 2010, eq. 71-73; docs/math.md §2).
 
 All positions are in metres in the source frame. Signal matrices are normalised so
-that in free space ``S = Tᵀ f_D(r)`` exactly (MATH.md section 1): row ``i`` is sensor
+that in free space ``S = Tᵀ f_D(r)`` exactly (docs/math.md §1): row ``i`` is sensor
 coil ``i``, column ``j`` is source coil ``j``.
 """
 
@@ -109,7 +109,7 @@ def signal(r: ArrayLike, T: ArrayLike, G: ArrayLike | None = None) -> FloatArray
 
 
 def signal_from_pose(position: ArrayLike, quaternion: ArrayLike) -> FloatArray:
-    """Rebuild the signal matrix from a reported pose: ``S = QtoT(q)ᵀ f_D(r)`` (MATH.md §9).
+    """Rebuild the signal matrix from a reported pose: ``S = QtoT(q)ᵀ f_D(r)`` (docs/math.md §9).
 
     For trackers that report poses only: if the unit's own solver inverts the dipole
     model, this is the signal it measured (up to the hemisphere sign of ``r``).

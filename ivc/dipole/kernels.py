@@ -173,7 +173,7 @@ def _rotation_polar_factor(K, X, work, out):
 
 @numba.njit(inline="always")
 def closed_form_one(s, hemisphere, r_out, T_out, work_a, work_b, v, B, F, K):
-    """Closed-form dipole pose (MATH.md section 3) of one signal matrix s, into r_out (3,) and T_out (3, 3).
+    """Closed-form dipole pose (docs/math.md §3) of one signal matrix s, into r_out (3,) and T_out (3, 3).
 
     ``work_a``, ``work_b``, ``B``, ``F``, ``K`` are (3, 3) and ``v`` (3,) scratch arrays.
     """
@@ -202,7 +202,7 @@ def closed_form_one(s, hemisphere, r_out, T_out, work_a, work_b, v, B, F, K):
 
 @numba.njit(**_OPTS)
 def closed_form_pose_kernel(S, hemisphere, r_out, T_out):  # pragma: no cover - compiled
-    """Closed-form dipole pose (MATH.md section 3) of each S[n]."""
+    """Closed-form dipole pose (docs/math.md §3) of each S[n]."""
     for n in numba.prange(S.shape[0]):
         closed_form_one(S[n], hemisphere, r_out[n], T_out[n], np.empty((3, 3)), np.empty((3, 3)), np.empty(3),
                         np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)))

@@ -1,7 +1,7 @@
-"""Closed-form dipole pose (seed 001 eq. 74-77, MATH.md section 3).
+"""Closed-form dipole pose (Himberg 2010, eq. 74-77; docs/math.md §3).
 
 This is what a commercial tracker computes, and in a distorted room it is the
-*uncompensated* ("dipole") solution of the seed's Table 24.
+*uncompensated* ("dipole") solution of Himberg 2010's Table 24.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ def hemisphere_vector(hemisphere: str) -> FloatArray:
 def closed_form_pose(S: ArrayLike, hemisphere: str = "+x") -> tuple[FloatArray, FloatArray]:
     """Pose of each signal matrix by the closed-form dipole inversion.
 
-    Steps (MATH.md §3): ``B = SᵀS`` is rotation invariant; the range is
+    Steps (docs/math.md §3): ``B = SᵀS`` is rotation invariant; the range is
     ``R = (6 / tr B)^(1/6)`` (eq. 75); the direction is the principal eigenvector of
     ``B`` (eq. 76 is one power-iteration step of it) with its sign chosen so that the
     position lies in the declared hemisphere; the orientation is the rotation

@@ -3,7 +3,7 @@
 =====================  =====================================================================
 ``hdf5``               the canonical table (docs/lut.md), as ``ivc fit`` writes it
 ``npz``                NumPy arrays: origin, spacing, shape, values, valid, support
-``csv``                one row per node in the seed's order (eq. 105: X slowest, Z fastest)
+``csv``                one row per node in Himberg 2010's order (eq. 105: X slowest, Z fastest)
                        under one plain header row; the grid and units in a JSON sidecar
 ``vti``                VTK image data for ParaView: the nine components, |G| as % of |f_D|,
                        the position distortion, validity and support; geometry and
@@ -56,7 +56,7 @@ def _npz(table: LookupTable, path: Path, unit: str) -> None:
                             shape=np.array(table.grid.shape),
                             values=table.values, valid=table.valid, support=table.support,
                             components=np.array(COMPONENTS), hemisphere=table.hemisphere, length_unit=unit,
-                            field_unit=FIELD_UNIT, index_order="x slowest, z fastest (seed eq. 105)")
+                            field_unit=FIELD_UNIT, index_order="x slowest, z fastest (Himberg 2010, eq. 105)")
 
 
 def csv_sidecar(path: str | os.PathLike) -> Path:
@@ -72,7 +72,8 @@ def _csv(table: LookupTable, path: Path, unit: str) -> None:
     meta = {
         "format": "ivc secondary-field look-up table", "ivc_version": __version__, "csv": path.name,
         "length_unit": unit, f"origin_{unit}": (g.origin * scale).tolist(), f"spacing_{unit}": g.spacing * scale,
-        "counts": list(g.shape), "index_order": "x slowest, z fastest (seed eq. 105): row = i*ny*nz + j*nz + k",
+        "counts": list(g.shape),
+        "index_order": "x slowest, z fastest (Himberg 2010, eq. 105): row = i*ny*nz + j*nz + k",
         "hemisphere": table.hemisphere, "field_unit": FIELD_UNIT,
         "components": "G[a, b] = field component a of source coil b, source frame",
         "valid": "1 where data support the node, 0 where the values are filled in and must not be used",
@@ -177,8 +178,8 @@ def _vrui(table: LookupTable, path: Path, unit: str) -> None:
 FORMATS: dict[str, tuple[Callable[[LookupTable, Path, str], None], str, str]] = {
     "hdf5": (_hdf5, ".h5", "the canonical table (ivc's own format)"),
     "npz": (_npz, ".npz", "NumPy arrays"),
-    "csv": (_csv, ".csv", "one row per node, seed eq. 105 order, under a plain header row; grid and units in "
-                          "FILE.csv.json"),
+    "csv": (_csv, ".csv", "one row per node, the order of Himberg 2010's eq. 105, under a plain header row; grid "
+            "and units in FILE.csv.json"),
     "vti": (_vti, ".vti", "VTK image data for ParaView"),
     "slicer": (_slicer, ".nrrd", "displacement-field transform (LPS, mm) for 3D Slicer"),
     "vrui": (_vrui, ".grid", "Vrui ForwardGridCalibrator grid, in the --unit of the tracker driver, ringed by "

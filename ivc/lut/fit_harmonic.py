@@ -1,7 +1,7 @@
 """The physics-constrained fit: each source column of ``G`` is the gradient of a harmonic potential.
 
 Inside the source-free mapped volume every column of ``G`` is a magnetic field, so it
-is ``∇Φ_j`` with ``Φ_j`` harmonic (MATH.md §8). ``Φ_j`` is expanded in the regular
+is ``∇Φ_j`` with ``Φ_j`` harmonic (docs/math.md §8). ``Φ_j`` is expanded in the regular
 solid harmonics of degree 1..L about the centre of the data (``ivc.lut.harmonics``):
 ``(L + 1)² − 1`` coefficients per column, shared basis, weighted least squares.
 

@@ -1,6 +1,6 @@
-"""The seed's fit: local weighted polynomial regression at every grid node (eq. 105-107, MATH.md §8).
+"""Himberg 2010's fit: local weighted polynomial regression at every grid node (eq. 105-107, docs/math.md §8).
 
-For node ``r_gp`` the samples within ``radius`` (the seed: 38.1 mm) fit each of the nine
+For node ``r_gp`` the samples within ``radius`` (Himberg 2010: 38.1 mm) fit each of the nine
 components of ``G`` with a polynomial of ``degree`` in ``(r − r_gp) / radius``, weighted;
 the node value is the constant term, ``G(r_gp) = f_P(0)ᵀ C``. The normal equations of
 eq. 106 are solved as a least-squares problem, never by forming an inverse.

@@ -1,7 +1,7 @@
-"""The regular grid of a look-up table and the field interpolated on it (MATH.md §8).
+"""The regular grid of a look-up table and the field interpolated on it (docs/math.md §8).
 
 Nodes are ``origin + spacing · (i, j, k)``, ``i < nx`` etc., metres in the source frame.
-Flattened node order is the seed's (eq. 105): X slowest, Z fastest, ``Δ = i·ny·nz + j·nz + k``,
+Flattened node order is Himberg 2010's (eq. 105): X slowest, Z fastest, ``Δ = i·ny·nz + j·nz + k``,
 which is NumPy's C order of an ``(nx, ny, nz)`` array.
 """
 
@@ -14,7 +14,7 @@ import numpy as np
 from ivc.errors import InputError
 from ivc.lut import kernels as _kernels
 
-#: the seed's grid spacing (1.5 inch), metres
+#: Himberg 2010's grid spacing (1.5 inch), metres
 DEFAULT_SPACING = 0.0381
 INTERPOLATIONS = ("cubic", "linear")
 
@@ -61,7 +61,7 @@ class Grid:
         return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
 
     def flat_index(self, i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
-        """Seed eq. 105: ``Δ(α, γ) = α_0 γ_1 γ_2 + α_1 γ_2 + α_2``."""
+        """Himberg 2010, eq. 105: ``Δ(α, γ) = α_0 γ_1 γ_2 + α_1 γ_2 + α_2``."""
         return (np.asarray(i) * self.shape[1] + np.asarray(j)) * self.shape[2] + np.asarray(k)
 
     def contains(self, points: np.ndarray) -> np.ndarray:
@@ -123,7 +123,7 @@ class GridField:
 
     ``values`` (nx, ny, nz, 3, 3); ``valid`` (nx, ny, nz) bool. A point is *mapped* when it
     lies in a cell whose eight corner nodes are all valid. ``interpolation``: ``cubic``
-    (Catmull-Rom, C1, the default) or ``linear`` (trilinear, the seed's). Outside the grid the
+    (Catmull-Rom, C1, the default) or ``linear`` (trilinear, Himberg 2010's). Outside the grid the
     value of the nearest boundary point is returned and the point is flagged unmapped.
     """
 

@@ -2,7 +2,7 @@
 
 A *pose-domain table* holds, on a grid over the **reported** positions, the correction
 ``d(v) = r − v`` (m) and the rotation vector ``w(v)`` of ``C(r)`` (rad), fitted to the wand's
-(true pose, reported pose) pairs by the seed's local quadratic regression
+(true pose, reported pose) pairs by Himberg 2010's local quadratic regression
 (:func:`ivc.lut.fit_poly.fit_poly`, each node from the pairs within one spacing of it, all
 octants required). Correcting is then an interpolation, no inversion:
 ``r = v + d(v)``, ``T = exp(−[w(v)]×) Q``.

@@ -1,6 +1,6 @@
-"""Refinement beyond the seed: re-solve each wand frame as one rigid body against the current map.
+"""Refinement beyond Himberg 2010: re-solve each wand frame as one rigid body against the current map.
 
-The seed's map trusts sensor 0's pose in the cube alone and carries every other sensor
+Himberg 2010's map trusts sensor 0's pose in the cube alone and carries every other sensor
 with it (eq. 97-98), so sensor 0's small orientation error grows along the wand. Once a
 first map exists, every sensor's signal says something about the wand's pose: the
 frame is re-solved as one rigid 6-DOF body, sensor 0 against dipole + cube field and

@@ -1,4 +1,4 @@
-"""Secondary-field samples for a LUT fit (MATH.md §7-8), and how much each one counts.
+"""Secondary-field samples for a LUT fit (docs/math.md §7-8), and how much each one counts.
 
 A sample is a wand sensor's position ``r`` (m, source frame as declared by the cube
 placement), its ``G = T S − f_D(r)`` (eq. 89) and the estimated error ``ε`` of its

@@ -1,4 +1,4 @@
-"""How well the data support each grid node, and which nodes are valid (MATH.md §8)."""
+"""How well the data support each grid node, and which nodes are valid (docs/math.md §8)."""
 
 from __future__ import annotations
 

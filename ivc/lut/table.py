@@ -1,7 +1,7 @@
 """The look-up table of the room's secondary field, and its HDF5 file (docs/lut.md, "The table file").
 
 A table holds, per node of a regular grid, the nine components of the source-frame
-secondary field ``G`` (same normalised units as ``f_D``, MATH.md §1), whether the node
+secondary field ``G`` (same normalised units as ``f_D``, docs/math.md §1), whether the node
 is supported by data, and how many samples supported it; plus how it was fitted and
 from what. Nothing in it is read from ``/truth``.
 """
@@ -89,7 +89,7 @@ def write(table: LookupTable, path: str | os.PathLike, *, overwrite: bool = Fals
                         hemisphere=table.hemisphere, field_unit=FIELD_UNIT)
         grid = h5.create_group("grid")
         grid.attrs.update(origin=table.grid.origin, spacing=table.grid.spacing, shape=np.array(table.grid.shape),
-                          index_order="x slowest, z fastest (seed eq. 105)")
+                          index_order="x slowest, z fastest (Himberg 2010, eq. 105)")
         h5.create_dataset("values", data=table.values, compression="gzip", shuffle=True)
         h5["values"].attrs["components"] = np.array(COMPONENTS, dtype=h5py.string_dtype())
         h5.create_dataset("valid", data=table.valid, compression="gzip")

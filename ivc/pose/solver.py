@@ -1,4 +1,4 @@
-"""Sensor pose with a known secondary field, batched over frames (seed 001 eq. 91-93, MATH.md §4).
+"""Sensor pose with a known secondary field, batched over frames (Himberg 2010, eq. 91-93; docs/math.md §4).
 
 Model: ``S = Tᵀ M(r)`` with ``M(r) = f_D(r) + g(r)``. ``min ‖S − Tᵀ M(r)‖_F`` is solved
 by Levenberg-Marquardt over position and a rotation increment (``T ← T exp([ω]×)``)
@@ -8,7 +8,7 @@ stepping together as arrays. (Holding ``T`` fixed while stepping ``r`` converges
 linearly here: position and orientation are strongly coupled through ``f_D``.)
 
 ``method="joint"`` (default) minimises the full signal residual. ``method="two-stage"`` is
-the seed's: position from the rotation-invariant ``‖SᵀS − MᵀM‖_F`` (eq. 92), then
+Himberg 2010's: position from the rotation-invariant ``‖SᵀS − MᵀM‖_F`` (eq. 92), then
 orientation (eq. 93), kept for comparison.
 """
 

@@ -1,4 +1,4 @@
-"""Head-motion prediction: hide display lag by predicting orientation a horizon ahead (seeds 000-004).
+"""Head-motion prediction: hide display lag by predicting orientation a horizon ahead (docs/math.md §10-§17).
 
 Every predictor takes an orientation stream (unit quaternions, scalar first) at a known rate
 and predicts it any number of seconds ahead, in batch (:meth:`Predictor.predict`) or live
@@ -40,7 +40,7 @@ FILTERS: dict[str, Callable[[float], Predictor]] = {
 #: the filter used when none is named (``ivc predict``, ``ivc correct --predict``): :mod:`ivc.predict.auto`
 DEFAULT_FILTER = "auto"
 
-#: the predictors :func:`ivc.predict.tuning.estimate` tunes (seed 001's): measurement noise, and process noise
+#: the predictors :func:`ivc.predict.tuning.estimate` tunes (Himberg 2010's): measurement noise, and process noise
 #: at the λ each model is defined by (the Q-EKF uses the CV model's, λ = 0.5, as with the thesis's values)
 TUNABLE = ("q-ekf", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3")
 

@@ -1,6 +1,6 @@
 """Delta quaternions, angular rates and orientation extrapolation, batched over leading axes.
 
-Conventions (notes/predictors_dqekf_mmdq.md §1-2): scalar-first Hamilton quaternions as in
+Conventions (docs/math.md §11.1-§11.2): scalar-first Hamilton quaternions as in
 :mod:`ivc.rotations`; ω in rad/s in the reference (source) frame, so ``q̇ = ½ ω ⊗ q`` and a
 constant ω turns q into ``Δq(ω, t) ⊗ q``; ``Δq(k) = q(k) ⊗ q(k−1)*`` with its scalar part
 forced non-negative.
@@ -32,7 +32,7 @@ def delta_q(omega: ArrayLike, t: ArrayLike) -> FloatArray:
 
 
 def delta_q_jacobian(omega: ArrayLike, t: float) -> FloatArray:
-    """∂Δq(ω, t)/∂ω (..., 4, 3), the singularity-free form of notes §2 (finite at ω = 0)."""
+    """∂Δq(ω, t)/∂ω (..., 4, 3), the singularity-free form of docs/math.md §11.3 (finite at ω = 0)."""
     omega = np.asarray(omega, dtype=float)
     rate2 = np.sum(omega**2, axis=-1)
     rate = np.sqrt(rate2)
@@ -65,7 +65,7 @@ def deltas(q: ArrayLike) -> FloatArray:
 
 
 def extrapolate(q: ArrayLike, omega: ArrayLike, alpha: ArrayLike | None, delta: float, tau: float) -> FloatArray:
-    """Orientation δ seconds after q (..., 4) under rate ω and angular acceleration α (notes §7.2, corrected).
+    """Orientation δ seconds after q (..., 4) under rate ω and angular acceleration α (docs/math.md §11.4, corrected).
 
     Whole frames n = 1..⌊δ/τ⌋ turn at ω + nτα, the remaining fraction of a frame at the next
     step's rate; with α = 0 this is exactly ``Δq(ω, δ) ⊗ q``. δ need not be a whole frame.

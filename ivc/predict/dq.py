@@ -1,10 +1,10 @@
-"""Delta-quaternion predictors of seed 001 (Himberg): DQ-EKF CV and CA, and the multiple-model MMDQ2 / MMDQ3.
+"""Delta-quaternion predictors of Himberg 2010: DQ-EKF CV and CA, and the multiple-model MMDQ2 / MMDQ3.
 
 Each estimates the angular velocity ω (and for CA models the angular acceleration α) from
 the delta quaternions of the measured stream, then extrapolates the *measured* orientation
-(notes/predictors_dqekf_mmdq.md §5-§8; corrected equations, tuning from Table 10 and eq. 67).
+(docs/math.md §11.4, §12.2-§12.6; corrected equations, tuning from Table 10 and eq. 67).
 
-Switches for the thesis's variants the notes flag, with the defaults used here:
+Switches for the thesis's variants (docs/math.md §12.3-§12.6), with the defaults used here:
 
 * ``h_jacobian``: H of a CA model, ``"standard"`` [J, 0] (the EKF's ∂h/∂x at x⁻),
   ``"thesis"`` [J, τJ] (eq. 59-60), or ``"midpoint"`` (Δq measures ω − ατ/2).
@@ -38,11 +38,11 @@ from ivc.predict.timing import MAX_GAP_S, check_time, steps
 
 #: Table 10 process-noise standard deviations: CV in rad/s², CA in rad/s³
 SIGMA_CV1 = (1.48, 0.63, 0.72)
-SIGMA_CV2 = (2.96, 1.26, 1.44)  # notes §8.1: CV at λ = 1.0, 2 x CV1 [DERIVED]
+SIGMA_CV2 = (2.96, 1.26, 1.44)  # docs/math.md §12.6: CV at λ = 1.0, 2 x CV1 (derived; not in Himberg 2010)
 SIGMA_CA = (176.0, 76.0, 86.0)
 SIGMA_CA1 = (353.0, 152.0, 175.0)
 SIGMA_CA2 = (708.0, 304.0, 350.0)
-#: Table 10 by (model kind, manoeuvring index λ it was tuned at, notes §9.3)
+#: Table 10 by (model kind, manoeuvring index λ it was tuned at, docs/math.md §13.3)
 TABLE_10 = {("cv", 0.5): SIGMA_CV1, ("cv", 1.0): SIGMA_CV2, ("ca", 0.5): SIGMA_CA, ("ca", 1.0): SIGMA_CA1,
             ("ca", 2.0): SIGMA_CA2}
 #: eq. 67 measurement noise of Δq: standard deviations of its 4 components
@@ -52,7 +52,7 @@ PI_MMDQ2 = ((0.971, 0.029), (0.065, 0.935))
 PI_MMDQ3 = ((0.970, 0.029, 0.001), (0.069, 0.917, 0.014), (0.001, 0.250, 0.749))
 H_JACOBIANS = {"standard": 0.0, "thesis": 1.0, "midpoint": 2.0}
 MODE_WEIGHTS = {"imm": 0.0, "thesis": 1.0}
-#: floors on mixing and mode probabilities (the thesis gives none; a reference prototype used 1e-4)
+#: floors on mixing and mode probabilities (the thesis gives no values; ivc uses 1e-4, docs/math.md §12.4)
 EPS = 1e-4
 
 

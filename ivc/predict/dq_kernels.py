@@ -1,9 +1,9 @@
-"""Compiled DQ-EKF / MMDQ step (notes/predictors_dqekf_mmdq.md §5, §6, §8), one sensor at a time.
+"""Compiled DQ-EKF / MMDQ step (docs/math.md §12.2-§12.5), one sensor at a time.
 
 One kernel serves every DQ filter: a single DQ-EKF (CV or CA) is an IMM with one model, where
 mixing is the identity and the mode probability stays 1. States are embedded in 6-D
 ``[ω, α]`` (rad/s, rad/s²); a CV model uses the first 3 and carries α = 0 (the "zero-padding"
-mixing of notes §8.3). The measurement is ``Δq(k) = q(k) ⊗ q(k−1)*`` (scalar part ≥ 0).
+mixing of docs/math.md §12.4). The measurement is ``Δq(k) = q(k) ⊗ q(k−1)*`` (scalar part ≥ 0).
 
 Per-sensor state arrays (leading axis = sensor):
   x (M, 6), P (M, 6, 6), probs (3, M) = [μ(k), μ(k−1), normalised likelihoods L(k)],
@@ -31,7 +31,7 @@ from ivc.linalg import cholesky, cholesky_logdet, factored_update
 from ivc.predict.quat import delta_q_jacobian, predict_orientation, qmul_conj, rate_of
 
 LOG_2PI = np.log(2.0 * np.pi)
-TPM_FLOOR = 1e-50  # notes §8.2, eq. 47 [SEED]
+TPM_FLOOR = 1e-50  # docs/math.md §12.5; Himberg 2010, eq. 47
 
 CFG_TAU, CFG_EPS_MIX, CFG_EPS_MU, CFG_ADAPTIVE, CFG_WEIGHTS, CFG_H, CFG_P0W, CFG_P0A, CFG_MAX_GAP = range(9)
 CLOCK_AGE, CLOCK_MISSING, CLOCK_RESTARTS, CLOCK_REPEATS = range(4)
@@ -155,7 +155,7 @@ def _ekf_model(kind, qv, z, R, cfg, tau, x0, P0, x, P, vecs, mats):
 
 @numba.njit(cache=True, inline="always")
 def _update_tpm(probs, tpm, M):
-    """Quasi-Bayesian TPM update (Jilkov & Li; notes §8.2 with row i of Π), from the previous frame's L and μ."""
+    """Quasi-Bayesian TPM update (Jilkov & Li; docs/math.md §12.5), from the previous frame's L and μ."""
     Pi, gamma = tpm[0], tpm[1]
     mu_b, L = probs[1], probs[2]
     denom = 0.0
@@ -244,7 +244,7 @@ def step(q, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R
         for a in range(6):
             est[a] = x[0, a]
         return True
-    # mixing (notes §8.3 steps 1-3)
+    # mixing (docs/math.md §12.4)
     for j in range(M):
         c = 0.0
         for i in range(M):

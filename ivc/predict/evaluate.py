@@ -1,13 +1,13 @@
-"""Prediction error against time-shifted truth: the metrics and tables of the thesis (notes §11-§12).
+"""Prediction error against time-shifted truth: the metrics and tables of the thesis (docs/math.md §14.1).
 
 The prediction made at frame k for δ = nτ ahead is compared with the orientation at frame
 k + n: by default the *measured* one (as the thesis does), or the noiseless truth of a
 synthetic recording. Per-sample error (mrad):
 
 * ``compound``: √(Δaz² + Δel² + Δroll²) of wrapped Euler-angle differences (the thesis's
-  "compound angle"; notes §11 flag the ambiguity and recommend this reading). Azimuth,
+  "compound angle"; ambiguous there; docs/math.md §14.1 gives this reading). Azimuth,
   elevation and roll are taken about x, y, z: the order of the thesis's ω components and of
-  its tuning (Table 10, eq. 67), which the synthetic motion follows too (notes §1 flag the
+  its tuning (Table 10, eq. 67), which the synthetic motion follows too (docs/math.md §11.1 flags the
   mapping as unspecified);
 * ``geodesic``: the rotation angle between the two orientations.
 

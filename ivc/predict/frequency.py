@@ -1,13 +1,13 @@
-"""Frequency-domain analysis of linear predictors (seed 004, Azuma & Bishop 1995).
+"""Frequency-domain analysis of linear predictors (Azuma & Bishop 1995; docs/math.md §16).
 
-Notes: notes/predictors_polynomial_frequency_nasa.md.
+Equations: docs/math.md §16.
 
 A linear predictor with steady-state recursion ``X(k) = G X(k−1) + K Y(k)`` and output
 ``D(p) X(k)`` has the transfer function ``O(z) = D (zI − G)⁻¹ z K M(ω)`` at z = e^{jωT}, where
 M(ω) generates the measurements a sinusoid would give (position, velocity ``jω``,
 acceleration ``−ω²``). For A&B's Kalman cases ``G = A − K H A``. The ideal predictor is
 ``e^{jωp}``; the error transfer function is ``U = O − e^{jωp}`` and the RMS error of a unit
-sinusoid is ``|U|/√2`` (A.2.3, closed form). Frequencies f are in Hz, p and T in seconds.
+sinusoid is ``|U|/√2`` (docs/math.md §16.6, closed form). Frequencies f are in Hz, p and T in seconds.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from scipy.linalg import solve_discrete_are
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
 
-#: A&B95 do not give their sample period; 5 ms reproduces all their crossovers (notes A.1.2)
+#: A&B95 do not give their sample period; 5 ms reproduces all their crossovers (docs/math.md §16.3)
 AB_PERIOD = 1.0 / 200.0
 
 
@@ -83,7 +83,7 @@ def steady_state_gain(Phi: ArrayLike, H: ArrayLike, W: ArrayLike, V: ArrayLike) 
 
 @dataclass(frozen=True)
 class ABCase:
-    """One of A&B95's steady-state Kalman + polynomial predictors (Table in notes A.1.2)."""
+    """One of A&B95's steady-state Kalman + polynomial predictors (docs/math.md §16.3)."""
 
     name: str
     H: FloatArray
@@ -118,6 +118,6 @@ AB_CASES = {
 
 
 def kinematic_gain(h: float, w_a: float, V: float) -> FloatArray:
-    """NASA's per-axis translational KF (seed 003): 3 states [p, v, a], position measured, noise on a only."""
+    """NASA's per-axis translational KF (eq. 12-14): 3 states [p, v, a], position measured, noise on a only."""
     Phi = np.array([[1, h, h * h / 2], [0, 1, h], [0, 0, 1]])
     return steady_state_gain(Phi, [[1.0, 0, 0]], np.diag([0.0, 0.0, w_a]), [[V]])

@@ -1,4 +1,4 @@
-"""Linear per-axis predictors on orientation streams (seeds 003 and 004): polynomial, α-β, kinematic KF.
+"""Linear per-axis predictors on orientation streams (Azuma & Bishop 1995; NASA 2001): polynomial, α-β, kinematic KF.
 
 A&B95 linearise orientation into three independent small-angle signals. Here each frame's
 rotation ``Δq(k) = q(k) ⊗ q(k−1)*`` is turned into a rotation vector and accumulated into

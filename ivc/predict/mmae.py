@@ -1,6 +1,6 @@
-"""Seed 000 (Kyger): multiple-model adaptive estimation over Gauss-Markov look-vector filters.
+"""Kyger 1995: multiple-model adaptive estimation over Gauss-Markov look-vector filters.
 
-Notes: notes/predictors_mmae.md.
+Equations: docs/math.md §15.
 
 Elemental filters share the per-axis state [position, velocity, acceleration] of a unit look
 vector, measured with ``H = [1 0 0]`` per axis and ``R = r I3``:
@@ -10,7 +10,7 @@ vector, measured with ``H = [1 0 0]`` per axis and ``R = r I3``:
 * ``fogma``: first-order Gauss-Markov acceleration (Singer), σ² the acceleration variance;
 * ``phi2``: a FOGMA propagated by Φ(κΔt) inside its own recursion (Kyger's "Φ²" lead, κ = 2).
 
-Φ and Qd come from Van Loan's matrix exponential, not the printed closed forms (notes §3.1:
+Φ and Qd come from Van Loan's matrix exponential, not the printed closed forms (docs/math.md §15.2:
 q11 is misprinted and the closed form cancels catastrophically for τ ≫ Δt). The bank runs the
 Bayesian probability recursion in the log domain with a lower bound, declares a filter
 divergent when rᵀA⁻¹r exceeds its threshold (zero weight; its position reset to the blend of
@@ -83,7 +83,7 @@ class Elemental:
         return expm(F * dt * (self.kappa if self.kind == "phi2" else 1.0))
 
     def discrete(self, dt: float) -> tuple[FloatArray, FloatArray]:
-        """(Φ, Qd) over one step dt by Van Loan; phi2 propagates with Φ(κ dt) and Qd(dt) (notes §3.5)."""
+        """(Φ, Qd) over one step dt by Van Loan; phi2 propagates with Φ(κ dt) and Qd(dt) (docs/math.md §15.3)."""
         F, GQG = self.continuous()
         M = np.block([[-F, GQG], [np.zeros((3, 3)), F.T]]) * dt
         E = expm(M)
@@ -212,7 +212,7 @@ def frame_from_axes(forward: FloatArray, up: FloatArray) -> FloatArray:
     return rotations.from_matrix(np.stack([x, y, z], axis=-1))
 
 
-#: the reference prototype's working bank (notes §10.1), the thesis's final tunings being lost
+#: a working bank (docs/math.md §15.5), Kyger 1995's final tunings being lost
 DEFAULT_BANK = (Elemental("cp", 0.1, threshold=8.0), Elemental("fogmv", 1.0, tau=0.115),
                 Elemental("phi2", 5.0, tau=1.0))
 

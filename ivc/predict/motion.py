@@ -1,4 +1,4 @@
-"""Synthetic head motion for evaluating predictors (notes/predictors_dqekf_mmdq.md §13.2-13.3).
+"""Synthetic head motion for evaluating predictors (docs/math.md §14.2-§14.3).
 
 Motion is a sequence of minimum-jerk rotations about random axes with holds between them,
 composed in the reference frame. Axis weights are 1 : 0.6 : 0.3 on the x, y, z components
@@ -12,7 +12,7 @@ the head more than ``reach`` rad (69°) from its rest orientation are redrawn or
 * ``full``: a regime-switching mix (about 35 % benign, 50 % moderate, 15 % aggressive) with
   short violent bursts (Table 7 "Motion 0/1", Table 8).
 
-The noise model (§13.3) is white rotation-vector noise (rad, per axis) plus an optional slow
+The noise model (docs/math.md §14.3) is white rotation-vector noise (rad, per axis) plus an optional slow
 AR(1) error proportional to the angular speed (the "dynamic error" in the thesis's R).
 """
 
@@ -33,7 +33,7 @@ FloatArray = NDArray[np.float64]
 
 MOTIONS = ("benign", "moderate", "aggressive", "full")
 AXIS_WEIGHTS = np.array([1.0, 0.6, 0.3])
-#: white rotation noise per axis (rad), in the range of notes §13.3 (0.9e-4 to 3.1e-4). The Δq noise it
+#: white rotation noise per axis (rad), in the range of docs/math.md §14.3 (0.9e-4 to 3.1e-4). The Δq noise it
 #: gives is σ/√2 per axis, [1.56e-4, 6.4e-5, 6.4e-5]: Table 3's DQ values on the 2nd and 3rd axes, 0.71 x
 #: eq. 67's on all three (√2 x eq. 67, the top of the range, would match eq. 67 itself)
 NOISE_RAD = (2.2e-4, 0.9e-4, 0.9e-4)

@@ -1,7 +1,7 @@
-"""Seed 003's 10-state quaternion EKF (Adelstein, Jung & Ellis; notes/predictors_polynomial_frequency_nasa.md B.1.4).
+"""The 10-state quaternion EKF of Adelstein, Jung & Ellis 2001 (docs/math.md §17.1).
 
 State x = [q (4), ω (3, rad/s, body frame), α (3, rad/s²)], kinematics dq/dt = ½ q ⊗ (0, ω)
-(eq. 16), ω̇ = α, α̇ = w. As the notes recommend (eq. 20 as printed doubles the quaternion
+(eq. 16), ω̇ = α, α̇ = w. As docs/math.md §17.1 explains (eq. 20 as printed doubles the quaternion
 rate when used to propagate):
 
 - the state is propagated with the exact kinematics: q⁻ = q ⊗ exp(½(hω + ½h²α)), ω⁻ = ω + hα;
@@ -12,7 +12,7 @@ rate when used to propagate):
 
 Measurement z = q + v, H = [I₄ 0], V_r = diag(1e-4) (the paper's). W_r is diagonal, the design
 parameter (10 entries: q_w, q_x, q_y, q_z, ω_x, ω_y, ω_z, α_x, α_y, α_z). A&B94's default W_r is
-not in the seeds: :data:`DEFAULT_W` is ours, chosen on the synthetic yaw record of
+not listed by Adelstein, Jung & Ellis 2001: :data:`DEFAULT_W` is ours, chosen on the synthetic yaw record of
 :mod:`ivc.predict.studies.compensator` (a placeholder for it).
 """
 
@@ -38,7 +38,7 @@ from ivc.predict.quat import normalise, qmul
 
 #: V_r of the paper: variance of each measured quaternion component
 V_QUATERNION = 1e-4
-#: our default W_r (A&B94's is not in the seeds): q, ω, α process variances per step. Chosen on the
+#: our default W_r (A&B94's is not in the paper): q, ω, α process variances per step. Chosen on the
 #: synthetic yaw record of :mod:`ivc.predict.studies.compensator` so that, like the paper's default, it tracks
 #: the yaw well (twist ratio 0.21 against the paper's 0.181) and amplifies tremor (noise gain ~2)
 DEFAULT_W = (1e-9, 1e-9, 1e-9, 1e-9, 1e-6, 1e-6, 1e-6, 1.0, 1.0, 1.0)
@@ -194,7 +194,7 @@ def extrapolate(x: np.ndarray, usable: np.ndarray, t: float) -> np.ndarray:
 
 @dataclass
 class NasaEKF(FixedRatePredictor):
-    """Seed 003's 10-state quaternion EKF; ``W`` (10,) its diagonal process noise per step, ``V`` the
+    """NASA's 10-state quaternion EKF; ``W`` (10,) its diagonal process noise per step, ``V`` the
     measurement variance of each quaternion component, ``p0`` the initial ω and α variances."""
 
     rate_hz: float = 120.0

@@ -1,8 +1,8 @@
-"""Seed 001's Q-EKF: 7 states [q, ω], the measured quaternion as the measurement (notes/predictors_dqekf_mmdq.md §4).
+"""Himberg 2010's Q-EKF: 7 states [q, ω], the measured quaternion as the measurement (docs/math.md §12.1).
 
 Process: ω⁻ = ω̂ (constant velocity, angular-acceleration noise w), q⁻ = Δq(ω̂, τ) ⊗ q̂, with
 A = [[L(Δq), R(q̂) J], [0, I]], W = [R(q̂) J τ; τ I] (eq. 18-25); measurement z = q + v, H = [I4 0].
-Deviations from the thesis, flagged in the notes: q̂ is renormalised after each update, and the
+Deviations from the thesis (docs/math.md §12.1): q̂ is renormalised after each update, and the
 measurement's sign is aligned with q⁻ before the (additive) innovation. The prediction base is
 the state q̂(k|k) by default (``base="state"``, the thesis's Q framework) or the measurement.
 """

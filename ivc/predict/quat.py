@@ -1,8 +1,8 @@
 """Compiled scalar quaternion helpers shared by the predictor kernels (scalar-first Hamilton, as ivc.rotations).
 
 Δq(ω, t) is the rotation a constant angular velocity ω (rad/s, reference frame) makes in t
-seconds: ``[cos(|ω|t/2), ω/|ω| sin(|ω|t/2)]`` (notes/predictors_dqekf_mmdq.md §2, with the
-OCR's factor 2 removed). Its Jacobian uses the singularity-free form of §2, exact at ω = 0.
+seconds: ``[cos(|ω|t/2), ω/|ω| sin(|ω|t/2)]`` (docs/math.md §11.2, with the
+OCR's factor 2 removed). Its Jacobian uses the singularity-free form of docs/math.md §11.3, exact at ω = 0.
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ def delta_q(wx, wy, wz, t, out):
 
 @numba.njit(inline="always")
 def delta_q_jacobian(wx, wy, wz, t, J, value):
-    """J (4, 3) = ∂Δq(ω, t)/∂ω, singularity-free (notes §2), and value = Δq(ω, t) (one sin and cos for both)."""
+    """J (4, 3) = ∂Δq(ω, t)/∂ω, singularity-free (docs/math.md §11.3), and value = Δq(ω, t) (shared sin and cos)."""
     w = (wx, wy, wz)
     omega2 = wx * wx + wy * wy + wz * wz
     omega = np.sqrt(omega2)
@@ -101,7 +101,7 @@ def rate_of(dq, t, out):
 
 @numba.njit(inline="always")
 def predict_orientation(q, wx, wy, wz, ax, ay, az, delta, tau, out, tmp, dq):
-    """out = orientation ``delta`` seconds after q, turning at ω + n τ α over frame n (notes §7.2, corrected).
+    """out = orientation ``delta`` seconds after q, turning at ω + n τ α over frame n (docs/math.md §11.4, corrected).
 
     Whole frames n = 1..N (N = ⌊δ/τ⌋) use ω + nτα; the remaining ρ = δ − Nτ uses ω + (N+1)τα.
     With α = 0 it is one rotation Δq(ω, δ) ⊗ q, exact for constant angular velocity.

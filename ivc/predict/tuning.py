@@ -1,9 +1,9 @@
-"""Tune the seed-001 Kalman predictors to a tracker from its own recordings (notes/predictors_dqekf_mmdq.md §9).
+"""Tune Himberg 2010's Kalman predictors to a tracker from its own recordings (docs/math.md §13).
 
 The thesis's noise values (Table 3, eq. 67) describe its Polhemus in its room. Its procedure
 re-derives them from data, and this module does the same:
 
-* **Measurement noise** (§9.1): the residual of the recording around a Gaussian-smoothed copy
+* **Measurement noise** (docs/math.md §13.1): the residual of the recording around a Gaussian-smoothed copy
   of itself. For the Q-EKF, q − q_smooth per quaternion component; for the DQ filters,
   Δq(raw) − Δq(smoothed q). Components are independent (R diagonal), as in the thesis. The
   smoothed copy keeps a little of the noise; each std is divided by the fraction of white
@@ -19,16 +19,16 @@ re-derives them from data, and this module does the same:
   largest: an upper bound on its noise (|δz0| ≤ |z_v||δz_v|) that leaves z0 a weight of at
   most (|ω|τ/2)² against the vector part (below 10⁻³ up to 7 rad/s at 120 Hz), so that the
   filters take the information once, from the vector part (:attr:`Tuning.sigma_v_dq`).
-* **Manoeuvring index** λ (§9.3): per sample, the root mean square of the smoothed angular
+* **Manoeuvring index** λ (docs/math.md §13.2): per sample, the root mean square of the smoothed angular
   velocity's frame-to-frame change over a 12-sample window centred on the sample (about zero:
   process noise has zero mean), over the std of the measured angular velocity around the
   smoothed one. Both are 3-vectors; λ uses their root-sum-square over the axes (the thesis
   does not say per axis or on norms).
-* **Process noise** (§9.3, the scaling that reproduces Table 10): a model is defined by the λ it
+* **Process noise** (docs/math.md §13.3, the scaling that reproduces Table 10): a model is defined by the λ it
   is tuned at (CV1 0.5, CA1 1.0, CA2 2.0, ...), and σ_w,CV = λ σ_Δq / τ² (rad/s²),
   σ_w,CA = λ σ_Δq / τ³ (rad/s³), σ_Δq the vector part of the DQ noise. Re-deriving σ_w with
   σ_v keeps each filter's gain, which depends on their ratio only, at the thesis's.
-* **Initial transition matrix** Π₀ (§9.3): transitions between λ labels, counted frame to frame.
+* **Initial transition matrix** Π₀ (docs/math.md §13.4): transitions between λ labels, counted frame to frame.
 
 The Gaussian kernel's width is not in the thesis; the default, σ = 2 frames at 120 Hz (17 ms),
 removes white noise while a head turn bends the smoothed copy by far less than the noise.
@@ -53,7 +53,7 @@ from ivc.predict.qekf import R_QUATERNION
 
 #: Gaussian smoothing width, seconds (2 frames at 120 Hz)
 SMOOTH_S = 2.0 / 120.0
-#: samples in the window of the per-sample λ (§9.3)
+#: samples in the window of the per-sample λ (docs/math.md §13.2)
 LAMBDA_WINDOW = 12
 #: λ edges between the labels of MMDQ2 (CV1 | CA1) and MMDQ3 (CV1 | CA1 | CA2), from the thesis's λ ranges
 EDGES_MMDQ2 = (0.75,)

@@ -44,12 +44,12 @@ _CAPTIONS = {
                         "dashed: medians). Only trusted (unflagged) corrections are counted for IVC.",
     "error_vs_distance": "Errors against the distance from the cube centre (green band: inside the cube).",
     "lambda_vs_error": "Sensor 0's pose error inside the cube against the rms of the signal residual Λ (eq. 99) "
-                       "relative to rms(S), with the gate the table was fitted with (seed Fig. 35). Frames right "
+                       "relative to rms(S), with the gate the table was fitted with (Himberg's Fig. 35). Frames right "
                        "of the gate were dropped.",
     "cube_residuals": "Each cube sensor's calibrated position minus the ideal cube vertex (Table 20) and minus the "
                       "optimised cube's vertex (eq. 108, Table 21), in the fixture frame. The fixture frame is built "
                       "from sensors 0, 4 and 2 (origin, x axis, xy plane), so those errors are partly zero by "
-                      "construction, as in the seed's Table 20.",
+                      "construction, as in Himberg 2010's Table 20.",
     "coverage": "Kept wand samples per grid cell on the same slices as the field. Inside the red line every node "
                 "is valid and corrections are trusted; a red x marks a thin cell: mapped, but with few samples of "
                 "its own, so its values come from the neighbours.",

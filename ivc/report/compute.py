@@ -2,7 +2,7 @@
 
 Lengths are metres in the arrays and millimetres in the summaries; angles radians in the
 arrays, milliradians in the summaries. Positions are in the frame of the *declared* cube
-pose, the frame the table lives in (MATH.md §5). Truth, where a session has it, is used
+pose, the frame the table lives in (docs/math.md §5). Truth, where a session has it, is used
 for evaluation only.
 """
 
@@ -262,7 +262,7 @@ def figures_missing(data: ReportData) -> dict[str, str]:
 
 def cube_errors(model: FixtureModel) -> tuple[np.ndarray, np.ndarray]:
     """Each cube sensor's calibrated position (fixture frame) minus the ideal cube's vertex
-    (seed Table 20) and minus the optimised cube's (eq. 108, Table 21), (8, 3) mm each."""
+    (Himberg 2010's Table 20) and minus the optimised cube's (eq. 108, Table 21), (8, 3) mm each."""
     relative = model.cube.relative_positions
     return 1000 * (relative - NOMINAL_EDGE * CUBE_BITS), 1000 * model.cube.fit.residuals
 

@@ -52,7 +52,7 @@ def _label_slices(axes: list, s: Slices) -> None:
 
 
 def secondary_field(data: ReportData) -> Figure:
-    """Seed Fig. 33: |G| as % of the measured signal on horizontal slices of the mapped volume."""
+    """Himberg 2010's Fig. 33: |G| as % of the measured signal on horizontal slices of the mapped volume."""
     s = data.slices
     fig, axes = _panels(len(s.z))
     finite = s.percent[np.isfinite(s.percent)]
@@ -106,7 +106,7 @@ def coverage(data: ReportData) -> Figure:
 
 
 def cube_residuals(data: ReportData) -> Figure:
-    """Seed Tables 20-21: each cube sensor's calibrated position minus the ideal and the optimised cube."""
+    """Himberg 2010's Tables 20-21: each cube sensor's calibrated position minus the ideal and the optimised cube."""
     cube = data.model.cube
     minus_ideal, minus_optimised = cube_errors(data.model)
     tables = (("calibrated − ideal cube (Table 20)", minus_ideal),
@@ -129,7 +129,7 @@ def cube_residuals(data: ReportData) -> Figure:
 
 
 def lambda_vs_error(data: ReportData) -> Figure:
-    """Seed Fig. 35: sensor 0's pose error against rms(Λ)/rms(S); without truth, the distribution of Λ."""
+    """Himberg 2010's Fig. 35: sensor 0's pose error against rms(Λ)/rms(S); without truth, the distribution of Λ."""
     mapping, errors, gate = data.sweep.mapping, data.sweep.errors, data.sweep.gates.max_residual
     solved = mapping.sensor0.converged & mapping.inside
     residual = mapping.sensor0.residual[solved]
@@ -166,7 +166,7 @@ def lambda_vs_error(data: ReportData) -> Figure:
 
 
 def error_histograms(data: ReportData) -> Figure:
-    """Seed Figs. 38-39: check-pose position and orientation errors, IVC against the uncorrected dipole."""
+    """Himberg 2010's Figs. 38-39: check-pose position and orientation errors, IVC against the uncorrected dipole."""
     e = data.check.errors
     fig = Figure(figsize=(11, 4.2), layout="constrained")
     axes = fig.subplots(1, 2)
@@ -272,10 +272,10 @@ def _plain_log_labels(ax) -> None:
 
 
 FIGURES = {
-    "secondary_field": (secondary_field, "Secondary field as % of the measured signal (seed Fig. 33)"),
-    "error_histograms": (error_histograms, "IVC against uncorrected errors (seed Figs. 38-39)"),
-    "lambda_vs_error": (lambda_vs_error, "Pose-in-cube error against Λ (seed Fig. 35)"),
-    "cube_residuals": (cube_residuals, "Cube sensor position errors (seed Tables 20-21)"),
+    "secondary_field": (secondary_field, "Secondary field as % of the measured signal (Himberg 2010's Fig. 33)"),
+    "error_histograms": (error_histograms, "IVC against uncorrected errors (Himberg 2010's Figs. 38-39)"),
+    "lambda_vs_error": (lambda_vs_error, "Pose-in-cube error against Λ (Himberg 2010's Fig. 35)"),
+    "cube_residuals": (cube_residuals, "Cube sensor position errors (Himberg 2010's Tables 20-21)"),
     "coverage": (coverage, "Wand coverage of the mapped volume"),
     "error_vs_distance": (error_vs_distance, "Error against distance from the cube"),
 }

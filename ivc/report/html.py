@@ -31,7 +31,7 @@ def table(header: list[str] | None, rows: list[list]) -> str:
 
 
 def percentile_table(rows: list[tuple[str, dict, str]]) -> str:
-    """Rows of (label, percentiles dict, unit) in the layout of seed Table 24."""
+    """Rows of (label, percentiles dict, unit) in the layout of Himberg 2010's Table 24."""
     body = [[label, *[values.get(k, "") for k, _ in _PERCENTILES], unit] for label, values, unit in rows]
     return table(["", *[h for _, h in _PERCENTILES], "unit"], body)
 

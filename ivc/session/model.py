@@ -19,7 +19,7 @@ from ivc.errors import SessionError
 FORMAT_NAME = "session"
 FORMAT_VERSION = 1
 
-#: the protocol steps of seed 001 ch. 4.4.3, in recording order
+#: the protocol steps of Himberg 2010, ch. 4.4.3, in recording order
 STEPS = ("cube_calibration", "cube_survey", "wand_calibration", "wand_sweep", "check")
 #: the steps ``ivc fit`` needs; ``check`` is for ``ivc evaluate``
 FIT_STEPS = STEPS[:4]
@@ -103,7 +103,7 @@ class Step:
         return replace(self, **cut)
 
     def signal_matrices(self) -> NDArray[np.float64]:
-        """Signal matrices, rebuilt from the reported poses when the step has none (MATH.md §9)."""
+        """Signal matrices, rebuilt from the reported poses when the step has none (docs/math.md §9)."""
         if self.signal is not None:
             return self.signal
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -111,7 +111,7 @@ class Step:
 
     def poses(self, hemisphere: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Positions (F, N, 3) and quaternions (F, N, 4): the reported ones, or, when the step
-        has signals only, their closed-form dipole solution (MATH.md §3; exact in free space)."""
+        has signals only, their closed-form dipole solution (docs/math.md §3; exact in free space)."""
         if self.position is not None:
             return self.position, self.quaternion
         with np.errstate(invalid="ignore"):

@@ -1,4 +1,4 @@
-"""Simulate the six-step protocol (seed 001 ch. 4.4.3) in a scene, step by step.
+"""Simulate the six-step protocol (Himberg 2010, ch. 4.4.3) in a scene, step by step.
 
 A :class:`Simulator` is fixed by its scene and seed: the fixtures' true geometry, the
 cube's placement error and each step's noise come from separate random streams, so a
@@ -63,7 +63,7 @@ class Simulator:
         return field
 
     def true_cube_frame(self) -> tuple[np.ndarray, np.ndarray]:
-        """True pose ``(r_0, T_I)`` of the cube fixture frame (MATH.md §5) during the survey."""
+        """True pose ``(r_0, T_I)`` of the cube fixture frame (docs/math.md §5) during the survey."""
         body_position, body_quaternion = rig.cube_body_pose(self.scene.cube)
         origin, T_body = fixture_frame(self.cube.body_positions)
         R = rotations.to_matrix(body_quaternion)

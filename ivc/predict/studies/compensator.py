@@ -1,4 +1,4 @@
-"""Seed 003's predictive-compensator optimisation (notes/predictors_polynomial_frequency_nasa.md B.2).
+"""The predictive-compensator optimisation of Adelstein, Jung & Ellis 2001 (docs/math.md §17.3).
 
 The design parameter is the 10-state EKF's diagonal process noise W_r (:mod:`ivc.predict.nasa`).
 Powell's method (scipy) tunes its logarithm against one of two costs, at τ = 50 ms:
@@ -8,7 +8,7 @@ Powell's method (scipy) tunes its logarithm against one of two costs, at τ = 50
   vertical, eqs. 24-25) plus noise (the same displacement produced by the predictor fed a
   high-passed still record, eq. 26), each divided by its value for the default W_r.
 
-Conventions (the notes' flags resolved): errors are in the HMD frame, q_Δ = q_p⁻¹ ⊗ q_a; the
+Conventions (docs/math.md §17.3): errors are in the HMD frame, q_Δ = q_p⁻¹ ⊗ q_a; the
 displacement is Δr = q_Δ ⊗ r ⊗ q_Δ* − r with r = (0.8, 0, 0) m (HMD x forward, y horizontal,
 z vertical); the twist is 2·acos(min(1, |q_Δw|)); "RMS" includes the 1/N. The evaluation is the
 offline protocol of Table 1: the predictor sees the record up to frame k and its N-step
@@ -16,7 +16,7 @@ prediction is compared with frame k + N; the baseline is frame k itself (the del
 
 The paper's records (a subject yawing to an 80 beat/min metronome; the same subject sitting
 still) are not available: :func:`yaw_records` synthesises them, 0.67 Hz yaw plus ~5 Hz
-mostly-pitch physiological tremor plus sensor noise (notes D.1.5).
+mostly-pitch physiological tremor plus sensor noise (docs/math.md §17.4).
 """
 
 from __future__ import annotations
@@ -34,9 +34,9 @@ from ivc.predict.nasa import DEFAULT_W, NasaEKF
 #: the target: 0.8 m in front of the HMD (x forward, y horizontal, z vertical)
 TARGET_M = np.array([0.8, 0.0, 0.0])
 HORIZON_S = 0.05
-#: the high-pass filter of the noise record: H(s) = s² / ((s + 2π·0.5)(s + 2π·5)) (notes B.2)
+#: the high-pass filter of the noise record: H(s) = s² / ((s + 2π·0.5)(s + 2π·5)) (docs/math.md §17.3)
 HPF_CORNERS_HZ = (0.5, 5.0)
-#: Table 1 of seed 003 (ratios at 50 ms): twist, horizontal and vertical displacement, horizontal and
+#: NASA's Table 1 (ratios at 50 ms): twist, horizontal and vertical displacement, horizontal and
 #: vertical noise
 PAPER_TABLE1 = {"default": (0.181, 0.161, 1.047, 2.250, 2.251), "twist": (0.135, 0.104, 0.934, 2.703, 1.993),
                 "hybrid": (0.457, 0.108, 1.041, 2.449, 1.043)}
@@ -68,7 +68,7 @@ def high_pass(q: np.ndarray, rate_hz: float) -> np.ndarray:
 def yaw_records(seconds: float = 20.0, rate_hz: float = 120.0, seed: int = 0, yaw_rad: float = 0.5,
                 pitch_rad: float = 0.08, tremor_rad: tuple[float, float] = (1.5e-3, 0.4e-3), tremor_hz: float = 5.0,
                 noise_rad: float = 2e-4) -> YawRecords:
-    """Synthetic stand-ins for seed 003's records: side-to-side yaw at 0.67 Hz (±``yaw_rad``) with the
+    """Synthetic stand-ins for the paper's records: side-to-side yaw at 0.67 Hz (±``yaw_rad``) with the
     head dipping by ``pitch_rad`` at each side (pitch at twice the yaw frequency), physiological
     tremor near ``tremor_hz`` (pitch, yaw amplitudes) and white sensor noise; and a still record
     (tremor and noise only), high-passed."""
@@ -197,7 +197,7 @@ def optimise(design: str, records: YawRecords, start: tuple = DEFAULT_W, horizon
 
 
 def render_table1(rows: dict[str, tuple[float, ...]], evaluations: dict[str, int] | None = None) -> str:
-    """Seed 003's Table 1 layout: ratios to no prediction at 50 ms, ours beside the paper's."""
+    """Adelstein, Jung & Ellis 2001's Table 1 layout: ratios to no prediction at 50 ms, ours beside the paper's."""
     head = f"{'design':<16}" + "".join(f"{c:>18}" for c in COLUMNS)
     lines = ["Ratios to no prediction at 50 ms (< 1: prediction helps); paper's values in brackets", head]
     for name, ratios in rows.items():
