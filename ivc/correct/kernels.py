@@ -129,6 +129,49 @@ def _rotate_increment(T, w, out):
 
 
 @numba.njit
+def gauss_newton_matrix(J, e, H, grad):
+    """H = JᵀJ (6, 6) and grad = −Jᵀe (6,) of a 9-residual, 6-unknown pose step."""
+    for a in range(6):
+        s = 0.0
+        for k in range(9):
+            s -= J[k, a] * e[k]
+        grad[a] = s
+        for b in range(a + 1):
+            s = 0.0
+            for k in range(9):
+                s += J[k, a] * J[k, b]
+            H[a, b] = s
+            H[b, a] = s
+
+
+@numba.njit
+def damped_matrix(H, damping, A):
+    """A = H with Levenberg-Marquardt damping on its diagonal, ``damping · max(H_aa, 1e-30 · max_b H_bb)``
+    (A may be H itself)."""
+    scale_max = 0.0
+    for a in range(6):
+        scale_max = max(scale_max, H[a, a])
+    for a in range(6):
+        for c in range(6):
+            A[a, c] = H[a, c]
+        A[a, a] += damping * max(H[a, a], 1e-30 * scale_max)
+
+
+@numba.njit
+def accept_step(r, rt, T, Tt, e, et, J, Jt):
+    """The trial pose (rt, Tt), its residual et and Jacobian Jt become the current ones (copied in place)."""
+    for a in range(3):
+        r[a] = rt[a]
+    for i in range(3):
+        for j in range(3):
+            T[i, j] = Tt[i, j]
+    for k in range(9):
+        e[k] = et[k]
+        for a in range(6):
+            J[k, a] = Jt[k, a]
+
+
+@numba.njit
 def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
                 r, T):
     """Correct one frame: S (3, 3), seed (3,) (NaN: no warm start) -> r (3,), T (3, 3) written in place.
@@ -176,21 +219,8 @@ def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape
     iterations = 0
     while iterations < max_iterations:
         iterations += 1
-        for a in range(6):
-            grad[a] = 0.0
-            for k in range(9):
-                grad[a] -= J[k, a] * e[k]
-            for b in range(a + 1):
-                s = 0.0
-                for k in range(9):
-                    s += J[k, a] * J[k, b]
-                H[a, b] = s
-                H[b, a] = s
-        scale_max = 0.0
-        for a in range(6):
-            scale_max = max(scale_max, H[a, a])
-        for a in range(6):
-            H[a, a] += damping * max(H[a, a], 1e-30 * scale_max)
+        gauss_newton_matrix(J, e, H, grad)
+        damped_matrix(H, damping, H)
         if not _solve6(H, grad, step):
             damping *= 10.0
             if damping > 1e8:
@@ -209,15 +239,7 @@ def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape
             for i in range(3):
                 for j in range(3):
                     Ma[i, j] = M[i, j]
-            for a in range(3):
-                r[a] = rt[a]
-            for i in range(3):
-                for j in range(3):
-                    T[i, j] = Tt[i, j]
-            for k in range(9):
-                e[k] = et[k]
-                for a in range(6):
-                    J[k, a] = Jt[k, a]
+            accept_step(r, rt, T, Tt, e, et, J, Jt)
             cost = trial
             damping = max(damping * 0.3, 1e-12)
             if small:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.correct.kernels import _model, _residual, _rotate_increment, _solve6
+from ivc.correct.kernels import _model, _residual, _rotate_increment, _solve6, damped_matrix
 from ivc.fixtures.kernels import cube_model
 
 
@@ -93,13 +93,7 @@ def rigid_kernel(S, valid, scale, b, R, centre, cube_scale, coefficients, padded
                        spacing, shape, cubic, r[f], T[f], H, grad, work)
         damping = 1e-3
         for _ in range(max_iterations):
-            scale_max = 0.0
-            for a in range(6):
-                scale_max = max(scale_max, H[a, a])
-            for a in range(6):
-                for c in range(6):
-                    A[a, c] = H[a, c]
-                A[a, a] += damping * max(H[a, a], 1e-30 * scale_max)
+            damped_matrix(H, damping, A)
             if not _solve6(A, grad, step):
                 damping *= 10.0
                 if damping > 1e8:
