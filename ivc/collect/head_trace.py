@@ -22,14 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ivc.collect.imports import ImportReport
+from ivc.collect.imports import MAX_REPORTED, ImportReport, refuse_malformed
 from ivc.errors import CsvError
 from ivc.session import Step
 
 HEADER = ["timestamp", "viewpoint", "w", "x", "y", "z"]
 #: a quaternion whose norm is off 1 by more than this is a malformed row, not a rounding
 NORM_TOLERANCE = 1e-3
-_MAX_REPORTED = 10
 
 
 def read_head_trace(path: str | Path) -> tuple[Step, ImportReport]:
@@ -58,11 +57,9 @@ def read_head_trace(path: str | Path) -> tuple[Step, ImportReport]:
                               "quaternion w x y z")
                 continue
             rows.append((line, values))
-            if len(errors) > _MAX_REPORTED:
+            if len(errors) > MAX_REPORTED:
                 break
-    if errors:
-        more = " (and more)" if len(errors) > _MAX_REPORTED else ""
-        raise CsvError(f"{path}: malformed rows, nothing imported{more}:\n  " + "\n  ".join(errors[:_MAX_REPORTED]))
+    refuse_malformed(path, errors)
     if len(rows) < 2:
         raise CsvError(f"{path}: fewer than 2 data rows")
     report = ImportReport(str(path), "head-orientation trace (timestamp viewpoint w x y z)", rows=len(rows))

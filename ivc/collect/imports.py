@@ -40,6 +40,20 @@ class ImportReport:
         return "\n".join([head, *(f"  {n}" for n in self.notes)])
 
 
+#: malformed rows named in one refusal, at most
+MAX_REPORTED = 10
+
+
+def refuse_malformed(path: str | Path, errors: list[str]) -> None:
+    """Raise a CsvError naming the first :data:`MAX_REPORTED` malformed rows, if there are any (nothing is imported).
+
+    Readers stop collecting once they hold more than MAX_REPORTED errors.
+    """
+    if errors:
+        more = " (and more)" if len(errors) > MAX_REPORTED else ""
+        raise CsvError(f"{path}: malformed rows, nothing imported{more}:\n  " + "\n  ".join(errors[:MAX_REPORTED]))
+
+
 def _first_line(path: Path) -> str:
     try:
         with open(path, encoding="utf-8-sig", errors="replace") as handle:

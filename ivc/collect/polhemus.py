@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import median_filter
 
-from ivc.collect.imports import ImportReport
+from ivc.collect.imports import MAX_REPORTED, ImportReport, refuse_malformed
 from ivc.errors import CsvError
 from ivc.session import Step
 from ivc.units import LENGTH_UNITS
@@ -38,7 +38,6 @@ DROPOUT_FRACTION = 0.7
 #: frames in the running median of the distance
 DROPOUT_WINDOW = 31
 NORM_TOLERANCE = 1e-3
-_MAX_REPORTED = 10
 
 
 def _columns(header: list[str]) -> list[tuple[str, list[int]]]:
@@ -83,11 +82,9 @@ def read_liberty_csv(path: str | Path, unit: str = "in") -> tuple[Step, ImportRe
                     rows.append([float(c) for c in row])
                 except ValueError:
                     errors.append(f"line {line}: a field is not a number")
-            if len(errors) > _MAX_REPORTED:
+            if len(errors) > MAX_REPORTED:
                 break
-    if errors:
-        more = " (and more)" if len(errors) > _MAX_REPORTED else ""
-        raise CsvError(f"{path}: malformed rows, nothing imported{more}:\n  " + "\n  ".join(errors[:_MAX_REPORTED]))
+    refuse_malformed(path, errors)
     if len(rows) < 2:
         raise CsvError(f"{path}: fewer than 2 data rows")
     data = np.array(rows)

@@ -29,7 +29,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ivc import rotations
-from ivc.collect.imports import read_recording, sniff
+from ivc.collect.imports import MAX_REPORTED, read_recording, refuse_malformed, sniff
 from ivc.collect.plus import is_plus_sequence, read_plus
 from ivc.errors import CsvError
 from ivc.session import SessionError, Step, Truth, is_recording_csv
@@ -51,7 +51,6 @@ REPLAY_DESCRIPTION = "replayed tracker recording"
 MAX_RANGE = 100.0
 #: largest |‖q‖ − 1| of a valid quaternion (trackers print 4-6 decimals); within it quaternions are normalised
 QUATERNION_TOLERANCE = 1e-3
-_MAX_REPORTED = 10
 
 
 def write_csv(step: Step, path: str | Path, extra: dict[str, np.ndarray] | None = None,
@@ -163,11 +162,9 @@ def _read_csv(path: Path, sample_rate_hz: float | None) -> tuple[Step, CsvColumn
             rows.append(line)
             sensors.append(row[sensor_col].strip())
             valid.append(flag)
-            if len(errors) > _MAX_REPORTED:
+            if len(errors) > MAX_REPORTED:
                 break
-    if errors:
-        more = " (and more)" if len(errors) > _MAX_REPORTED else ""
-        raise CsvError(f"{path}: malformed rows, nothing imported{more}:\n  " + "\n  ".join(errors[:_MAX_REPORTED]))
+    refuse_malformed(path, errors)
     if not numbers:
         raise CsvError(f"{path}: no data rows")
     numbers = np.array(numbers)
