@@ -67,14 +67,15 @@ def _source(sock: socket.socket, signals: np.ndarray, sent: np.ndarray) -> None:
         sock.sendall(frame)
 
 
-def _consumer(sock: socket.socket, arrived: np.ndarray, suffix: str, stop: threading.Event) -> None:
-    """arrived[k, n] = perf_counter when sensor n's message of frame k arrived."""
+def consume(sock: socket.socket, arrived: np.ndarray, names: dict[str, int], stop: threading.Event,
+            rate_hz: float, bufsize: int = 1 << 16) -> None:
+    """arrived[k, n] = perf_counter when device ``names``' sensor n's message of frame k arrived
+    (frame k stamped BASE + k / rate_hz); other messages are read and ignored."""
     framer = Framer()
     sock.settimeout(0.2)
-    names = {f"S{n}{suffix}": n for n in range(SENSORS)}
     while not stop.is_set():
         try:
-            data = sock.recv(1 << 16)
+            data = sock.recv(bufsize)
         except TimeoutError:
             continue
         if not data:
@@ -84,7 +85,7 @@ def _consumer(sock: socket.socket, arrived: np.ndarray, suffix: str, stop: threa
         for f in framer.messages():
             n = names.get(f.device_name)
             if n is not None:
-                k = int(round((f.timestamp - BASE) * RATE_HZ))
+                k = int(round((f.timestamp - BASE) * rate_hz))
                 if 0 <= k < len(arrived):
                     arrived[k, n] = now
 
@@ -99,7 +100,8 @@ def _stream(signals, connect_consumer, suffix) -> tuple[np.ndarray, np.ndarray]:
     sent = np.full(len(signals), np.nan)
     arrived = np.full((len(signals), SENSORS), np.nan)
     stop = threading.Event()
-    reader = threading.Thread(target=_consumer, args=(consumer, arrived, suffix, stop))
+    names = {f"S{n}{suffix}": n for n in range(SENSORS)}
+    reader = threading.Thread(target=consume, args=(consumer, arrived, names, stop, RATE_HZ))
     reader.start()
     _source(upstream, signals, sent)
     time.sleep(0.5)

@@ -25,10 +25,10 @@ from pathlib import Path
 import numpy as np
 import pyigtl
 
-from benchmarks.bench_live import BASE, _table
+from benchmarks.bench_live import BASE, _table, consume
 from benchmarks.harness import Figure
 from ivc import dipole, rotations
-from ivc.live.igtl import Framer, encode_transforms
+from ivc.live.igtl import encode_transforms
 from ivc.live.loop import output_device_name
 from ivc.lut import write as write_lut
 
@@ -78,28 +78,6 @@ def _source(sock, matrices, image, sent, fps=FPS) -> int:
     return images
 
 
-def _consumer(sock, arrived, suffix, stop) -> None:
-    framer = Framer()
-    sock.settimeout(0.2)
-    names = {(output_device_name(f"{tool}ToTracker") if suffix else f"{tool}ToTracker"): n
-             for n, tool in enumerate(TOOLS)}
-    while not stop.is_set():
-        try:
-            data = sock.recv(1 << 20)
-        except TimeoutError:
-            continue
-        if not data:
-            return
-        now = time.perf_counter()
-        framer.feed(data)
-        for f in framer.messages():
-            n = names.get(f.device_name)
-            if n is not None:
-                k = int(round((f.timestamp - BASE) * RATE_HZ))
-                if 0 <= k < len(arrived):
-                    arrived[k, n] = now
-
-
 def _stream(matrices, image, connect_consumer, suffix, fps=FPS):
     listener = socket.create_server(("127.0.0.1", 0))
     consumer = connect_consumer(listener.getsockname()[1])
@@ -108,7 +86,9 @@ def _stream(matrices, image, connect_consumer, suffix, fps=FPS):
     sent = np.full(len(matrices), np.nan)
     arrived = np.full((len(matrices), len(TOOLS)), np.nan)
     stop = threading.Event()
-    reader = threading.Thread(target=_consumer, args=(consumer, arrived, suffix, stop))
+    names = {(output_device_name(f"{tool}ToTracker") if suffix else f"{tool}ToTracker"): n
+             for n, tool in enumerate(TOOLS)}
+    reader = threading.Thread(target=consume, args=(consumer, arrived, names, stop, RATE_HZ, 1 << 20))
     reader.start()
     images = _source(upstream, matrices, image, sent, fps)
     time.sleep(0.5)
