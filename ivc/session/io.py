@@ -21,11 +21,11 @@ import numpy as np
 from ivc.session.model import (
     FORMAT_NAME,
     FORMAT_VERSION,
-    STEPS,
     Session,
     SessionError,
     Step,
     Truth,
+    step_order,
     validate_step,
 )
 
@@ -221,7 +221,7 @@ def write(session: Session, path: str | os.PathLike, *, overwrite: bool = False)
 
 
 def _ordered(names) -> list[str]:
-    return sorted(names, key=lambda n: STEPS.index(n) if n in STEPS else len(STEPS))
+    return sorted(names, key=step_order)
 
 
 def add_step(

@@ -31,6 +31,48 @@ STEP_DESCRIPTIONS = {
     "wand_sweep": "mapping wand, sensor 0 inside the cube, far end sweeping the distorted volume",
     "check": "independent poses in the distorted volume, for evaluation",
 }
+#: extension sweeps (after the wand sweep): ``extension_sweep_1`` … ``extension_sweep_99``, the wand
+#: walked freely through the working volume with part of it inside the region mapped so far
+EXTENSION_PREFIX = "extension_sweep_"
+MAX_EXTENSION_SWEEPS = 99
+EXTENSION_DESCRIPTION = "mapping wand walked freely through the working volume, part of it inside the mapped region"
+
+
+def extension_step(number: int) -> str:
+    """The step name of extension sweep ``number`` (1 … MAX_EXTENSION_SWEEPS)."""
+    if not 1 <= int(number) <= MAX_EXTENSION_SWEEPS:
+        raise SessionError(f"extension sweeps are numbered 1 to {MAX_EXTENSION_SWEEPS}, got {number}")
+    return f"{EXTENSION_PREFIX}{int(number)}"
+
+
+def is_extension_step(name: str) -> bool:
+    """True for ``extension_sweep_N``, N = 1 … MAX_EXTENSION_SWEEPS (no leading zeros)."""
+    number = name[len(EXTENSION_PREFIX):] if name.startswith(EXTENSION_PREFIX) else ""
+    return number.isdigit() and not number.startswith("0") and 1 <= int(number) <= MAX_EXTENSION_SWEEPS
+
+
+def extension_steps(names) -> list[str]:
+    """The extension-sweep names among ``names``, in their numbered order."""
+    return sorted((n for n in names if is_extension_step(n)), key=lambda n: int(n[len(EXTENSION_PREFIX):]))
+
+
+def is_known_step(name: str) -> bool:
+    """A step name of the format: one of STEPS or an extension sweep."""
+    return name in STEPS or is_extension_step(name)
+
+
+def step_order(name: str) -> tuple[int, int]:
+    """Sort key of recording order: the protocol's steps, the extension sweeps after the wand sweep."""
+    if is_extension_step(name):
+        return STEPS.index("wand_sweep"), int(name[len(EXTENSION_PREFIX):])
+    return (STEPS.index(name), 0) if name in STEPS else (len(STEPS), 0)
+
+
+def describe_step(name: str) -> str:
+    """One line saying what the step records."""
+    return EXTENSION_DESCRIPTION if is_extension_step(name) else STEP_DESCRIPTIONS[name]
+
+
 #: unit quaternions are accepted within this much of norm 1
 QUATERNION_NORM_TOLERANCE = 1e-6
 
@@ -163,12 +205,14 @@ class Session:
             if name not in self.steps:
                 raise SessionError(f"/truth/{name}: truth for a step the session does not have")
             validate_truth(name, truth, self.steps[name])
-        calibration, sweep = self.steps.get("wand_calibration"), self.steps.get("wand_sweep")
-        if calibration is not None and sweep is not None and calibration.n_sensors != sweep.n_sensors:
-            raise SessionError(
-                f"/steps/wand_sweep: {sweep.n_sensors} sensors but wand_calibration has "
-                f"{calibration.n_sensors}; both steps must record the same wand"
-            )
+        calibration = self.steps.get("wand_calibration")
+        for name in ["wand_sweep", *extension_steps(self.steps)]:
+            sweep = self.steps.get(name)
+            if calibration is not None and sweep is not None and calibration.n_sensors != sweep.n_sensors:
+                raise SessionError(
+                    f"/steps/{name}: {sweep.n_sensors} sensors but wand_calibration has "
+                    f"{calibration.n_sensors}; both steps must record the same wand"
+                )
 
 
 def _check_shape(path: str, array, shape: tuple) -> np.ndarray:
@@ -206,8 +250,9 @@ def _check_unit_quaternions(path: str, q: np.ndarray, valid: np.ndarray) -> None
 def validate_step(name: str, step: Step) -> None:
     """Check one step against the format; raise :class:`SessionError` naming the dataset."""
     base = f"/steps/{name}"
-    if name not in STEPS:
-        raise SessionError(f"{base}: unknown step; the steps are {', '.join(STEPS)}")
+    if not is_known_step(name):
+        raise SessionError(f"{base}: unknown step; the steps are {', '.join(STEPS)} and "
+                           f"{EXTENSION_PREFIX}1 … {EXTENSION_PREFIX}{MAX_EXTENSION_SWEEPS}")
     time = _check_shape(f"{base}/time", step.time, (None,))
     frames = time.shape[0]
     if frames == 0:

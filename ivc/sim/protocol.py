@@ -17,7 +17,7 @@ from ivc import rotations
 from ivc.dipole.tracker import Tracker
 from ivc.errors import InputError
 from ivc.fixtures import fixture_frame
-from ivc.session import STEP_DESCRIPTIONS, STEPS, Session, Step, Truth
+from ivc.session import STEPS, Session, Step, Truth, describe_step, extension_step, is_extension_step, step_order
 from ivc.sim import rig, tracker
 from ivc.sim.field import SecondaryField
 from ivc.sim.scene import Scene
@@ -33,6 +33,8 @@ _STREAMS = {
     "cube": 1, "wand": 2, "placement": 3, "cube_calibration": 10, "cube_survey": 11,
     "wand_calibration": 12, "wand_sweep": 13, "check": 14,
 }
+#: random stream of extension sweep n: EXTENSION_STREAM + n
+EXTENSION_STREAM = 100
 
 
 class Simulator:
@@ -46,7 +48,19 @@ class Simulator:
         self.wand = rig.make_wand(scene.wand, self._rng("wand"))
 
     def _rng(self, purpose: str) -> np.random.Generator:
+        if is_extension_step(purpose):
+            return np.random.default_rng([self.seed, EXTENSION_STREAM + int(purpose.rsplit("_", 1)[1])])
         return np.random.default_rng([self.seed, _STREAMS[purpose]])
+
+    @property
+    def extension_steps(self) -> list[str]:
+        """The scene's extension sweeps (``extension_sweep_1`` …), recorded after the wand sweep."""
+        return [extension_step(n + 1) for n in range(self.scene.extension.sweeps)]
+
+    @property
+    def steps(self) -> list[str]:
+        """Every step this scene's protocol records, in recording order."""
+        return sorted([*STEPS, *self.extension_steps], key=step_order)
 
     @cached_property
     def secondary(self) -> SecondaryField:
@@ -82,9 +96,14 @@ class Simulator:
 
     def step(self, name: str, frames: int | None = None) -> tuple[Step, Truth]:
         """Simulate one protocol step; returns the recorded step and its truth."""
-        if name not in DEFAULT_FRAMES:
-            raise InputError(f"unknown step {name!r}; the steps are {', '.join(DEFAULT_FRAMES)}")
-        frames = DEFAULT_FRAMES[name] if frames is None else int(frames)
+        extension = is_extension_step(name)
+        if name not in DEFAULT_FRAMES and not extension:
+            raise InputError(f"unknown step {name!r}; the steps are {', '.join(DEFAULT_FRAMES)} and extension_sweep_N")
+        if extension and self.scene.volume is None:
+            raise InputError(f"{name}: scene {self.scene.name!r} has no working volume ([volume]) to walk the wand "
+                             "through")
+        default = self.scene.extension.frames if extension else DEFAULT_FRAMES[name]
+        frames = default if frames is None else int(frames)
         if frames < 1:
             raise InputError(f"{name}: frames must be at least 1, got {frames}")
         rng = self._rng(name)
@@ -101,9 +120,11 @@ class Simulator:
             positions, quaternions = self._static(self.wand, scene.cube.center, rotations.random(1, rng)[0], frames)
         elif name == "wand_sweep":
             positions, quaternions = self.wand.sensor_poses(*rig.sweep_motion(scene, frames, rng))
+        elif extension:
+            positions, quaternions = self.wand.sensor_poses(*rig.extension_motion(scene, frames, rng))
         else:
             positions, quaternions = rig.check_poses(scene, frames, rng)
-        distorted = name in ("cube_survey", "wand_sweep", "check")
+        distorted = name in ("cube_survey", "wand_sweep", "check") or extension
         step = tracker.measure(
             positions,
             quaternions,
@@ -112,31 +133,35 @@ class Simulator:
             rate_hz=scene.sweep_rate_hz,
             hemisphere=scene.hemisphere,
             rng=rng,
-            description=f"simulated: {STEP_DESCRIPTIONS[name]} (scene {scene.name!r}, seed {self.seed})",
-            sensor_prefix="cube" if name.startswith("cube") else ("wand" if name.startswith("wand") else "check"),
+            description=f"simulated: {describe_step(name)} (scene {scene.name!r}, seed {self.seed})",
+            sensor_prefix="cube" if name.startswith("cube") else (
+                "wand" if name.startswith("wand") or extension else "check"),
             solver=scene.tracker,
             tracker=self.tracker,
         )
         step.attrs.update(attrs, tracker_solver=scene.tracker)
         return step, Truth(positions, quaternions)
 
-    def protocol(self, frames: Mapping[str, int | None] | None = None, *, steps: Sequence[str] = STEPS,
+    def protocol(self, frames: Mapping[str, int | None] | None = None, *, steps: Sequence[str] | None = None,
                  on_step: Callable[[str, Step, Session], None] | None = None) -> Session:
         """Simulate the protocol, every step of ``steps`` in recording order, into a new session.
 
         ``frames`` maps step names to frame counts; a step left out (or ``None``) gets
-        its :data:`DEFAULT_FRAMES`. ``steps``: a subset of the protocol (default: all
-        five). ``on_step(name, step, session)`` is called after each step is added (for
+        its :data:`DEFAULT_FRAMES` (an extension sweep: the scene's ``[extension] frames``).
+        ``steps``: a subset of the protocol (default: :attr:`steps`, the five steps and the
+        scene's extension sweeps). ``on_step(name, step, session)`` is called after each step is added (for
         progress or checks). The session records the scene's hemisphere and ``attrs``
         ``scene`` and ``seed``; every step has its truth. A step equals the same step
         simulated alone with :meth:`step`.
         """
         frames = dict(frames or {})
-        unknown = sorted((set(frames) | set(steps)) - set(STEPS))
+        steps = self.steps if steps is None else list(steps)
+        unknown = sorted(n for n in set(frames) | set(steps) if n not in STEPS and not is_extension_step(n))
         if unknown:
-            raise InputError(f"unknown step {', '.join(map(repr, unknown))}; the steps are {', '.join(STEPS)}")
+            raise InputError(f"unknown step {', '.join(map(repr, unknown))}; the steps are {', '.join(STEPS)} and "
+                             "extension_sweep_N")
         session = Session(hemisphere=self.scene.hemisphere, attrs={"scene": self.scene.name, "seed": self.seed})
-        for name in (s for s in STEPS if s in steps):
+        for name in sorted(set(steps), key=step_order):
             step, truth = self.step(name, frames.get(name))
             session.steps[name], session.truth[name] = step, truth
             if on_step is not None:

@@ -93,6 +93,28 @@ def spiral_directions(frames: int, rate_hz: float, angular_speed: float) -> np.n
     return np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=1)
 
 
+def _transported(directions: np.ndarray, times: np.ndarray, rate_hz: float, roll_phase: float,
+                 start_roll: float) -> np.ndarray:
+    """Orientations (F, 4) whose body x follows ``directions`` (F, 3) by parallel transport (the minimal
+    rotation from each direction to the next), with a slow extra roll about it (``0.1 sin(2π t/40 s +
+    roll_phase)`` rad/s) and the first frame rolled by ``start_roll``; built by a prefix product."""
+    axis = np.cross(directions[:-1], directions[1:])
+    angle = np.arctan2(np.linalg.norm(axis, axis=1), np.einsum("ij,ij->i", directions[:-1], directions[1:]))
+    norm = np.linalg.norm(axis, axis=1, keepdims=True)
+    transport = rotations.from_rotvec(np.where(norm > 0, axis / np.maximum(norm, 1e-300), 0.0) * angle[:, None])
+    roll_rate = 0.1 * np.sin(2 * np.pi * times[1:] / 40.0 + roll_phase)  # rad/s
+    roll = rotations.from_rotvec(directions[1:] * (roll_rate / rate_hz)[:, None])
+    # initial orientation: body x along the first direction, rolled by start_roll
+    x = directions[0]
+    helper = np.array([0.0, 0.0, 1.0]) if abs(x[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    y = np.cross(helper, x)
+    y /= np.linalg.norm(y)
+    start = rotations.from_matrix(np.stack([x, y, np.cross(x, y)], axis=1))
+    start = rotations.multiply(rotations.from_rotvec(x * start_roll), start)
+    steps = np.concatenate([start[None], rotations.multiply(roll, transport)])
+    return rotations.canonical(_prefix_product(steps))
+
+
 def sweep_motion(scene: Scene, frames: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Wand body poses for the sweep: sensor 0 wanders inside the cube, the wand's axis covers the sphere.
 
@@ -102,22 +124,8 @@ def sweep_motion(scene: Scene, frames: int, rng: np.random.Generator) -> tuple[n
     """
     times = np.arange(frames) / scene.sweep_rate_hz
     directions = spiral_directions(frames, scene.sweep_rate_hz, scene.sweep_angular_speed)
-    # minimal rotation from each direction to the next
-    axis = np.cross(directions[:-1], directions[1:])
-    angle = np.arctan2(np.linalg.norm(axis, axis=1), np.einsum("ij,ij->i", directions[:-1], directions[1:]))
-    norm = np.linalg.norm(axis, axis=1, keepdims=True)
-    transport = rotations.from_rotvec(np.where(norm > 0, axis / np.maximum(norm, 1e-300), 0.0) * angle[:, None])
-    roll_rate = 0.1 * np.sin(2 * np.pi * times[1:] / 40.0 + rng.uniform(0, 2 * np.pi))  # rad/s
-    roll = rotations.from_rotvec(directions[1:] * (roll_rate / scene.sweep_rate_hz)[:, None])
-    # initial orientation: body x along the first direction, random roll
-    x = directions[0]
-    helper = np.array([0.0, 0.0, 1.0]) if abs(x[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    y = np.cross(helper, x)
-    y /= np.linalg.norm(y)
-    start = rotations.from_matrix(np.stack([x, y, np.cross(x, y)], axis=1))
-    start = rotations.multiply(rotations.from_rotvec(x * rng.uniform(0, 2 * np.pi)), start)
-    steps = np.concatenate([start[None], rotations.multiply(roll, transport)])
-    quaternions = rotations.canonical(_prefix_product(steps))
+    roll_phase = rng.uniform(0, 2 * np.pi)
+    quaternions = _transported(directions, times, scene.sweep_rate_hz, roll_phase, rng.uniform(0, 2 * np.pi))
     # sensor 0 stays well inside the cube (mounting errors are a few % of the edge)
     amplitude = 0.3 * scene.cube.edge
     cube_rotation = rotations.to_matrix(scene.cube.quaternion)
@@ -125,8 +133,47 @@ def sweep_motion(scene: Scene, frames: int, rng: np.random.Generator) -> tuple[n
     return positions, quaternions
 
 
+#: the hand keeps this far inside the working volume's faces (m)
+HAND_MARGIN = 0.03
+
+
+def extension_motion(scene: Scene, frames: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Wand body poses of one extension sweep: a person walks the wand, held at its far end (the last
+    sensor), through the working volume in passes, its tip (sensor 0) pointing back towards the cube.
+
+    The hand follows a Lissajous path over the volume shrunk by :data:`HAND_MARGIN` (incommensurate
+    frequencies and random phases per sweep, so successive passes cross the box at new places) at
+    about ``scene.extension.speed`` m/s. The tip points at the cube's centre plus a smooth wander
+    (within ``wobble_deg`` of the cube's direction seen from 0.3 m), so some sensors stay near the
+    region mapped from the cube while the hand is far out; the wand rolls slowly about its axis.
+    The body origin is sensor 0 and body x runs from the tip to the hand (``ivc.sim.rig`` frames).
+    """
+    volume, spec = scene.volume, scene.extension
+    if volume is None:
+        raise ValueError("extension sweeps need the scene's working volume")
+    times = np.arange(frames) / scene.sweep_rate_hz
+    amplitude = np.maximum(volume.size / 2 - HAND_MARGIN, 0.01)
+    ratios = np.array([1.0, 0.79, 0.61]) * rng.uniform(0.9, 1.1, 3)
+    frequency = spec.speed / (2 * np.pi * amplitude) * ratios / np.sqrt(np.sum(ratios**2) / 2)
+    phase = rng.uniform(0, 2 * np.pi, 3)
+    hand = volume.center + amplitude * np.sin(2 * np.pi * frequency * times[:, None] + phase)
+    wobble = np.tan(np.radians(spec.wobble_deg)) * 0.3
+    target = scene.cube.center + _smooth_offsets(times, wobble, rng) * np.array([1.0, 1.0, 1.0])
+    target = np.clip(target, volume.lower + HAND_MARGIN, volume.upper - HAND_MARGIN)
+    tip_direction = target - hand
+    tip_direction /= np.maximum(np.linalg.norm(tip_direction, axis=1, keepdims=True), 1e-9)
+    length = (scene.wand.sensors - 1) * scene.wand.spacing
+    quaternions = _transported(-tip_direction, times, scene.sweep_rate_hz, rng.uniform(0, 2 * np.pi),
+                               rng.uniform(0, 2 * np.pi))
+    return hand + length * tip_direction, quaternions
+
+
 def check_poses(scene: Scene, frames: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Independent random poses (F, 1, 3), (F, 1, 4): positions uniform in the mapped ball, any orientation."""
+    """Independent random poses (F, 1, 3), (F, 1, 4): positions uniform in the mapped ball (uniform in the
+    scene's working volume when it has one), any orientation."""
+    if scene.volume is not None:
+        positions = scene.volume.lower + scene.volume.size * rng.random((frames, 3))
+        return positions[:, None, :], rotations.random((frames, 1), rng)
     direction = rng.standard_normal((frames, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     radius = scene.check_radius * rng.random(frames) ** (1 / 3)

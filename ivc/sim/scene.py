@@ -110,6 +110,41 @@ class NoiseSpec:
 
 
 @dataclass
+class VolumeSpec:
+    """The working volume a user wants mapped (scene key ``[volume]``): an axis-aligned box in the
+    source frame. ``center`` (3,) m, ``size`` (3,) m. When a scene has one, the check poses are
+    uniform in it and the secondary field is tabulated over it (at ``tabulate_spacing`` m)."""
+
+    center: np.ndarray
+    size: np.ndarray
+    tabulate_spacing: float = 0.01
+
+    @property
+    def lower(self) -> np.ndarray:
+        return self.center - self.size / 2
+
+    @property
+    def upper(self) -> np.ndarray:
+        return self.center + self.size / 2
+
+    @property
+    def litres(self) -> float:
+        return float(np.prod(self.size) * 1000)
+
+
+@dataclass
+class ExtensionSpec:
+    """Extension sweeps (scene key ``[extension]``): ``sweeps`` recordings of ``frames`` frames each, in
+    which a person walks the wand, held at its far end, through the working volume in passes at
+    ``speed`` m/s (the hand), the tip pointing back towards the cube within ``wobble_deg``."""
+
+    sweeps: int = 0
+    frames: int = 20_000
+    speed: float = 0.15
+    wobble_deg: float = 35.0
+
+
+@dataclass
 class Scene:
     name: str = "free space"
     description: str = ""
@@ -126,6 +161,8 @@ class Scene:
     sweep_angular_speed: float = 0.3  # rad/s
     check_radius: float = 0.16  # metres around the cube centre
     tabulate: bool = True
+    volume: VolumeSpec | None = None
+    extension: ExtensionSpec = field(default_factory=ExtensionSpec)
 
     @property
     def mapped_radius(self) -> float:
@@ -140,8 +177,14 @@ class Scene:
             mesh = eddy.ConductorMesh.from_parts(parts)
             dipoles = eddy.FaceDipoles.from_solution(mesh, eddy.solve_stream_function(mesh, self.frequency_hz))
         reach = self.mapped_radius + 0.02
-        roi = (self.cube.center - reach, self.cube.center + reach) if self.tabulate else None
-        return SecondaryField(dipoles, list(self.spheres), roi)
+        lower, upper = self.cube.center - reach, self.cube.center + reach
+        spacing = 0.01
+        if self.volume is not None:  # the wand walks the whole working volume
+            lower = np.minimum(lower, self.volume.lower - 0.02)
+            upper = np.maximum(upper, self.volume.upper + 0.02)
+            spacing = self.volume.tabulate_spacing
+        roi = (lower, upper) if self.tabulate else None
+        return SecondaryField(dipoles, list(self.spheres), roi, spacing=spacing)
 
 
 def _conductor(entry: dict, where: str, base: Path | None) -> Conductor:
@@ -186,7 +229,8 @@ def scene_from_dict(data: dict, name: str = "scene", base: Path | None = None) -
     tracker = data.get("tracker", "closed-form")
     if tracker not in SOLVERS:
         raise SceneError(f"{name}: tracker {tracker!r}; use one of {', '.join(SOLVERS)}")
-    cube_t, wand_t, noise_t, sweep_t = (data.get(k, {}) for k in ("cube", "wand", "noise", "sweep"))
+    cube_t, wand_t, noise_t, sweep_t, extension_t = (data.get(k, {}) for k in ("cube", "wand", "noise", "sweep",
+                                                                                 "extension"))
     cube = CubeSpec(
         center=_vector(cube_t, "center", f"{name}.cube", [0.5, 0.0, 0.0]),
         quaternion=rotation_from_degrees(_vector(cube_t, "rotation_deg", f"{name}.cube", [0, 0, 0])),
@@ -213,6 +257,25 @@ def scene_from_dict(data: dict, name: str = "scene", base: Path | None = None) -
         )
         for i, s in enumerate(data.get("ferrous", []))
     ]
+    volume = None
+    if "volume" in data:
+        volume_t = data["volume"]
+        volume = VolumeSpec(_vector(volume_t, "center", f"{name}.volume"), _vector(volume_t, "size", f"{name}.volume"),
+                            float(volume_t.get("tabulate_spacing_mm", 10.0)) / 1000)
+        if np.any(volume.size <= 0) or not volume.tabulate_spacing > 0:
+            raise SceneError(f"{name}.volume: size and tabulate_spacing_mm must be positive")
+        if np.any(np.abs(volume.center - cube.center) > volume.size / 2):
+            raise SceneError(f"{name}.volume: the cube ({cube.center} m) must be inside the working volume")
+    extension = ExtensionSpec(
+        sweeps=int(extension_t.get("sweeps", 0)),
+        frames=int(extension_t.get("frames", ExtensionSpec.frames)),
+        speed=float(extension_t.get("speed", ExtensionSpec.speed)),
+        wobble_deg=float(extension_t.get("wobble_deg", ExtensionSpec.wobble_deg)),
+    )
+    if extension.sweeps < 0 or extension.frames < 1 or not extension.speed > 0:
+        raise SceneError(f"{name}.extension: sweeps >= 0, frames >= 1 and speed > 0 are needed")
+    if extension.sweeps and volume is None:
+        raise SceneError(f"{name}.extension: extension sweeps walk the working volume; give [volume] too")
     return Scene(
         name=data.get("name", name),
         description=data.get("description", ""),
@@ -227,6 +290,8 @@ def scene_from_dict(data: dict, name: str = "scene", base: Path | None = None) -
         sweep_rate_hz=float(sweep_t.get("rate_hz", 240.0)),
         sweep_angular_speed=float(sweep_t.get("angular_speed", 0.3)),
         check_radius=float(data.get("check_radius_mm", 160.0)) / 1000,
+        volume=volume,
+        extension=extension,
     )
 
 
