@@ -1,0 +1,347 @@
+"""Map a whole working volume from one cube placement: extension sweeps solved jointly with the map.
+
+The cube sweep maps a ball around the cube as large as the wand's reach. Once a region is mapped,
+any wand sensor inside it knows its pose as well as a corrected sensor does, so the wand can carry
+the map outward (docs/lut.md, "Extension sweeps"):
+
+1. the cube sweep is solved through the cube and gated as in ``ivc fit`` (its samples anchor the
+   frame: they are placed by the declared cube pose and are never re-solved here);
+2. a field model for the whole volume (equivalent sources, :mod:`ivc.lut.fit_sources`) is fitted to
+   every sample so far and tabulated; a node is mapped when enough samples support it;
+3. every frame of every extension sweep is re-solved as one rigid wand (:func:`solve_wand`) from
+   the sensors that lie in the mapped region (found by correcting each sensor with the current
+   table); the others, placed by the wand's calibration, give new samples ``G = T_n S_n − f_D(r_n)``;
+4. repeat 2-3 until the map stops changing and growing.
+
+Every frame of every sweep is solved against one field model in each round, so the error does not
+compound ring by ring through a chain of separately fitted maps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ivc import dipole, rotations
+from ivc.correct.solver import Corrector
+from ivc.errors import InputError
+from ivc.fixtures.mapping import FixtureModel, Gates, map_sweep
+from ivc.fixtures.wand import WandCalibration
+from ivc.lut.fit_sources import SourceModel, fit_sources
+from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
+from ivc.lut.refine import _skew
+from ivc.lut.samples import FieldSamples, leverage
+from ivc.lut.support import MIN_SUPPORT, node_support
+from ivc.lut.table import LookupTable
+from ivc.pose import levenberg_marquardt, signal_residual
+from ivc.session import Session, SessionError, extension_steps
+
+#: frame numbers of extension sweep n's samples start at n * FRAME_OFFSET (folds never mix sweeps' blocks)
+FRAME_OFFSET = 10_000_000
+CHUNK_FRAMES = 5_000
+
+FieldFunction = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def _wand_residuals(S, scale, use, wand: WandCalibration, field: FieldFunction, r0, T0):
+    """Residuals (F, W·9) and Jacobian (F, W·9, 6) of the rigid wand; only sensors in ``use`` count."""
+    F, W = S.shape[:2]
+    positions, rots = wand.propagate(r0, T0)
+    g, dg = field(positions.reshape(-1, 3))
+    M = dipole.field(positions) + g.reshape(F, W, 3, 3)
+    dM = dipole.field_jacobian(positions) + dg.reshape(F, W, 3, 3, 3)
+    e, J = signal_residual(S.reshape(-1, 3, 3), M.reshape(-1, 3, 3), dM.reshape(-1, 3, 3, 3), rots.reshape(-1, 3, 3))
+    e, J = e.reshape(F, W, 9), J.reshape(F, W, 9, 6)
+    lever = -T0[:, None] @ _skew(wand.positions)[None]  # ∂r_n/∂ω for T_0 ← T_0 exp([ω]×)
+    J_w = J[..., :3] @ lever + J[..., 3:] @ np.swapaxes(wand.rotations, -1, -2)[None]
+    J = np.concatenate([J[..., :3], J_w], axis=-1)
+    w = (use / scale)[..., None]
+    return (e * w).reshape(F, -1), (J * w[..., None]).reshape(F, -1, 6)
+
+
+@dataclass
+class WandSolution:
+    """Rigid wand poses: sensor 0's ``position`` (F, 3) m and ``rotation`` (F, 3, 3), ``converged`` (F,),
+    ``residual`` (F,) rms over the used sensors of ``(S − Tᵀ M)/rms(S)``, standard errors ``position_sigma``
+    (F,) m and ``angle_sigma`` (F,) rad from the fit's covariance, and ``used`` (F, W) sensors."""
+
+    position: np.ndarray
+    rotation: np.ndarray
+    converged: np.ndarray
+    residual: np.ndarray
+    position_sigma: np.ndarray
+    angle_sigma: np.ndarray
+    used: np.ndarray
+
+
+def solve_wand(S: np.ndarray, use: np.ndarray, wand: WandCalibration, field: FieldFunction, position0: np.ndarray,
+               rotation0: np.ndarray, max_iterations: int = 40, step_tolerance: float = 1e-10) -> WandSolution:
+    """Levenberg-Marquardt for the rigid wand in every frame from the sensors ``use`` (F, W) alone.
+
+    ``S`` (F, W, 3, 3) signals; ``field(r) -> (g (n, 3, 3), ∂g/∂r (n, 3, 3, 3))`` the secondary field
+    at any points (source frame); ``position0`` (F, 3), ``rotation0`` (F, 3, 3): sensor 0's starting pose.
+    Each used sensor's residual is relative to its rms(S). A frame needs at least one used sensor (a
+    sensor's 9 signals fix all 6 degrees of freedom); frames without one come back NaN, not converged.
+    """
+    S = np.asarray(S, float)
+    if S.ndim != 4 or S.shape[2:] != (3, 3) or use.shape != S.shape[:2]:
+        raise InputError(f"solve_wand: S must be (F, W, 3, 3) and use (F, W), got {S.shape} and {use.shape}")
+    if S.shape[1] != len(wand.positions):
+        raise InputError(f"solve_wand: {S.shape[1]} sensors but the wand calibration has {len(wand.positions)}")
+    use = use & np.all(np.isfinite(S.reshape(*S.shape[:2], -1)), axis=-1)
+    S = np.where(use[..., None, None], S, 0.0)
+    scale = np.where(use, np.sqrt(np.mean(S**2, axis=(-1, -2))), 1.0)
+    F = len(S)
+    r, T = np.array(position0, float), np.array(rotation0, float)
+    active = use.any(axis=1) & np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(T.reshape(F, 9)), axis=1)
+    r[~active], T[~active] = (1.0, 0.0, 0.0), np.eye(3)  # a harmless placeholder, never stepped
+    e, J = _wand_residuals(S, scale, use, wand, field, r, T)
+
+    def trial(idx, step):
+        trial_r = r[idx] + step[:, :3]
+        trial_T = T[idx] @ rotations.to_matrix(rotations.from_rotvec(step[:, 3:]))
+        return (trial_r, trial_T), *_wand_residuals(S[idx], scale[idx], use[idx], wand, field, trial_r, trial_T)
+
+    converged, _ = levenberg_marquardt((r, T), e, J, active, trial, max_iterations, step_tolerance)
+    used = use.sum(axis=1)
+    cost = np.sum(e**2, axis=1)
+    residual = np.sqrt(cost / np.maximum(9 * used, 1))
+    H = np.swapaxes(J, -1, -2) @ J
+    H[~active] = np.eye(6)
+    H[~np.all(np.isfinite(H.reshape(F, -1)), axis=1)] = np.eye(6)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dof = np.maximum(9 * used - 6, 1)
+        covariance = np.linalg.pinv(H) * (cost / dof)[:, None, None]
+    position_sigma = np.sqrt(np.trace(covariance[:, :3, :3], axis1=1, axis2=2))
+    angle_sigma = np.sqrt(np.trace(covariance[:, 3:, 3:], axis1=1, axis2=2))
+    r[~active], T[~active] = np.nan, np.nan
+    converged &= active
+    return WandSolution(r, T, converged, residual, position_sigma, angle_sigma, use)
+
+
+def seed_from_sensors(correction_position: np.ndarray, correction_quaternion: np.ndarray, trusted: np.ndarray,
+                      residual: np.ndarray, wand: WandCalibration) -> tuple[np.ndarray, np.ndarray]:
+    """Sensor 0's pose (F, 3), (F, 3, 3) from the best-explained trusted sensor of each frame: ``T_0 = T_n R_nᵀ``,
+    ``r_0 = r_n − T_0 b_n`` (the wand calibration inverted); NaN where no sensor is trusted."""
+    F = len(trusted)
+    score = np.where(trusted, residual, np.inf)
+    best = np.argmin(score, axis=1)
+    rows = np.arange(F)
+    T_n = rotations.to_matrix(np.where(trusted[rows, best, None], correction_quaternion[rows, best], [1.0, 0, 0, 0]))
+    T0 = T_n @ np.swapaxes(wand.rotations[best], -1, -2)
+    r0 = correction_position[rows, best] - np.einsum("fij,fj->fi", T0, wand.positions[best])
+    none = ~trusted.any(axis=1)
+    r0[none], T0[none] = np.nan, np.nan
+    return r0, T0
+
+
+@dataclass
+class JointOptions:
+    """``spacing``: table grid spacing (m). ``min_support``: samples around a node for it to be mapped.
+    ``max_iterations``: rounds of re-solve and refit. ``tolerance``: stop when the map changes by less
+    than this (pose-equivalent RMS over the nodes mapped before, m) and the mapped volume grows by less
+    than ``min_growth`` (fraction). ``max_residual``: a re-solved frame's relative residual gate.
+    ``max_error``: a sample's estimated error gate (m, eq. 101 with the rigid solve's standard errors).
+    ``max_frames``: the cube sweep decimated to this many frames; ``max_extension_frames``: each
+    extension sweep decimated to this many. ``min_sensors``: mapped sensors a frame needs to be solved."""
+
+    spacing: float = DEFAULT_SPACING
+    min_support: int = MIN_SUPPORT
+    max_iterations: int = 6
+    tolerance: float = 5e-6
+    min_growth: float = 0.01
+    max_residual: float = 1e-3
+    max_error: float = 1e-3
+    max_frames: int = 25_000
+    max_extension_frames: int = 10_000
+    min_sensors: int = 2
+
+    def __post_init__(self):
+        for name in ("spacing", "tolerance", "max_residual", "max_error"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise InputError(f"{name} must be a positive number, got {value}")
+        for name in ("min_support", "max_iterations", "max_frames", "max_extension_frames", "min_sensors"):
+            value = getattr(self, name)
+            if not isinstance(value, int | np.integer) or value < 1:
+                raise InputError(f"{name} must be a whole number of at least 1, got {value!r}")
+
+
+@dataclass
+class JointMap:
+    """The result of :func:`fit_joint`: the field ``model`` over the volume, its ``grid``, node ``values``
+    (nx, ny, nz, 3, 3), ``valid`` and ``support`` (nx, ny, nz), the ``samples`` it was fitted to, the
+    per-sweep ``solutions`` of the last round and a ``report`` (json-ready)."""
+
+    model: SourceModel
+    grid: Grid
+    values: np.ndarray
+    valid: np.ndarray
+    support: np.ndarray
+    samples: FieldSamples
+    solutions: dict
+    report: dict
+
+
+def to_table(joint: JointMap, hemisphere: str, provenance: dict | None = None) -> LookupTable:
+    """The joint map as a look-up table (the file ``ivc correct`` reads)."""
+    return LookupTable(joint.grid, joint.values, joint.valid, joint.support, hemisphere, joint.report,
+                       provenance or {})
+
+
+def _noop(desc: str, total: int) -> Callable[[int], None]:
+    return lambda n: None
+
+
+def _tabulate(model: SourceModel, samples: FieldSamples, spacing: float, min_support: int):
+    grid = Grid.around(samples.positions, spacing)
+    values = model(grid.nodes())
+    support = node_support(grid, samples.positions)
+    return grid, values, support >= min_support, support
+
+
+def mapped_litres(grid: Grid, valid: np.ndarray) -> float:
+    """Volume (litres) of the cells whose eight corners are mapped."""
+    v = valid
+    cells = (v[:-1, :-1, :-1] & v[1:, :-1, :-1] & v[:-1, 1:, :-1] & v[:-1, :-1, 1:] & v[1:, 1:, :-1]
+             & v[1:, :-1, 1:] & v[:-1, 1:, 1:] & v[1:, 1:, 1:])
+    return float(cells.sum() * grid.spacing**3 * 1000)
+
+
+def _change(model: SourceModel, grid: Grid, values: np.ndarray, valid: np.ndarray) -> float:
+    """Pose-equivalent RMS change (m) of the new ``model`` against the previous table's valid nodes."""
+    nodes = grid.nodes()[valid]
+    if len(nodes) == 0:
+        return float("inf")
+    change = leverage(nodes) * np.linalg.norm(model(nodes) - values[valid], axis=(1, 2))
+    return float(np.sqrt(np.mean(change**2)))
+
+
+def extension_samples(S: np.ndarray, valid: np.ndarray, wand: WandCalibration, table: GridField, hemisphere: str,
+                      options: JointOptions, frame_offset: int) -> tuple[FieldSamples, WandSolution, np.ndarray]:
+    """One extension sweep against the current table: each sensor corrected, frames with at least
+    ``min_sensors`` trusted sensors solved as a rigid wand from them, gated, and every valid sensor of a
+    kept frame turned into a sample. Returns the samples, the solution and the kept frames (F,)."""
+    corrected = Corrector(table, hemisphere, max_residual=options.max_residual).batch(S, valid)
+    trusted = (corrected.flags == 0) & valid
+    solvable = trusted.sum(axis=1) >= options.min_sensors
+    r0, T0 = seed_from_sensors(corrected.position, corrected.quaternion, trusted & solvable[:, None],
+                               corrected.residual, wand)
+    parts = []
+    for start in range(0, len(S), CHUNK_FRAMES):
+        part = slice(start, start + CHUNK_FRAMES)
+        parts.append(solve_wand(S[part], trusted[part] & solvable[part, None], wand, table.value_and_jacobian,
+                                r0[part], T0[part]))
+    solution = WandSolution(*(np.concatenate([getattr(p, k) for p in parts])
+                              for k in WandSolution.__dataclass_fields__))
+    positions, rots = wand.propagate(np.where(solution.converged[:, None], solution.position, 0.0),
+                                     np.where(solution.converged[:, None, None], solution.rotation, np.eye(3)))
+    still_mapped = table.mapped(positions) | ~solution.used  # the constraining sensors stay in the map
+    kept = (solution.converged & solvable & (solution.residual <= options.max_residual) & still_mapped.all(axis=1))
+    error = solution.position_sigma[:, None] + wand.lever_arms[None, :] * np.tan(solution.angle_sigma)[:, None]
+    keep = kept[:, None] & valid & (error <= options.max_error)
+    frame, sensor = np.nonzero(keep)
+    fields = rots[frame, sensor] @ S[frame, sensor] - dipole.field(positions[frame, sensor])
+    samples = FieldSamples(positions[frame, sensor], fields, error[frame, sensor], frame + frame_offset, sensor)
+    return samples, solution, kept
+
+
+def _concatenate(parts: list[FieldSamples]) -> FieldSamples:
+    return FieldSamples(*(np.concatenate([getattr(p, k) for p in parts]) for k in
+                          ("positions", "fields", "error", "frame", "sensor")))
+
+
+def distance_profile(samples: FieldSamples, centre: np.ndarray, bins: int = 5) -> list[dict]:
+    """Estimated sample error (eq. 101 with the solve's standard errors) against distance from the cube's
+    centre, in ``bins`` equal ranges of distance: median and 95th percentile in mm."""
+    distance = np.linalg.norm(samples.positions - centre, axis=1)
+    edges = np.linspace(0.0, distance.max() * (1 + 1e-9), bins + 1)
+    rows = []
+    for low, high in zip(edges[:-1], edges[1:], strict=True):
+        inside = (distance >= low) & (distance < high)
+        if inside.any():
+            rows.append({"from_mm": 1000 * low, "to_mm": 1000 * high, "samples": int(inside.sum()),
+                         "error_p50_mm": 1000 * float(np.median(samples.error[inside])),
+                         "error_p95_mm": 1000 * float(np.percentile(samples.error[inside], 95))})
+    return rows
+
+
+def fit_joint(session: Session, options: JointOptions | None = None, progress=None) -> JointMap:
+    """The whole-volume map of a session with extension sweeps (module docstring). ``progress(description,
+    total)`` returns an update callback per stage, as :func:`ivc.lut.build.fit_lut`'s."""
+    options = options or JointOptions()
+    progress = progress or _noop
+    names = extension_steps(session.steps)
+    if not names:
+        raise SessionError("the session has no extension sweeps (extension_sweep_1, ...): `ivc fit` maps the "
+                           "region around the cube alone; record extension sweeps with `ivc collect "
+                           "extension_sweep_1` to map more")
+    missing = session.missing_for_fit()
+    if missing:
+        raise SessionError("cannot fit a map; the session is missing:\n  " + "\n  ".join(missing))
+    model = FixtureModel.from_session(session)
+    stride = max(1, -(-session.steps["wand_sweep"].n_frames // options.max_frames))
+    if stride > 1:
+        session = session.select_frames("wand_sweep", slice(None, None, stride))
+    sweep = session.steps["wand_sweep"]
+    gates = Gates(max_residual=options.max_residual, max_error=options.max_error)
+    mapping = map_sweep(session, model, gates, progress=progress("solving the sweep in the cube", sweep.n_frames))
+    anchor = FieldSamples.from_mapping(mapping)
+    if len(anchor) < 2_000:
+        raise SessionError(f"only {len(anchor)} cube-sweep samples passed the gates: check `ivc fixtures`")
+    extensions = {}
+    for number, name in enumerate(names, start=1):
+        step = session.steps[name]
+        if step.n_sensors != len(model.wand.positions):
+            raise SessionError(f"/steps/{name}: {step.n_sensors} sensors but the wand calibration has "
+                               f"{len(model.wand.positions)}")
+        every = max(1, -(-step.n_frames // options.max_extension_frames))
+        part = step.select(slice(None, None, every))
+        extensions[name] = (part.signal_matrices(), part.valid_mask, number * FRAME_OFFSET, every)
+    centre = model.placement.positions.mean(axis=0)
+    bar = progress("fitting equivalent sources (cross-validated)", len(anchor))
+    field, fit = fit_sources(anchor, progress=bar)
+    damping = fit["damping"]
+    samples = anchor
+    grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support)
+    history = [{"iteration": 0, "samples": len(samples), "mapped_litres": mapped_litres(grid, valid),
+                "map_change_mm": None, "frames_solved": {name: 0 for name in names}}]
+    solutions, stopped = {}, None
+    for iteration in range(1, options.max_iterations + 1):
+        table = GridField(grid, values, valid)
+        parts, solved = [anchor], {}
+        for name, (S, ok, offset, _) in extensions.items():
+            found, solution, kept = extension_samples(S, ok, model.wand, table, session.hemisphere, options, offset)
+            parts.append(found)
+            solved[name] = int(kept.sum())
+            solutions[name] = (solution, kept)
+        samples = _concatenate(parts)
+        bar = progress(f"round {iteration}: refit", len(samples))
+        field, _ = fit_sources(samples, dampings=(damping,), progress=bar)
+        change = _change(field, grid, values, valid)
+        before = mapped_litres(grid, valid)
+        grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support)
+        litres = mapped_litres(grid, valid)
+        history.append({"iteration": iteration, "samples": len(samples), "mapped_litres": litres,
+                        "map_change_mm": 1000 * change, "frames_solved": solved})
+        if change < options.tolerance and litres < (1 + options.min_growth) * before:
+            stopped = (f"the map changed by less than {1e6 * options.tolerance:g} µm and grew by less than "
+                       f"{100 * options.min_growth:g} %")
+            break
+    stopped = stopped or f"max_iterations {options.max_iterations} reached"
+    bar = progress("final fit (cross-validated damping)", len(samples))
+    field, fit = fit_sources(samples, progress=bar)
+    grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support)
+    never = [name for name in names if all(step["frames_solved"].get(name, 0) == 0 for step in history)]
+    report = {"method": "equivalent sources, joint", **fit, "rounds": history, "stopped": stopped,
+              "extension_sweeps": {name: {"frames_used": len(extensions[name][0]), "stride": extensions[name][3],
+                                          "frames_solved": history[-1]["frames_solved"].get(name, 0)}
+                                   for name in names},
+              "never_touched_mapped_region": never, "mapped_litres": mapped_litres(grid, valid),
+              "error_by_distance": distance_profile(samples, centre),
+              "cube_centre": centre.tolist(), "samples": {"anchor": len(anchor), "total": len(samples)},
+              "valid_nodes": int(valid.sum()), "min_support": options.min_support,
+              "frames": {"recorded": mapping.keep.shape[0] * stride, "used": sweep.n_frames, "stride": stride}}
+    return JointMap(field, grid, values, valid, support, samples, solutions, report)
