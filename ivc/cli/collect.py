@@ -17,7 +17,7 @@ from ivc.cli.paths import refuse_inputs_as_outputs
 from ivc.cli.progress import ON_TERMINAL
 from ivc.cli.tracker import tracker_option
 from ivc.collect import check_step, replay
-from ivc.session import STEPS, Session, SessionError, Step, Truth
+from ivc.session import STEPS, Session, SessionError, Step, Truth, is_extension_step
 from ivc.sim import Simulator, load_scene
 
 
@@ -74,7 +74,7 @@ class SimulatorProgress:
     def protocol_progress(self, hemisphere: str) -> Iterator[Callable[[str, Step, Session], None]]:
         """An ``on_step`` for :meth:`Simulator.protocol`: a bar over the steps, each step's warnings on stderr,
         and the eddy-current solve (with its own progress) before the first distorted step."""
-        with tqdm(total=len(STEPS), desc="protocol", unit="step", disable=ON_TERMINAL) as bar:
+        with tqdm(total=len(self.simulator.steps), desc="protocol", unit="step", disable=ON_TERMINAL) as bar:
 
             def on_step(name: str, new: Step, collected: Session) -> None:
                 for warning in check_step(name, new, collected, hemisphere):
@@ -109,7 +109,7 @@ def _record(name, sim, kind, argument, frames, rate, declared_position, declared
 
 def _record_raw(name, sim, kind, argument, frames, rate, declared_position, declared_quaternion):
     if kind == "sim":
-        sim.prepare(name in ("cube_survey", "wand_sweep", "check"))
+        sim.prepare(name in ("cube_survey", "wand_sweep", "check") or is_extension_step(name))
         step, truth = sim.simulator.step(name, frames)
     else:
         step, truth = replay(argument, name, rate)
@@ -135,8 +135,14 @@ def _declare(step: Step, declared_position, declared_quaternion) -> None:
         )
 
 
+def _step_name(ctx, param, value: str) -> str:
+    if value in (*STEPS, "protocol") or is_extension_step(value):
+        return value
+    raise click.BadParameter(f"{value!r}: use one of {', '.join(STEPS)}, extension_sweep_N (N = 1 to 99) or protocol")
+
+
 @click.command()
-@click.argument("step", type=click.Choice([*STEPS, "protocol"]))
+@click.argument("step", callback=_step_name, metavar="STEP")
 @click.option("--source", default="sim", show_default=True, help="sim, sim:SCENE (name or .toml), or replay:FILE "
               "(a session .h5 or a recording .csv).")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Session file to add to.")
@@ -156,7 +162,9 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
 
     The protocol (Himberg 2010, ch. 4.4.3): cube_calibration (free space), cube_survey (cube at
     its declared pose in the distorted room), wand_calibration (free space), wand_sweep
-    (wand sensor 0 inside the cube, far end sweeping), check (independent poses).
+    (wand sensor 0 inside the cube, far end sweeping), then any extension sweeps
+    extension_sweep_1, extension_sweep_2, ... (the wand walked freely through the working volume,
+    part of it inside the region mapped so far), and check (independent poses).
     With --tracker-model the signals are stored in ideal-dipole units (a simulated device
     records with that coil model first).
     """
@@ -176,7 +184,7 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
             raise click.UsageError("`ivc collect protocol` simulates; replay a recording one step at a time")
         if output.exists() and not force:
             raise FileExistsError(f"{output}: exists; choose a new file or pass --force to replace it")
-        counts = {name: frames for name in STEPS} | {"wand_sweep": sweep_frames, "check": check_frames}
+        counts = {name: frames for name in sim.simulator.steps} | {"wand_sweep": sweep_frames, "check": check_frames}
         with sim.protocol_progress(hemisphere) as on_step:
             collected = sim.simulator.protocol(counts, on_step=on_step)
         collected.hemisphere = hemisphere
@@ -186,7 +194,7 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
 
             collected = apply_tracker_to_session(collected, *device)
         session_io.write(collected, output, overwrite=force)
-        for name in STEPS:
+        for name in sim.simulator.steps:
             click.echo(summary(name, collected.steps[name], collected.truth.get(name)))
         click.echo(f"wrote {output}")
         return

@@ -45,7 +45,10 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
     for reason, count in samples["dropped"].items():
         if count:
             lines.append(f"  dropped {count:>8}: {reason}")
-    degree = f"degree {fit['degree']} ({fit['degree_chosen_by']})"
+    if "degree" in fit:
+        degree = f"degree {fit['degree']} ({fit['degree_chosen_by']})"
+    else:  # equivalent sources
+        degree = f"{fit.get('sources')} dipoles, damping {fit.get('damping'):g} ({fit.get('damping_chosen_by')})"
     if fit.get("input") == "reported poses":
         cube = fit["cube"]
         lines.append(f"From reported poses alone (tracker solver {fit['tracker_solver']}): cube field degree "
@@ -62,6 +65,18 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
         lines.append(f"  refinement {step['iteration']}: {step['frames_converged']} frames re-solved as rigid "
                      f"wands, sensor 0 moved {step['sensor0_moved_median_mm']:.4f} mm (median), map changed "
                      f"{step['map_change_mm']:.4f} mm, CV {step['cv_rms_mm']:.4f} mm")
+    for step in fit.get("rounds", []):
+        change = "" if step["map_change_mm"] is None else f", map changed {step['map_change_mm']:.4f} mm"
+        solved = ", ".join(f"{name} {n}" for name, n in step["frames_solved"].items())
+        lines.append(f"  round {step['iteration']}: {step['samples']} samples, {step['mapped_litres']:.1f} litres "
+                     f"mapped{change}; frames solved: {solved}")
+    for name in fit.get("never_touched_mapped_region", []):
+        lines.append(f"  warning: {name} never touched the mapped region (no frame had two sensors in it): "
+                     "record it again, starting with the wand's tip near the cube")
+    for row in fit.get("error_by_distance", []):
+        lines.append(f"  estimated error {row['from_mm']:.0f}-{row['to_mm']:.0f} mm from the cube: "
+                     f"{row['error_p50_mm']:.3f} mm median, {row['error_p95_mm']:.3f} mm p95 "
+                     f"({row['samples']} samples)")
     if fit["refinement"]:
         kept = next((step["iteration"] for step in fit["refinement"] if step.get("kept")), 0)
         lines.append(f"  refinement stopped: {fit.get('refinement_stopped', 'done')}; kept "

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ivc import rotations
-from ivc.session import STEPS, Session, Step
+from ivc.session import STEPS, Session, Step, is_extension_step, step_order
 
 #: Himberg 2010's minimum frame counts
 MIN_FRAMES = {"cube_calibration": 1000}
@@ -66,8 +66,45 @@ def check_step(name: str, step: Step, session: Session | None = None, hemisphere
                     f"and {1000 * np.percentile(angles, 99):.0f} mrad; record it again with the fixture still"
                 )
                 break
+    if session is not None and is_extension_step(name):
+        reach = reach_warning(name, step, session, hemisphere)
+        if reach:
+            warnings.append(reach)
     if session is not None:
-        earlier = [s for s in STEPS[: STEPS.index(name)] if s != "check" and s not in session.steps]
+        earlier = [s for s in STEPS if step_order(s) < step_order(name) and s != "check" and s not in session.steps]
         if earlier and name != "check":
             warnings.append(f"{name} recorded before {', '.join(earlier)}: the protocol's order is {', '.join(STEPS)}")
     return warnings
+
+
+#: an extension sweep is warned about when no sensor was reported within the wand's reach of the
+#: declared cube position plus this slack (the reported poses are distorted by centimetres)
+REACH_SLACK = 0.05
+
+
+def reach_warning(name: str, step: Step, session: Session, hemisphere: str = "+x") -> str | None:
+    """Plain words when extension sweep ``name`` never came near the region the cube sweep maps: no sensor's
+    reported position within the wand's length plus the cube's size (and :data:`REACH_SLACK`) of the declared
+    cube position. Such a sweep cannot be solved (``ivc fit`` also reports it); None when it did, or when the
+    session lacks the cube survey or the wand calibration to tell."""
+    survey, calibration = session.steps.get("cube_survey"), session.steps.get("wand_calibration")
+    if survey is None or calibration is None or "declared_position" not in survey.attrs:
+        return None
+    wand_position, _ = calibration.poses(hemisphere)
+    length = float(np.nanmax(np.linalg.norm(np.nanmean(wand_position, axis=0) - np.nanmean(wand_position[:, 0],
+                                                                                           axis=0), axis=-1)))
+    cube_position, _ = survey.poses(hemisphere)
+    centre = np.nanmean(cube_position.reshape(-1, 3), axis=0)
+    cube_size = float(np.nanmax(np.linalg.norm(np.nanmean(cube_position, axis=0) - centre, axis=-1)))
+    position, _ = step.poses(hemisphere)
+    distance = np.linalg.norm(position - centre, axis=-1)[step.valid_mask]
+    distance = distance[np.isfinite(distance)]
+    if len(distance) == 0:
+        return None
+    reach = length + cube_size + REACH_SLACK
+    if distance.min() > reach:
+        return (f"{name} never came near the region mapped from the cube: its sensors stayed at least "
+                f"{1000 * distance.min():.0f} mm from the cube (the wand reaches {1000 * reach:.0f} mm); an "
+                "extension sweep needs part of the wand inside the mapped region: record it again, starting with "
+                "the wand's tip at the cube")
+    return None

@@ -27,7 +27,7 @@ from ivc.lut.refine import fit_map, refine_map
 from ivc.lut.samples import FieldSamples
 from ivc.lut.support import MIN_SUPPORT
 from ivc.lut.table import LookupTable
-from ivc.session import Session, SessionError
+from ivc.session import Session, SessionError, extension_steps
 
 make_fitter("harmonic")  # registers the built-in fitters
 #: the fit methods (:data:`ivc.lut.fitter.FITTERS`' names)
@@ -190,7 +190,8 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
     ``source``: the session's file, recorded (with its SHA-256) in the table's provenance.
     ``progress(description, total)`` returns an update callback per stage. A session whose cube
     survey or sweep holds reported poses only is fitted from them through the model of the
-    tracker's solver ``tracker`` (:func:`ivc.lut.pose_build.fit_pose_lut`).
+    tracker's solver ``tracker`` (:func:`ivc.lut.pose_build.fit_pose_lut`); one with extension sweeps
+    is mapped over the whole working volume by the joint solve (:func:`ivc.lut.joint.fit_joint_lut`).
     """
     from ivc.fixtures.pose_mapping import has_signals
 
@@ -198,6 +199,10 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
         from ivc.lut.pose_build import fit_pose_lut
 
         return fit_pose_lut(session, options, source, progress, solver=tracker)
+    if extension_steps(session.steps):  # the whole working volume: the joint solve (ivc.lut.joint)
+        from ivc.lut.joint import fit_joint_lut
+
+        return fit_joint_lut(session, options or FitOptions(), source, progress)
     options = options or FitOptions()
     progress = progress or _noop
     missing = session.missing_for_fit()

@@ -123,7 +123,8 @@ def make_fitter(method: str | Fitter, **params) -> Fitter:
 def _load_builtin() -> None:
     """Register the built-in fitters (their modules register on import)."""
     import ivc.lut.fit_harmonic
-    import ivc.lut.fit_poly  # noqa: F401
+    import ivc.lut.fit_poly
+    import ivc.lut.fit_sources  # noqa: F401
 
 
 def fit_table(fitter: Fitter, samples: FieldSamples, grid: Grid,

@@ -345,3 +345,30 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
               "valid_nodes": int(valid.sum()), "min_support": options.min_support,
               "frames": {"recorded": mapping.keep.shape[0] * stride, "used": sweep.n_frames, "stride": stride}}
     return JointMap(field, grid, values, valid, support, samples, solutions, report)
+
+
+def fit_joint_lut(session: Session, options=None, source=None, progress=None) -> LookupTable:
+    """:func:`fit_joint` as ``ivc fit`` runs it on a session with extension sweeps: the grid spacing,
+    support, gates and cube-sweep decimation from ``options`` (:class:`ivc.lut.build.FitOptions`; its
+    fitter and refinement do not apply: the map is always equivalent sources, re-solved jointly)."""
+    from datetime import UTC, datetime
+
+    from ivc import __version__
+    from ivc.lut.build import FitOptions, file_digest
+
+    options = options or FitOptions()
+    joint = fit_joint(session, JointOptions(spacing=options.spacing, min_support=options.min_support,
+                                            max_residual=options.max_residual, max_error=options.max_error,
+                                            max_frames=options.max_frames), progress)
+    report = joint.report
+    anchor, total = report["samples"]["anchor"], report["samples"]["total"]
+    report["samples"] = {"total": total, "kept": total, "used": total, "anchor": anchor, "outside_grid": 0,
+                         "dropped": {}}
+    report.update(refinement=[], grid_from="data (one-cell margin)")
+    provenance = {"ivc_version": __version__, "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+                  "parameters": {"spacing": options.spacing, "min_support": options.min_support,
+                                 "max_residual": options.max_residual, "max_error": options.max_error,
+                                 "max_frames": options.max_frames}}
+    if source is not None:
+        provenance.update(input=str(source), input_sha256=file_digest(source))
+    return to_table(joint, session.hemisphere, provenance)

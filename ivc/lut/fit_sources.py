@@ -1,0 +1,265 @@
+"""Equivalent sources: the secondary field of a large volume as the field of dipoles placed outside it.
+
+A single solid-harmonic expansion about the centre (``ivc.lut.fit_harmonic``) converges only in
+the ball that reaches the nearest metal; with metal a few centimetres beyond a head box's faces it
+cannot hold over the whole box. Here every source column of ``G`` is instead the field of ``K``
+point dipoles at fixed positions ``p_k`` outside the data, with unknown moments ``m_kj`` (3,):
+
+    G[:, j](r) = Σ_k f_D(r − p_k) m_kj,        f_D(d) = (3 d̂ d̂ᵀ − I) / |d|³
+
+Each term is the gradient of a harmonic potential away from ``p_k`` (``f_D`` is symmetric and
+traceless), so the model is exactly curl- and divergence-free wherever there is no source: in the
+whole mapped volume. The idea is that of equivalent sources for potential fields (Dampney 1969;
+harmonica's ``EquivalentSources``): the moments follow from damped (Tikhonov) least squares on the
+samples, the damping chosen by blocked cross-validation. The dipoles sit on two box-shaped shells
+around the data: an inner one ``standoff`` beyond the data's bounding box at ``spacing`` (the
+near metal) and a coarser outer one (distant metal and ferrous objects).
+
+Weights, the cross-validation score and its folds are the harmonic fit's (``ivc.lut.samples``):
+pose-equivalent millimetres, blocks of 500 frames. The fold normal equations are accumulated once,
+so every damping is scored exactly for the cost of a few small solves.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from scipy.linalg.blas import dsyrk
+
+from ivc import dipole
+from ivc.errors import InputError
+from ivc.lut.cross_validation import BlockedKFold
+from ivc.lut.fitter import Fitter, register
+from ivc.lut.grid import Grid
+from ivc.lut.samples import FieldSamples
+
+#: inner shell: distance beyond the data's bounding box and dipole spacing (m)
+STANDOFF = 0.05
+SPACING = 0.07
+#: outer shell: distance beyond the bounding box and spacing (m)
+OUTER_STANDOFF = 0.25
+OUTER_SPACING = 0.2
+#: relative Tikhonov dampings tried by cross-validation (on the unit-diagonal normal equations)
+DAMPINGS = (1e-8, 1e-7, 1e-6, 1e-5)
+CHUNK = 1_000
+#: largest number of samples fitted (every k-th beyond it): the cost is samples x sources²
+MAX_SAMPLES = 20_000
+
+
+def shell(low: np.ndarray, high: np.ndarray, standoff: float, spacing: float) -> np.ndarray:
+    """Points (K, 3) on the six faces of the box ``[low − standoff, high + standoff]``, about ``spacing``
+    apart (a regular grid on each face, edges and corners shared once)."""
+    low = np.asarray(low, float) - standoff
+    high = np.asarray(high, float) + standoff
+    counts = np.maximum(np.ceil((high - low) / spacing).astype(int), 1) + 1
+    axes = [np.linspace(low[a], high[a], counts[a]) for a in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    on_face = np.zeros(tuple(counts), dtype=bool)
+    for a in range(3):
+        index = [slice(None)] * 3
+        for end in (0, -1):
+            index[a] = end
+            on_face[tuple(index)] = True
+    return grid[on_face]
+
+
+@dataclass
+class SourceModel:
+    """``G(r) = Σ_k f_D(r − p_k) m_k`` with ``positions`` (K, 3) m and ``moments`` (K, 3, 3): ``moments[k, :, j]``
+    is dipole k's moment for source coil j (normalised dipole units · m³)."""
+
+    positions: np.ndarray
+    moments: np.ndarray
+
+    def __call__(self, r: np.ndarray) -> np.ndarray:
+        """G (..., 3, 3) at points r (..., 3), source frame."""
+        return self.value_and_jacobian(r, jacobian=False)[0]
+
+    def value_and_jacobian(self, r: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """G (..., 3, 3) and ∂G_ij/∂r_k (..., 3, 3, 3) at r (..., 3)."""
+        r = np.asarray(r, float)
+        flat = r.reshape(-1, 3)
+        G = np.empty((len(flat), 3, 3))
+        dG = np.empty((len(flat), 3, 3, 3)) if jacobian else None
+        m = self.moments
+        for start in range(0, len(flat), CHUNK // 4 or 1):
+            d = flat[start : start + CHUNK // 4, None, :] - self.positions[None]  # (n, K, 3)
+            G[start : start + len(d)] = np.einsum("nkia,kaj->nij", dipole.field(d), m)
+            if jacobian:
+                dG[start : start + len(d)] = np.einsum("nkiac,kaj->nijc", dipole.field_jacobian(d), m)
+        G = G.reshape(*r.shape[:-1], 3, 3)
+        return G, (dG.reshape(*r.shape[:-1], 3, 3, 3) if jacobian else None)
+
+
+@numba.njit(parallel=True, cache=True)
+def _rows_kernel(points, sources, out):  # pragma: no cover - compiled
+    for n in numba.prange(points.shape[0]):
+        for k in range(sources.shape[0]):
+            d0 = points[n, 0] - sources[k, 0]
+            d1 = points[n, 1] - sources[k, 1]
+            d2 = points[n, 2] - sources[k, 2]
+            rho2 = d0 * d0 + d1 * d1 + d2 * d2
+            inv3 = 1.0 / (rho2 * np.sqrt(rho2))
+            three = 3.0 / rho2
+            d = (d0, d1, d2)
+            for i in range(3):
+                for a in range(3):
+                    value = three * d[i] * d[a]
+                    if i == a:
+                        value -= 1.0
+                    out[n, i, 3 * k + a] = value * inv3
+
+
+def _rows(points: np.ndarray, sources: np.ndarray) -> np.ndarray:
+    """Design rows (n, 3, 3K): row (sample, component i), column (source k, moment axis a) = f_D(r − p_k)[i, a]."""
+    out = np.empty((len(points), 3, 3 * len(sources)))
+    _rows_kernel(np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(sources, dtype=float), out)
+    return out
+
+
+def _solve(gram: np.ndarray, rhs: np.ndarray, damping: float) -> np.ndarray:
+    """``(D⁻¹ gram D⁻¹ + damping I)⁻¹`` applied in the unit-diagonal scaling ``D = sqrt(diag(gram))``."""
+    scale = np.sqrt(np.maximum(np.diag(gram), 1e-300))
+    scaled = gram / np.outer(scale, scale)
+    scaled[np.diag_indices_from(scaled)] += damping
+    return np.linalg.solve(scaled, rhs / scale[:, None]) / scale[:, None]
+
+
+def default_sources(positions: np.ndarray, standoff: float = STANDOFF, spacing: float = SPACING,
+                    outer_standoff: float = OUTER_STANDOFF, outer_spacing: float = OUTER_SPACING) -> np.ndarray:
+    """The two shells of dipoles around the bounding box of ``positions`` (N, 3)."""
+    low, high = positions.min(axis=0), positions.max(axis=0)
+    return np.concatenate([shell(low, high, standoff, spacing), shell(low, high, outer_standoff, outer_spacing)])
+
+
+def fit_sources(samples: FieldSamples, sources: np.ndarray | None = None, dampings=DAMPINGS, folds: int = 5,
+                max_samples: int = MAX_SAMPLES, progress: Callable[[int], None] | None = None,
+                block_frames: int = 500) -> tuple[SourceModel, dict]:
+    """Fit the dipole moments of ``sources`` (K, 3) m (default: :func:`default_sources` around the samples).
+
+    Weighted damped least squares with the samples' pose-equivalent weights; the damping is the lowest-scoring
+    of ``dampings`` in ``folds``-fold cross-validation over blocks of frames (held out together); a single
+    damping is used as given, without cross-validation. At most
+    ``max_samples`` samples are used (every k-th). Returns the model and a report (sources, damping chosen,
+    CV score per damping, mm)."""
+    if len(samples) < 100:
+        raise InputError(f"{len(samples)} samples are too few for an equivalent-source fit")
+    stride = max(1, -(-len(samples) // max_samples))
+    if stride > 1:
+        samples = samples.subset(np.arange(0, len(samples), stride))
+    if sources is None:
+        sources = default_sources(samples.positions)
+    sources = np.asarray(sources, float)
+    if sources.ndim != 2 or sources.shape[1] != 3 or len(sources) == 0:
+        raise InputError(f"sources must be a non-empty (K, 3) array of positions, got shape {sources.shape}")
+    nearest = _nearest_distance(samples.positions, sources)
+    if nearest < 1e-3:
+        raise InputError(f"an equivalent source lies {1000 * nearest:.2g} mm from a sample: sources must stay "
+                         "outside the mapped volume")
+    K = 3 * len(sources)
+    fold = samples.folds(folds, block_frames)
+    weight = samples.weights()
+    lever = samples.leverage()
+    gram = np.zeros((folds, K, K))
+    rhs = np.zeros((folds, K, 3))
+    yy = np.zeros(folds)
+    count = np.zeros(folds)
+    for f in range(folds):
+        members = np.flatnonzero(fold == f)
+        for start in range(0, len(members), CHUNK):
+            part = members[start : start + CHUNK]
+            root = np.sqrt(weight[part])
+            X = (_rows(samples.positions[part], sources) * root[:, None, None]).reshape(-1, K)
+            Y = (samples.fields[part] * root[:, None, None]).reshape(-1, 3)
+            upper = dsyrk(1.0, X.T, trans=0)
+            gram[f] += upper + np.triu(upper, 1).T
+            rhs[f] += X.T @ Y
+            yy[f] += np.sum(Y**2)
+            count[f] += np.sum(weight[part] / lever[part] ** 2)
+            if progress is not None:
+                progress(len(part))
+    total_gram, total_rhs = gram.sum(axis=0), rhs.sum(axis=0)
+    scores = {}
+    for damping in dampings if len(dampings) > 1 else ():  # a single damping is used as given
+        sse = 0.0
+        for f in range(folds):
+            if count[f] == 0:
+                continue
+            c = _solve(total_gram - gram[f], total_rhs - rhs[f], damping)
+            sse += yy[f] - 2 * np.sum(c * rhs[f]) + np.sum(c * (gram[f] @ c))
+        scores[damping] = float(np.sqrt(max(sse, 0.0) / count.sum()))
+    chosen = min(scores, key=scores.get) if scores else float(dampings[0])
+    coefficients = _solve(total_gram, total_rhs, chosen)  # (3K, 3): row (k, a), column j
+    model = SourceModel(sources, coefficients.reshape(len(sources), 3, 3))
+    report = {"sources": len(sources), "damping": chosen,
+              "damping_chosen_by": "cross-validation" if scores else "given",
+              "cv_rms_mm": 1000 * scores[chosen] if scores else None,
+              "cv_rms_mm_by_damping": {f"{d:g}": 1000 * s for d, s in scores.items()},
+              "cv_folds": folds, "samples_used": len(samples), "sample_stride": stride,
+              "nearest_source_mm": 1000 * nearest}
+    return model, report
+
+
+def _nearest_distance(points: np.ndarray, sources: np.ndarray) -> float:
+    from scipy.spatial import cKDTree
+
+    return float(cKDTree(sources).query(points, k=1)[0].min())
+
+
+@register
+class SourcesFit(Fitter):
+    """Equivalent sources as a :class:`~ivc.lut.fitter.Fitter` (``ivc fit --method sources``).
+
+    ``standoff``, ``spacing``: the inner shell of dipoles beyond the samples' bounding box (m);
+    ``outer_standoff``, ``outer_spacing``: the outer shell; ``dampings``: the Tikhonov dampings
+    scored by ``cv`` (a single one is used as given); ``max_samples``: the samples fitted (every
+    k-th beyond). Fitted attributes: ``model_`` (:class:`SourceModel`), ``damping_``, ``cv_score_``
+    (m, exact from the fold normal equations) and ``report_``.
+    """
+
+    name = "sources"
+
+    def __init__(self, standoff: float = STANDOFF, spacing: float = SPACING, outer_standoff: float = OUTER_STANDOFF,
+                 outer_spacing: float = OUTER_SPACING, dampings: tuple = DAMPINGS, max_samples: int = MAX_SAMPLES,
+                 cv: BlockedKFold | None = None):
+        for key, value in (("standoff", standoff), ("spacing", spacing), ("outer_standoff", outer_standoff),
+                           ("outer_spacing", outer_spacing)):
+            if not (np.isfinite(value) and value > 0):
+                raise InputError(f"{key} must be a positive number of metres, got {value!r}")
+        dampings = tuple(float(d) for d in dampings)
+        if not dampings or not all(np.isfinite(d) and d > 0 for d in dampings):
+            raise InputError(f"dampings must be positive numbers, got {dampings!r}")
+        if not isinstance(max_samples, int | np.integer) or max_samples < 100:
+            raise InputError(f"max_samples must be a whole number of at least 100, got {max_samples!r}")
+        self.standoff, self.spacing = standoff, spacing
+        self.outer_standoff, self.outer_spacing = outer_standoff, outer_spacing
+        self.dampings, self.max_samples = dampings, max_samples
+        self.cv = BlockedKFold() if cv is None else cv
+
+    def progress_units(self, samples: FieldSamples) -> int:
+        return min(len(samples), self.max_samples)
+
+    def fit(self, samples: FieldSamples, grid: Grid | None = None,
+            progress: Callable[[int], None] | None = None) -> SourcesFit:
+        sources = default_sources(samples.positions, self.standoff, self.spacing, self.outer_standoff,
+                                  self.outer_spacing)
+        model, report = fit_sources(samples, sources, self.dampings, self.cv.k, self.max_samples, progress,
+                                    self.cv.block_frames)
+        self.model_, self.damping_, self.report_ = model, report["damping"], report
+        cv = report["cv_rms_mm"]
+        self.cv_score_ = None if cv is None else cv / 1000
+        self._fitted_to = samples
+        return self
+
+    def predict(self, positions: np.ndarray) -> np.ndarray:
+        self._check_fitted("model_")
+        return self.model_(positions)
+
+    def cross_validate(self, samples: FieldSamples, grid: Grid | None = None) -> float:
+        """``cv_score_`` for the samples of the fit (when the damping was cross-validated); else refit per fold."""
+        if getattr(self, "_fitted_to", None) is samples and self.cv_score_ is not None:
+            return self.cv_score_
+        return super().cross_validate(samples, grid)

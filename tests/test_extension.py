@@ -1,0 +1,118 @@
+"""Extension sweeps in the session format, the simulator, `ivc collect` and `ivc fit` (issue: whole-volume maps)."""
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ivc import lut
+from ivc import session as session_io
+from ivc.cli.main import cli
+from ivc.collect.checks import reach_warning
+from ivc.session import STEPS, SessionError, extension_step, extension_steps, is_extension_step
+from ivc.sim import Simulator, load_scene
+from ivc.sim.scene import scene_from_dict
+
+PLATE = {"shape": "plate", "size": [1.0, 1.0], "position": [0.55, 0, -0.4], "material": "aluminium",
+         "resolution_mm": 80}
+FRAMES = {"cube_calibration": 1000, "cube_survey": 200, "wand_calibration": 200, "wand_sweep": 3000, "check": 200}
+
+
+def box_scene(sweeps: int = 2):
+    scene = scene_from_dict({"conductor": [PLATE], "cube": {"center": [0.55, 0, 0]},
+                             "volume": {"center": [0.55, 0, 0], "size": [0.6, 0.5, 0.4]},
+                             "extension": {"sweeps": sweeps, "frames": 1500}})
+    scene.tabulate = False
+    return scene
+
+
+def test_step_names():
+    assert extension_step(3) == "extension_sweep_3"
+    assert is_extension_step("extension_sweep_12")
+    for name in ("extension_sweep_0", "extension_sweep_01", "extension_sweep_100", "extension_sweep_x", "wand_sweep"):
+        assert not is_extension_step(name)
+    assert extension_steps(["check", "extension_sweep_10", "extension_sweep_2"]) == ["extension_sweep_2",
+                                                                                    "extension_sweep_10"]
+    with pytest.raises(SessionError):
+        extension_step(0)
+
+
+def test_simulated_extension_sweeps_round_trip_and_stay_in_the_box(tmp_path):
+    sim = Simulator(box_scene(), seed=1)
+    assert sim.steps == [*STEPS[:4], "extension_sweep_1", "extension_sweep_2", "check"]
+    session = sim.protocol(FRAMES)
+    path = tmp_path / "s.h5"
+    session_io.write(session, path)
+    back = session_io.read(path)
+    assert list(back.steps) == sim.steps
+    for name in ("extension_sweep_1", "extension_sweep_2"):
+        np.testing.assert_array_equal(back.steps[name].signal, session.steps[name].signal)
+        truth = back.truth[name].position
+        volume = sim.scene.volume
+        assert np.all(truth >= volume.lower - 1e-9) and np.all(truth <= volume.upper + 1e-9)
+        # held at its far end: the hand (last sensor) further from the cube than the tip, on the whole
+        distance = np.linalg.norm(truth - sim.scene.cube.center, axis=-1)
+        assert np.median(distance[:, -1]) > np.median(distance[:, 0])
+    # a step simulated alone equals the same step within the protocol
+    alone, _ = sim.step("extension_sweep_2", 1500)
+    np.testing.assert_array_equal(alone.signal, session.steps["extension_sweep_2"].signal)
+    # the wand of an extension sweep must be the calibrated one
+    session.steps["extension_sweep_1"] = session.steps["extension_sweep_1"].select(slice(None))
+    session.steps["extension_sweep_1"].signal = session.steps["extension_sweep_1"].signal[:, :4]
+    session.steps["extension_sweep_1"].position = session.steps["extension_sweep_1"].position[:, :4]
+    session.steps["extension_sweep_1"].quaternion = session.steps["extension_sweep_1"].quaternion[:, :4]
+    session.steps["extension_sweep_1"].valid = session.steps["extension_sweep_1"].valid[:, :4]
+    session.steps["extension_sweep_1"].sensor_ids = None
+    session.truth.pop("extension_sweep_1")
+    with pytest.raises(SessionError, match="extension_sweep_1: 4 sensors"):
+        session.validate()
+
+
+def test_unknown_step_names_are_refused():
+    sim = Simulator(box_scene(), seed=1)
+    session = sim.protocol(FRAMES, steps=["cube_calibration"])
+    session.steps["extension_sweep_0"] = session.steps["cube_calibration"]
+    with pytest.raises(SessionError, match="unknown step"):
+        session.validate()
+    with pytest.raises(Exception, match="no working volume"):
+        Simulator(load_scene("mild"), 0).step("extension_sweep_1", 10)
+
+
+def test_old_single_sweep_sessions_fit_exactly_as_before():
+    """A scene's extension sweeps change nothing of its five steps, and a session without them is
+    fitted by the single-sweep path, bit for bit."""
+    with_extension = Simulator(box_scene(2), seed=4).protocol(FRAMES)
+    without = Simulator(box_scene(0), seed=4).protocol(FRAMES)
+    assert set(without.steps) == set(STEPS)
+    for name in STEPS:
+        np.testing.assert_array_equal(with_extension.steps[name].signal, without.steps[name].signal)
+    single = with_extension.select_frames("wand_sweep", slice(None))
+    for name in extension_steps(list(single.steps)):
+        del single.steps[name], single.truth[name]
+    a, b = lut.fit_lut(single), lut.fit_lut(without)
+    np.testing.assert_array_equal(a.values, b.values)
+    np.testing.assert_array_equal(a.valid, b.valid)
+    assert "rounds" not in a.fit and a.fit["method"] == "harmonic"
+
+
+def test_reach_warning():
+    sim = Simulator(box_scene(1), seed=2)
+    session = sim.protocol(FRAMES, steps=STEPS[:4])
+    step, _ = sim.step("extension_sweep_1", 1500)
+    assert reach_warning("extension_sweep_1", step, session) is None
+    far = step.select(slice(None))
+    far.position = far.position + np.array([2.0, 0, 0])
+    message = reach_warning("extension_sweep_1", far, session)
+    assert message and "never came near the region mapped from the cube" in message
+
+
+def test_collect_records_an_extension_sweep(tmp_path):
+    scene = tmp_path / "box.toml"
+    scene.write_text('[cube]\ncenter = [0.55, 0, 0]\n[volume]\ncenter = [0.55, 0, 0]\nsize = [0.6, 0.5, 0.4]\n'
+                     'tabulate_spacing_mm = 20\n[extension]\nsweeps = 1\nframes = 300\n')
+    out = tmp_path / "s.h5"
+    runner = CliRunner()
+    result = runner.invoke(cli, ["collect", "extension_sweep_1", "--source", f"sim:{scene}", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "extension_sweep_1" in session_io.read(out).steps
+    result = runner.invoke(cli, ["collect", "extension_sweep_0", "--source", f"sim:{scene}", "-o", str(out)])
+    assert result.exit_code != 0 and "extension_sweep_N" in result.output
