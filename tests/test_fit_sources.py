@@ -1,0 +1,69 @@
+"""Equivalent sources (ivc.lut.fit_sources): exactly curl- and divergence-free, and an external field recovered."""
+
+import numpy as np
+import pytest
+
+from ivc import dipole
+from ivc.errors import InputError
+from ivc.lut.fit_sources import SourceModel, SourcesFit, fit_sources, shell
+from ivc.lut.fitter import make_fitter
+from ivc.lut.samples import FieldSamples
+from ivc.sim.field import FerrousSphere
+
+LOW, HIGH = np.array([0.15, -0.3, -0.25]), np.array([0.95, 0.3, 0.25])
+#: sources of an analytic external field: induced dipoles of steel spheres 6-10 cm beyond the box's faces
+SPHERES = [FerrousSphere(np.array([1.05, 0.1, 0.0]), 0.04, 1000.0),
+           FerrousSphere(np.array([0.5, -0.38, -0.1]), 0.03, 1000.0),
+           FerrousSphere(np.array([0.4, 0.1, -0.35]), 0.05, 1000.0)]
+
+
+def external(points):
+    return sum(s.field(points) for s in SPHERES)
+
+
+def test_model_is_curl_and_divergence_free_to_round_off(rng):
+    sources = shell(LOW, HIGH, 0.05, 0.2)
+    model = SourceModel(sources, rng.standard_normal((len(sources), 3, 3)))
+    points = LOW + (HIGH - LOW) * rng.random((500, 3))
+    G, dG = model.value_and_jacobian(points)  # dG[n, i, j, k] = ∂G_ij/∂r_k; column j is a field
+    size = np.max(np.abs(dG))
+    divergence = dG[:, 0, :, 0] + dG[:, 1, :, 1] + dG[:, 2, :, 2]
+    curl = dG - np.transpose(dG, (0, 3, 2, 1))  # ∂B_i/∂r_k − ∂B_k/∂r_i per column j
+    assert np.max(np.abs(divergence)) < 1e-13 * size
+    assert np.max(np.abs(curl)) < 1e-13 * size
+    # the analytic Jacobian against central differences
+    h = 1e-6
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h
+        fd = (model(points[:20] + e) - model(points[:20] - e)) / (2 * h)
+        np.testing.assert_allclose(dG[:20, ..., k], fd, rtol=1e-6, atol=1e-8 * size)
+
+
+def test_recovers_an_external_field_inside_the_box(rng):
+    n = 8000
+    points = LOW + (HIGH - LOW) * rng.random((n, 3))
+    samples = FieldSamples(points, external(points), np.full(n, 1e-4), np.arange(n) // 4, np.zeros(n, int))
+    model, report = fit_sources(samples)
+    assert report["nearest_source_mm"] > 40 and report["damping_chosen_by"] == "cross-validation"
+    check = LOW + (HIGH - LOW) * rng.random((2000, 3))
+    error = np.linalg.norm(model(check) - external(check), axis=(1, 2))
+    primary = np.linalg.norm(dipole.field(check), axis=(1, 2))
+    size = np.linalg.norm(external(check), axis=(1, 2))
+    assert np.median(error / primary) < 2e-5
+    assert np.percentile(error / primary, 95) < 5e-4
+    assert np.median(error / size) < 0.05
+
+
+def test_fitter_interface_and_refusals(rng):
+    fitter = make_fitter("sources", spacing=0.1, dampings=(1e-6,))
+    assert isinstance(fitter, SourcesFit) and fitter.clone().get_params() == fitter.get_params()
+    n = 2000
+    points = LOW + (HIGH - LOW) * rng.random((n, 3))
+    samples = FieldSamples(points, external(points), np.full(n, 1e-4), np.arange(n), np.zeros(n, int))
+    assert fitter.fit(samples) is fitter and fitter.damping_ == 1e-6
+    assert fitter.predict(points[:3]).shape == (3, 3, 3)
+    with pytest.raises(InputError):
+        SourcesFit(spacing=-1)
+    with pytest.raises(InputError, match="outside the mapped volume"):
+        fit_sources(samples, sources=points[:5])
