@@ -15,7 +15,7 @@ from ivc.cli.evaluate import render_table
 from ivc.cli.fit import render_fit
 from ivc.cli.options import SIM_FRAMES
 from ivc.cli.progress import StageBars
-from ivc.session import STEPS
+from ivc.session import extension_steps
 
 
 @click.command()
@@ -39,11 +39,13 @@ def demo(scene, seed, sweep_frames, check_frames, method, pose_only, keep_dir, f
             into = f" into {made.session_file}" if keep_dir else ""  # a temporary file is deleted: no path to print
             click.echo(f"1/3 collect: simulating scene {scene!r} (seed {seed}){into}", err=True)
         elif name == "fit":
-            for step in STEPS:
+            for step in made.session.steps:
                 click.echo(summary(step, made.session.steps[step], made.session.truth.get(step)))
             click.echo(f"wrote {made.session_file}" if keep_dir else "collected the protocol (temporary session)")
-            click.echo(f"2/3 fit: {method} look-up table" + (" from reported poses alone (signals dropped)"
-                                                              if pose_only else ""), err=True)
+            kind = ("whole-volume look-up table (extension sweeps, joint solve)"
+                    if extension_steps(made.session.steps) else f"{method} look-up table")
+            click.echo(f"2/3 fit: {kind}" + (" from reported poses alone (signals dropped)" if pose_only else ""),
+                       err=True)
         else:
             click.echo(render_fit(made.table, made.fit_seconds))
             click.echo("3/3 evaluate: correcting the check poses", err=True)

@@ -155,7 +155,7 @@ class JointOptions:
     max_residual: float = 1e-3
     max_error: float = 1e-3
     max_frames: int = 25_000
-    max_extension_frames: int = 10_000
+    max_extension_frames: int = 5_000
     min_sensors: int = 2
 
     def __post_init__(self):
