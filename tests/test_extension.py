@@ -116,3 +116,28 @@ def test_collect_records_an_extension_sweep(tmp_path):
     assert "extension_sweep_1" in session_io.read(out).steps
     result = runner.invoke(cli, ["collect", "extension_sweep_0", "--source", f"sim:{scene}", "-o", str(out)])
     assert result.exit_code != 0 and "extension_sweep_N" in result.output
+
+
+@pytest.mark.slow
+def test_joint_fit_grows_the_map_and_reports_it(tmp_path):
+    from ivc.correct.evaluate import evaluate
+    from ivc.lut.joint import JointOptions, fit_joint, mapped_litres, to_table
+    from ivc.report import build_report
+
+    scene = box_scene(2)
+    scene.extension.frames = 3000
+    session = Simulator(scene, seed=5).protocol(FRAMES)
+    joint = fit_joint(session, JointOptions(max_iterations=2, max_extension_frames=1500))
+    rounds = joint.report["rounds"]
+    assert [r["iteration"] for r in rounds] == [0, 1, 2]
+    assert rounds[-1]["mapped_litres"] > 1.2 * rounds[0]["mapped_litres"]
+    assert all(n > 0 for n in rounds[-1]["frames_solved"].values())
+    assert joint.report["never_touched_mapped_region"] == []
+    assert len(joint.report["error_by_distance"]) == 5
+    table = to_table(joint, session.hemisphere)
+    assert mapped_litres(table.grid, table.valid) == pytest.approx(joint.report["mapped_litres"])
+    result = evaluate(table, session)
+    assert result["ivc"]["position_mm"]["p50"] < 0.2 * result["dipole"]["position_mm"]["p50"]
+    report = build_report(session, table, tmp_path / "report")
+    assert report.numbers["volume"]["rounds"] == rounds
+    assert "Whole working volume" in (tmp_path / "report" / "report.html").read_text()

@@ -152,8 +152,8 @@ def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings
                  f"origin {t['origin_mm']} mm"],
         ["mapped", f"{t['valid_nodes']} of {t['nodes']} nodes valid; {t['mapped_cells']} of {t['cells']} cells "
                    "mapped"],
-        ["fit", f"{t['method']} (degree {t['degree']}), cross-validated rms {t['cv_rms_mm']:.3g} mm"
-         if t["cv_rms_mm"] is not None else str(t["method"])],
+        ["fit", f"{t['method']}" + (f" (degree {t['degree']})" if t.get("degree") is not None else "")
+         + f", cross-validated rms {t['cv_rms_mm']:.3g} mm" if t["cv_rms_mm"] is not None else str(t["method"])],
     ]
     if "missing" not in s:
         summary_rows.append(["wand samples", f"{s['samples']['kept']:,} of {s['samples']['total']:,} kept"])
@@ -178,6 +178,8 @@ def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings
             rows.append(("distance from the cube centre", c["distance_from_cube_mm"], "mm"))
         accuracy = (f"<p>IVC judged against {html.escape(c['frame'])}{placement}. Flagged: {flagged}.</p>"
                     + html.percentile_table(rows))
+    if "volume" in numbers:
+        sections.append(("volume", "Whole working volume (extension sweeps)", _volume(numbers["volume"])))
     sections.append(("accuracy", "Accuracy on the check poses", accuracy + fig("error_histograms")
                      + fig("error_vs_distance")))
     field_numbers = numbers["secondary_field"]["percent_of_measured_at_valid_nodes"]
@@ -188,6 +190,24 @@ def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings
     sections.append(("cube", "Interpolation cube", _cube(cube) + fig("cube_residuals")))
     title = f"ivc report: {Path(names['lut']).name}" if "lut" in names else "ivc report"
     return html.page(title, meta, warnings, sections)
+
+
+def _volume(volume: dict) -> str:
+    """The joint solve's rounds (mapped litres, frames solved per sweep, map change) and the estimated
+    sample error against distance from the cube."""
+    sweeps = list(volume.get("extension_sweeps", {}))
+    rows = [[step["iteration"], f"{step['mapped_litres']:.1f}",
+             "-" if step["map_change_mm"] is None else f"{step['map_change_mm']:.4f}",
+             *[step["frames_solved"].get(name, 0) for name in sweeps]] for step in volume.get("rounds", [])]
+    out = (f"<p>{volume.get('mapped_litres', 0):.1f} litres mapped; {html.escape(volume.get('stopped', ''))}.</p>"
+           + html.table(["round", "mapped litres", "map change (mm)", *[f"{n} frames solved" for n in sweeps]], rows))
+    never = volume.get("never_touched_mapped_region") or []
+    if never:
+        out += f"<p>Never touched the mapped region: {html.escape(', '.join(never))}.</p>"
+    distance = [[f"{r['from_mm']:.0f}-{r['to_mm']:.0f}", r["samples"], f"{r['error_p50_mm']:.3f}",
+                 f"{r['error_p95_mm']:.3f}"] for r in volume.get("error_by_distance", [])]
+    return out + html.table(["distance from the cube (mm)", "samples", "estimated error p50 (mm)", "p95 (mm)"],
+                            distance)
 
 
 def _caption(name: str, data: ReportData) -> str:

@@ -292,6 +292,10 @@ def summary(data: ReportData) -> dict:
             "slice_heights_mm": (1000 * data.slices.z).round(2).tolist(),
         },
     }
+    if "rounds" in table.fit:  # a whole-volume map (ivc.lut.joint): its rounds and error against distance
+        out["volume"] = {key: table.fit[key] for key in ("rounds", "extension_sweeps", "never_touched_mapped_region",
+                                                        "mapped_litres", "error_by_distance", "stopped")
+                         if key in table.fit}
     lacks = {"missing": list(data.mapping_missing)}
     if model is None:
         out["cube"] = dict(lacks)
