@@ -156,9 +156,8 @@ def _compiled(S, valid, scale, wand, field: HarmonicField, map_field: GridField,
     rigid_kernel(np.ascontiguousarray(S), np.ascontiguousarray(valid), np.ascontiguousarray(scale),
                  np.ascontiguousarray(wand.positions, dtype=float), np.ascontiguousarray(wand.rotations, dtype=float),
                  np.ascontiguousarray(field.centre, dtype=float), float(field.scale),
-                 np.ascontiguousarray(field.coefficients, dtype=float), m._padded, m.valid_cells, m._origin,
-                 m.grid.spacing, m._shape, m.interpolation == "cubic", int(max_iterations), float(step_tolerance), r, T,
-                 converged)
+                 np.ascontiguousarray(field.coefficients, dtype=float), *m.kernel_grid, int(max_iterations),
+                 float(step_tolerance), r, T, converged)
     return converged
 
 
