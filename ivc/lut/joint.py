@@ -31,7 +31,7 @@ from ivc.fixtures.mapping import FixtureModel, Gates, map_sweep
 from ivc.fixtures.wand import WandCalibration
 from ivc.lut.fit_sources import SourceModel, fit_sources
 from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
-from ivc.lut.refine import _skew
+from ivc.lut.refine import skew
 from ivc.lut.samples import FieldSamples, leverage
 from ivc.lut.support import MIN_SUPPORT, node_support
 from ivc.lut.table import LookupTable
@@ -54,7 +54,7 @@ def _wand_residuals(S, scale, use, wand: WandCalibration, field: FieldFunction, 
     dM = dipole.field_jacobian(positions) + dg.reshape(F, W, 3, 3, 3)
     e, J = signal_residual(S.reshape(-1, 3, 3), M.reshape(-1, 3, 3), dM.reshape(-1, 3, 3, 3), rots.reshape(-1, 3, 3))
     e, J = e.reshape(F, W, 9), J.reshape(F, W, 9, 6)
-    lever = -T0[:, None] @ _skew(wand.positions)[None]  # ∂r_n/∂ω for T_0 ← T_0 exp([ω]×)
+    lever = -T0[:, None] @ skew(wand.positions)[None]  # ∂r_n/∂ω for T_0 ← T_0 exp([ω]×)
     J_w = J[..., :3] @ lever + J[..., 3:] @ np.swapaxes(wand.rotations, -1, -2)[None]
     J = np.concatenate([J[..., :3], J_w], axis=-1)
     w = (use / scale)[..., None]

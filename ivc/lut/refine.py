@@ -117,7 +117,7 @@ def refine_map(first: MapFit, mapping, model, S: np.ndarray, sweep_valid: np.nda
     return best, history, stopped or f"--max-refinements {max_refinements} reached"
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
+def skew(v: np.ndarray) -> np.ndarray:
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     zero = np.zeros_like(x)
     return np.stack([np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)], -2)
@@ -139,7 +139,7 @@ def _residuals(S, scale, valid, wand, cube_field, map_field, r0, T0):
     dM[:, 1:] += dg
     e, J = signal_residual(S.reshape(-1, 3, 3), M.reshape(-1, 3, 3), dM.reshape(-1, 3, 3, 3), rots.reshape(-1, 3, 3))
     e, J = e.reshape(F, W, 9), J.reshape(F, W, 9, 6)
-    lever = -T0[:, None] @ _skew(wand.positions)[None]  # (F, W, 3, 3): ∂r_n/∂ω
+    lever = -T0[:, None] @ skew(wand.positions)[None]  # (F, W, 3, 3): ∂r_n/∂ω
     J_w = J[..., :3] @ lever + J[..., 3:] @ np.swapaxes(wand.rotations, -1, -2)[None]
     J = np.concatenate([J[..., :3], J_w], axis=-1)
     w = (valid / scale)[..., None]
