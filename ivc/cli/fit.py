@@ -123,6 +123,9 @@ def fit(session_file, output, method, grid_spec, degree, refine, max_refinements
         max_residual, max_error_mm, tracker, force, as_json, tracker_file):
     """Fit the secondary-field look-up table of SESSION_FILE and write it to OUTPUT."""
     check_output(output, force, {"SESSION_FILE": session_file})
+    if degree is not None and method == "sources":
+        raise click.UsageError("--degree is for the harmonic and poly fits; equivalent sources choose their "
+                               "damping by cross-validation")
     fitter = lut.make_fitter(method, **({} if degree is None else {"degree": degree}))
     options = FitOptions(fitter=fitter, refine=refine, max_refinements=max_refinements,
                          max_frames=max_frames, min_support=min_support, max_residual=max_residual,
