@@ -10,7 +10,14 @@ from ivc.dipole import kernels as dipole_kernels
 from ivc.dipole import numpy_kernels
 from ivc.lut import grid_numpy
 from ivc.lut import kernels as lut_kernels
-from ivc.warmup import _table
+from ivc.lut.grid import Grid, GridField
+
+
+def _table():
+    """A small table of a smooth secondary field around (0.4, 0, 0) m, every node valid."""
+    grid = Grid(np.array([0.3, -0.1, -0.1]), 0.05, (5, 5, 5))
+    values = 0.01 * np.einsum("...i,jk->...jk", grid.nodes() - np.array([0.4, 0.0, 0.0]), np.ones((3, 3)))
+    return GridField(grid, values, np.ones(grid.shape, bool))
 
 
 @pytest.fixture
@@ -46,8 +53,9 @@ def test_numpy_grid_kernel_equals_the_compiled_one(rng, cubic):
     points = field.grid.origin + rng.uniform(-0.05, 0.25, (500, 3))  # inside, outside and on no cell
     points[0] = field.grid.origin  # a node: zero weights skipped
     points[1] = np.nan
-    args = (field._padded, field.valid_cells, field._origin, field.grid.spacing, field._shape, points, cubic)
-    C = field._padded.shape[3]
+    padded, valid_cells, origin, spacing, shape, _ = field.kernel_grid
+    args = (padded, valid_cells, origin, spacing, shape, points, cubic)
+    C = padded.shape[3]
     out_c = np.empty((len(points), C)), np.empty((len(points), C, 3)), np.empty(len(points), bool)
     out_n = np.empty((len(points), C)), np.empty((len(points), C, 3)), np.empty(len(points), bool)
     lut_kernels.grid_kernel(*args, *out_c)

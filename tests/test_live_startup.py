@@ -9,10 +9,24 @@ import numpy as np
 from pyigtl import TransformMessage
 
 from ivc import compiled, rotations
-from ivc.correct import Corrector, pose_kernels
+from ivc.correct import Corrector, PoseCorrector, pose_kernels
 from ivc.live import LiveCorrector
 from ivc.live.igtl import Framer
-from tests.test_live import SENSORS, offline, reported_poses
+from tests.helpers import distorted, reported_matrices
+
+SENSORS = ("S0", "S1", "S2", "S3")
+
+
+def reported_poses(rng, frames):
+    """Reported poses (F, N, 4, 4), mm, float32, of len(SENSORS) sensors at random distorted poses."""
+    S = distorted(rng, frames * len(SENSORS))[2]
+    return reported_matrices(S).reshape(frames, len(SENSORS), 4, 4)
+
+
+def offline(table, matrices):
+    """``ivc correct`` on the same poses: batch, each sample on its own, through the pose path."""
+    m = matrices.astype(float)
+    return PoseCorrector(table).batch(m[..., :3, 3] / 1000.0, rotations.from_matrix(m[..., :3, :3]))
 
 
 def _received(consumer, framer, count, deadline):
