@@ -11,6 +11,7 @@ from collections.abc import Callable
 
 from ivc.predict.auto import AutoPredictor
 from ivc.predict.base import Predictor, PredictorError, Stream
+from ivc.predict.direct import DirectPredictor
 from ivc.predict.dq import DQPredictor, dqekf_ca, dqekf_cv, mmdq2, mmdq3
 from ivc.predict.evaluate import NoPrediction
 from ivc.predict.linear import LinearPredictor, alpha_beta, kinematic, polynomial
@@ -23,6 +24,7 @@ from ivc.predict.tuning import Tuning
 FILTERS: dict[str, Callable[[float], Predictor]] = {
     "auto": AutoPredictor,
     "none": NoPrediction,
+    "direct": DirectPredictor,
     "dqekf-cv": dqekf_cv,
     "dqekf-ca": dqekf_ca,
     "mmdq2": mmdq2,
@@ -64,5 +66,5 @@ def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Pre
     return FILTERS[name](rate_hz, sigma_w=tuning.sigma_w, sigma_v=tuple(tuning.sigma_v_dq))
 
 
-__all__ = ["AutoPredictor", "DEFAULT_FILTER", "DQPredictor", "FILTERS", "LinearPredictor", "MMAE", "NasaEKF",
-           "NoPrediction", "Predictor", "PredictorError", "QEKF", "Stream", "TUNABLE", "Tuning", "make"]
+__all__ = ["AutoPredictor", "DEFAULT_FILTER", "DQPredictor", "DirectPredictor", "FILTERS", "LinearPredictor", "MMAE",
+           "NasaEKF", "NoPrediction", "Predictor", "PredictorError", "QEKF", "Stream", "TUNABLE", "Tuning", "make"]
