@@ -281,3 +281,30 @@ def test_live_prediction_takes_the_tuning(exact_table):  # noqa: F811
     finally:
         live.close()
         listener.close()
+
+
+def test_live_prediction_runs_on_the_time_stamps_and_auto_scores_at_the_horizon(exact_table, rng):  # noqa: F811
+    """Jittered stamps reach the predictor (as the batch with those times); auto and direct learn at --horizon."""
+    from ivc.predict import make
+    from ivc.predict.delta import delta_q
+
+    n, rate, horizon = 240, 60.0, 0.08
+    t = 1000.0 + np.cumsum(rng.uniform(0.010, 0.025, n))
+    w = np.stack([1.5 * np.sin(2 * np.pi * 0.7 * (t - 1000.0)), 0.4 + 0 * t, 0.6 * np.cos(2 * np.pi * 0.3 * t)], 1)
+    q = np.empty((n, 4))
+    q[0] = rotations.random(1, rng)[0]
+    for k in range(1, n):
+        q[k] = rotations.multiply(delta_q(w[k] * (t[k] - t[k - 1]), 1.0), q[k - 1])
+    listener = socket.create_server(("127.0.0.1", 0))
+    live = LiveCorrector(Corrector(exact_table), listener.getsockname(), ("127.0.0.1", 0), predictor="auto",
+                         horizon=horizon, rate_hz=rate)
+    try:
+        got = np.array([live._predicted("S0", q[k], True, t[k]) for k in range(n)])
+        stream = live._streams["S0"]
+        assert stream.predictor.horizon_s == horizon
+        assert [p.horizon_s for p in stream.predictor.bank if p.name == "direct"] == [horizon]
+    finally:
+        live.close()
+        listener.close()
+    batch = make("auto", rate).predict(q, [horizon], time=t)[0]  # batch weights are per horizon
+    assert np.max(rotations.angle_between(got[20:], batch[20:])) < 1e-9

@@ -10,7 +10,7 @@ from ivc.predict.delta import delta_q
 from ivc.predict.motion import head_motion
 from ivc.predict.timing import MAX_GAP_S, stream_timing
 
-VARIABLE_STEP = ["dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", "poly1", "poly2"]
+VARIABLE_STEP = ["dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", "poly1", "poly2", "direct"]
 
 
 def _rotation(rng, n=400, gap_at=None, gap_s=0.0):
@@ -59,7 +59,7 @@ def test_repeated_samples_are_dropped_not_taken_as_no_motion(rng, name):
     assert timing.repeats == [len(stale)]
 
 
-@pytest.mark.parametrize("name", ["dqekf-cv", "mmdq2", "poly1", "q-ekf", "kinematic"])
+@pytest.mark.parametrize("name", ["dqekf-cv", "mmdq2", "poly1", "q-ekf", "kinematic", "direct"])
 def test_a_long_gap_restarts_the_filter_and_is_reported(rng, name):
     t, w, q0, q = _rotation(rng, gap_at=200, gap_s=2.0)
     predictor = make(name, 30.0)

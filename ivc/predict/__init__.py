@@ -47,8 +47,11 @@ DEFAULT_FILTER = "auto"
 TUNABLE = ("q-ekf", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3")
 
 
-def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Predictor:
+def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None, horizon_s: float | None = None) -> Predictor:
     """The predictor called ``name`` (see :data:`FILTERS`) for a stream at ``rate_hz``.
+
+    ``horizon_s`` (s, above 0): the horizon the live form of a predictor that learns from its own errors (``auto``,
+    ``direct``) scores and learns at; the others predict any horizon alike and ignore it.
 
     With ``tuning``, the filters of :data:`TUNABLE` take their measurement and process noise from it
     instead of the thesis's tracker and head (Table 3, eq. 67, Table 10); the other filters have no
@@ -57,6 +60,8 @@ def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Pre
     if name not in FILTERS:
         raise PredictorError(f"unknown filter {name!r}; choose one of {', '.join(FILTERS)}")
     if tuning is None or name not in TUNABLE:
+        if horizon_s and name in ("auto", "direct"):
+            return FILTERS[name](rate_hz, horizon_s=horizon_s)
         return FILTERS[name](rate_hz)
     if not tuning.matches_rate(rate_hz):
         raise PredictorError(f"the tuning is for {tuning.rate_hz:g} Hz, the stream is at {rate_hz:g} Hz: "

@@ -213,6 +213,9 @@ class AutoPredictor(Predictor):
             raise PredictorError("memory_s and max_step_s must be positive numbers of seconds, power >= 0")
         check_horizons(self.horizon_s)
         self.bank = [CANDIDATES[c](self.rate_hz) for c in self.candidates]
+        for p in self.bank:  # a member that learns from its errors (direct) learns at the horizon auto scores at
+            if hasattr(p, "horizon_s") and self.horizon_s > 0:
+                p.horizon_s = float(self.horizon_s)
 
     def selections(self, q, horizons, valid=None, time=None) -> tuple[FloatArray, np.ndarray]:
         """(predictions (H, F, S, 4) as :meth:`predict`, the candidates' weights (H, F, S, C), in candidates' order)."""
