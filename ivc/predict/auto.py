@@ -61,6 +61,9 @@ CANDIDATES = {
     "dqekf-ca": dqekf_ca,
     "mmdq2": mmdq2,
     "direct": DirectPredictor,
+    # the same learner with twice the history and with ten times the memory: members that differ where it matters
+    "direct-8": lambda rate_hz: DirectPredictor(rate_hz, lags=8, name="direct-8"),
+    "direct-30s": lambda rate_hz: DirectPredictor(rate_hz, memory_s=30.0, name="direct-30s"),
 }
 #: time constant (s) of the forgetting of past errors
 MEMORY_S = 1.0
