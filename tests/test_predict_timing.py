@@ -59,7 +59,7 @@ def test_repeated_samples_are_dropped_not_taken_as_no_motion(rng, name):
     assert timing.repeats == [len(stale)]
 
 
-@pytest.mark.parametrize("name", ["dqekf-cv", "mmdq2", "poly1", "q-ekf", "kinematic", "direct"])
+@pytest.mark.parametrize("name", ["dqekf-cv", "mmdq2", "poly1", "q-ekf", "kinematic", "direct", "nasa-ekf"])
 def test_a_long_gap_restarts_the_filter_and_is_reported(rng, name):
     t, w, q0, q = _rotation(rng, gap_at=200, gap_s=2.0)
     predictor = make(name, 30.0)
@@ -108,3 +108,20 @@ def test_timing_report_and_bad_times():
     stream.update(rotations.random(1, 0), time=1.0)
     with pytest.raises(PredictorError, match="does not come after"):
         stream.update(rotations.random(1, 1), time=1.0)
+
+
+def test_the_nasa_ekf_runs_on_the_actual_steps(rng):
+    """Its cycle spans each actual step (Φ = expm(hF), W_r scaled by h / τ): once converged, exact; repeats dropped."""
+    t, w, q0, q = _rotation(rng)
+    q[40::9] = q[39::9][: len(q[40::9])]  # stale frames
+    predictor = make("nasa-ekf", 30.0)
+    pred = predictor.predict(q, [0.05], time=t)[0]
+    truth = rotations.multiply(delta_q(w * (t[:, None] + 0.05), 1.0), q0)
+    assert rotations.angle_between(pred[100:], truth[100:]).max() < 1e-6
+    stream = predictor.stream(1)
+    live = np.empty((len(t), 4))
+    for k in range(len(t)):
+        stream.update(q[k:k + 1], time=t[k])
+        live[k] = stream.predict(0.05)[0]
+    assert np.array_equal(np.isnan(live), np.isnan(pred))
+    assert np.nanmax(rotations.angle_between(live, pred)) < 1e-9
