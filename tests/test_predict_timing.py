@@ -125,3 +125,25 @@ def test_the_nasa_ekf_runs_on_the_actual_steps(rng):
         live[k] = stream.predict(0.05)[0]
     assert np.array_equal(np.isnan(live), np.isnan(pred))
     assert np.nanmax(rotations.angle_between(live, pred)) < 1e-9
+
+
+@pytest.mark.parametrize("name", ["alpha-beta", "kinematic"])
+def test_the_steady_state_designs_run_on_the_actual_steps(rng, name):
+    """Fed time stamps, the α-β and kinematic filters are the time-varying Kalman filters of their models: the
+    steady-state filter at steps of exactly 1 / rate_hz, exact on a constant rotation at random steps once settled."""
+    predictor = make(name, 30.0)
+    t, w, q0, q = _rotation(rng)
+    q[40::9] = q[39::9][: len(q[40::9])]  # stale frames
+    pred = predictor.predict(q, [0.05], time=t)[0]
+    truth = rotations.multiply(delta_q(w * (t[:, None] + 0.05), 1.0), q0)
+    assert rotations.angle_between(pred[100:], truth[100:]).max() < 1e-6
+    stream = predictor.stream(1)
+    live = np.empty((len(t), 4))
+    for k in range(len(t)):
+        stream.update(q[k:k + 1], time=t[k])
+        live[k] = stream.predict(0.05)[0]
+    assert np.nanmax(rotations.angle_between(live, pred)) < 1e-9
+    uniform = np.arange(300) / 30.0
+    turning = rotations.multiply(delta_q(np.sin(uniform)[:, None] * w, 1.0), q0)
+    steady = predictor.predict(turning, [0.05])[0]  # no time stamps: the steady-state filter
+    assert np.max(rotations.angle_between(predictor.predict(turning, [0.05], time=uniform)[0], steady)) < 1e-12
