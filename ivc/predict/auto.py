@@ -38,7 +38,7 @@ from ivc.predict.base import (
 )
 from ivc.predict.direct import DirectPredictor
 from ivc.predict.dq import SIGMA_CV1, dqekf_ca, dqekf_cv, mmdq2
-from ivc.predict.evaluate import NoPrediction
+from ivc.predict.hold import NoPrediction
 from ivc.predict.linear import polynomial
 from ivc.predict.quat import delta_q, qmul, qmul_conj, rate_of, slerp
 from ivc.predict.recording import REFERENCE_MAX_STEP_S, future_reference
