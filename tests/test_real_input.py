@@ -134,6 +134,7 @@ def _interrupt(args, tmp_path, after_s, wait_for=None):
     return process.returncode, err
 
 
+@pytest.mark.slow
 def test_an_interrupted_fit_or_collect_leaves_no_partial_output_and_the_input_intact(small_session, tmp_path):
     _, session = small_session
     session_file = tmp_path / "in.h5"
