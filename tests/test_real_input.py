@@ -359,11 +359,11 @@ def test_demo_without_keep_names_no_file_it_deletes_and_draws_no_bars_off_a_term
     assert "ivc demo finished" in result.output
 
 
-def test_the_cli_and_the_library_agree_that_refinement_is_off_by_default():
+def test_the_cli_and_the_library_agree_that_refinement_is_on_by_default():
     help_text = run("fit", "--help").output
-    assert "[default: no-refine]" in help_text and FitOptions().refine is False
+    assert "[default: refine]" in help_text and FitOptions().refine is True
     readme = (ROOT / "README.md").read_text()
-    assert "[--refine]" in readme
+    assert "[--no-refine]" in readme
 
 
 def test_a_session_step_with_a_repeated_time_is_refused(tmp_path, rng):

@@ -69,8 +69,8 @@ class FitOptions:
     copied, never fitted in place. ``spacing`` (m), ``origin``/``shape``: a user grid (else
     derived from the data, one-cell margin). ``refine``: re-solve the wand frames as rigid
     bodies against the map and refit (:func:`ivc.lut.refine.refine_map`), at most
-    ``max_refinements`` times; off by default, in ``ivc fit`` too (docs/lut.md, "Refinement", says
-    why). ``min_support``: samples around
+    ``max_refinements`` times while it pays; on by default, as in ``ivc fit`` (docs/lut.md,
+    "Refinement", says why). ``min_support``: samples around
     a node for it to count as mapped. ``max_residual``/``max_error`` (m): the sweep's gates.
     ``max_frames``: the sweep is decimated to at most this many frames (every k-th frame). At
     240 Hz consecutive frames are a fraction of a millimetre apart, so this loses no coverage;
@@ -80,7 +80,7 @@ class FitOptions:
     spacing: float = DEFAULT_SPACING
     origin: tuple[float, float, float] | None = None
     shape: tuple[int, int, int] | None = None
-    refine: bool = False
+    refine: bool = True
     max_refinements: int = 3
     min_support: int = MIN_SUPPORT
     max_residual: float = Gates.max_residual
