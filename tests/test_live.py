@@ -255,6 +255,7 @@ def test_live_prediction_matches_offline_correct_then_predict(exact_table, rng):
     assert np.allclose(ahead, np.linalg.norm(omega, axis=1) * horizon, rtol=0.05)
 
 
+@pytest.mark.slow
 def test_live_prediction_takes_the_tuning(exact_table):  # noqa: F811
     """--tune-from reaches each sensor's filter; a tuning made at another rate is refused before any socket opens."""
     from ivc.predict import PredictorError, Tuning, make

@@ -373,6 +373,7 @@ def test_a_session_step_with_a_repeated_time_is_refused(tmp_path, rng):
         session_io.write(session_io.Session(steps={"check": step}), tmp_path / "s.h5")
 
 
+@pytest.mark.slow
 def test_evaluate_and_report_survive_an_all_zero_signal(tmp_path):
     samples = ROOT / "sample_data" / "recordings"
     data = session_io.read(samples / "default_room_check.h5")
