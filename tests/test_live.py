@@ -140,6 +140,7 @@ def test_ivc_correct_live_matches_offline_and_survives_a_server_restart(exact_ta
     assert "Traceback" not in err, err
 
 
+@pytest.mark.slow
 def test_bad_input_is_dropped_and_logged_once_and_slow_clients_do_not_block(exact_table, rng, caplog):  # noqa: F811
     """Garbage bytes, other message types, unknown sensors, out-of-order stamps and NaN poses on a raw socket."""
     matrices = reported_poses(rng, 6)
@@ -191,6 +192,7 @@ def test_bad_input_is_dropped_and_logged_once_and_slow_clients_do_not_block(exac
     assert sum("'S1': dropped a TRANSFORM message: it holds NaN" in w for w in warnings) == 1
 
 
+@pytest.mark.slow
 def test_live_prediction_matches_offline_correct_then_predict(exact_table, rng):  # noqa: F811
     """`--predict`: each sensor's corrected orientation predicted 50 ms ahead, as `ivc correct --predict` offline."""
     from ivc.predict import make
@@ -253,6 +255,7 @@ def test_live_prediction_matches_offline_correct_then_predict(exact_table, rng):
     assert np.allclose(ahead, np.linalg.norm(omega, axis=1) * horizon, rtol=0.05)
 
 
+@pytest.mark.slow
 def test_live_prediction_takes_the_tuning(exact_table):  # noqa: F811
     """--tune-from reaches each sensor's filter; a tuning made at another rate is refused before any socket opens."""
     from ivc.predict import PredictorError, Tuning, make
