@@ -30,7 +30,7 @@ from ivc.predict.base import (
     Predictor,
     PredictorError,
     Stream,
-    _Clock,
+    StreamClock,
     as_given,
     check_horizons,
     check_rate,
@@ -259,7 +259,7 @@ class AutoStream(Stream):
     def __init__(self, predictor: AutoPredictor, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.streams = [p.stream(n_sensors) for p in predictor.bank]
-        self.clock = _Clock(predictor.rate_hz, n_sensors)
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
         self.total = np.zeros((n_sensors, len(self.streams)))
         self.weights = np.zeros((n_sensors, len(self.streams)))
         self.weights[:, 0] = 1.0

@@ -29,7 +29,7 @@ from ivc.predict.base import (
     FloatArray,
     PredictorError,
     Stream,
-    _Clock,
+    StreamClock,
     as_given,
     check_horizons,
     check_rate,
@@ -266,7 +266,7 @@ class PolynomialStream(Stream):
         super().__init__(predictor, n_sensors)
         w = predictor.K.size
         self.window = w
-        self.clock = _Clock(predictor.rate_hz, n_sensors)
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
         self.theta = np.zeros((n_sensors, w, 3))  # newest first
         self.times = np.zeros((n_sensors, w))
         self.count = np.zeros(n_sensors, np.int64)  # accepted samples since the start or the last gap
@@ -342,7 +342,7 @@ class StepLinearStream(Stream):
         self.inner: Stream | None = None
         self.cfg = predictor._steps_config()
         self.state = steps_state(self.n_sensors, self.cfg[0])
-        self.clock = _Clock(predictor.rate_hz, n_sensors)
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
         self.previous = np.full((self.n_sensors, 4), np.nan)
         self.ok = np.zeros(self.n_sensors, bool)
 

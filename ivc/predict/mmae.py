@@ -37,7 +37,7 @@ from ivc.predict.base import (
     FloatArray,
     PredictorError,
     Stream,
-    _Clock,
+    StreamClock,
     as_given,
     check_horizons,
     check_rate,
@@ -451,7 +451,7 @@ class MMAEStepStream(Stream):
         self.inner: Stream | None = None
         self.state = predictor._state(self.n_sensors)
         self.latest = np.zeros(self.n_sensors)
-        self.clock = _Clock(predictor.rate_hz, n_sensors)
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
         self.previous = np.full((self.n_sensors, 4), np.nan)
         self.ok = np.zeros(self.n_sensors, bool)
         self._restarts = 0

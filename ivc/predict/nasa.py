@@ -34,7 +34,7 @@ from ivc.predict.base import (
     Predictor,
     PredictorError,
     Stream,
-    _Clock,
+    StreamClock,
     as_given,
     check_horizons,
     check_rate,
@@ -274,7 +274,7 @@ class NasaStream(Stream):
         self.work = _work()
         self.ready = np.zeros(n_sensors, bool)
         self.ok = np.zeros(n_sensors, bool)
-        self.clock = _Clock(predictor.rate_hz, n_sensors)
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
         self.base_t = np.zeros(n_sensors)  # each sensor's latest usable sample's time
         self.previous = np.full((n_sensors, 4), np.nan)
         self.restarts = 0
