@@ -70,7 +70,7 @@ def _live_connected(cache: Path, timeout: float = 600.0) -> float:
     finally:
         server.close()
         try:
-            process.wait(timeout=30)
+            process.wait(timeout=300)  # on an empty cache it compiles in the background, then exits
         except subprocess.TimeoutExpired:
             process.kill()
     return elapsed

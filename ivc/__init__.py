@@ -40,6 +40,7 @@ The package is laid out as the pipeline it implements:
 ``demo``       the whole pipeline on a simulated room in one call
 ``errors``     every deliberate error, under :class:`IvcError`
 ``warmup``     the compiled kernels built ahead of their first use (``ivc warmup``)
+``compiled``   compiled kernels, or their NumPy / interpreted forms for small inputs on a cold cache
 ``cli``        the ``ivc`` command line
 
 The names below are loaded on first use, so ``import ivc`` stays cheap.

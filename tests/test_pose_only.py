@@ -50,6 +50,7 @@ def test_noise_free_round_trip_recovers_the_true_pose(exact_table, rng):
     assert np.all(out.residual < 1e-10)
 
 
+@pytest.mark.slow
 def test_round_trip_with_the_least_squares_tracker_model(exact_table, rng):
     r, T, v, Q = reported(rng, 40, solver="least-squares")
     assert PoseCorrector(exact_table, solver="least-squares").solver == "least-squares"
@@ -79,6 +80,7 @@ def test_streaming_matches_batch(exact_table, rng):
     assert all(np.all(s.flags == 0) for s in streamed)
 
 
+@pytest.mark.slow
 def test_flags_mean_what_they_say(exact_table, rng):
     r, T, v, Q = reported(rng, 4)
     q = rotations.from_matrix(Q)
@@ -155,6 +157,7 @@ def test_cli_end_to_end_on_a_pose_only_session_and_csv(pose_only_table, tmp_path
     assert "reported poses only" in result.output and "rigid fit" in result.output
 
 
+@pytest.mark.slow
 def test_live_transform_input_is_corrected_and_published_as_trusted_tdata(exact_table, rng):
     r, T, v, Q = reported(rng, 8 * 3)
     m = np.zeros((8, 3, 4, 4))

@@ -8,7 +8,7 @@ import click
 import h5py
 import numpy as np
 
-from ivc import lut
+from ivc import compiled, lut
 from ivc import session as session_io
 from ivc.cli.options import POSITIVE
 from ivc.cli.paths import input_and_output
@@ -85,6 +85,15 @@ def _summary(name: str, out: Correction) -> str:
 def _warn(advice: str | None) -> None:
     if advice:
         click.echo(f"warning: {advice}", err=True)
+
+
+def _cold_note() -> None:
+    """Say so when a small input ran the kernels' uncompiled forms (ivc.compiled): same results, but the next
+    large input will compile them."""
+    if compiled.used:
+        click.echo("note: the compiled kernels are not in the cache yet (first run after an install), so this "
+                   "small input ran their NumPy or interpreted forms (same results); `ivc warmup` compiles them "
+                   "once", err=True)
 
 
 def correction_advice(out: Correction, max_residual: float, pose_only: bool = False) -> str | None:
@@ -218,6 +227,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         click.echo(_summary(input_path.name, out))
         _warn(correction_advice(out, max_residual, step.signal is None))
         click.echo(f"wrote {output_path}")
+        _cold_note()
         return
     data = session_io.read(input_path)
     names = list(steps) or [n for n in data.steps if n not in _FREE_SPACE]
@@ -247,6 +257,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
                     "poses: the map does not produce the pose, or not uniquely), 8 invalid input")
                 h5[f"steps/{name}/residual"] = out.residual
     click.echo(f"wrote {output_path}")
+    _cold_note()
 
 
 def _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpolation, max_residual, predictor, delta,
@@ -275,6 +286,7 @@ def _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpol
     if sequence.other_transforms:
         _warn(f"not corrected (not to the {sequence.tracker} frame): {', '.join(sequence.other_transforms)}")
     click.echo(f"wrote {output_path}")
+    _cold_note()
 
 
 def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor, horizon,
@@ -291,14 +303,16 @@ def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_resid
     host, _, port = publish.rpartition(":")
     if not host or not port.isdigit():
         raise click.UsageError(f"--publish wants HOST:PORT, got {publish!r}")
-    click.echo("preparing the compiled correction (compiled once after an install, then loaded from the cache; "
-               "`ivc warmup` does it ahead)", err=True)
+    click.echo("preparing the compiled correction (loaded from the cache; after an install it compiles in the "
+               "background while the stream is corrected by its interpreted form; `ivc warmup` does it ahead)",
+               err=True)
     start = time.perf_counter()
     live = LiveCorrector(corrector, source, (host, int(port)), length_unit=LENGTH_UNITS[length_unit],
                          predictor=predictor, horizon=parse_horizon(horizon) if predictor else 0.0, rate_hz=rate_hz,
                          tuning=tuning, pose_corrector=poses,
                          sensors=list(sensors) or None)
-    click.echo(f"ready in {time.perf_counter() - start:.1f} s: correcting {url} -> serving on "
+    state = "compiling in the background, interpreted until then" if live.compiling else "compiled"
+    click.echo(f"ready in {time.perf_counter() - start:.1f} s ({state}): correcting {url} -> serving on "
                f"{live.publish_address[0]}:{live.publish_address[1]}", err=True)
     try:
         stats = live.run(duration)

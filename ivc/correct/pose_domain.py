@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ivc import rotations
+from ivc import compiled, rotations
 from ivc.correct import pose_kernels as _pose_kernels
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE, Correction
 from ivc.dipole.pose import hemisphere_vector
@@ -185,7 +185,7 @@ class PoseCorrector:
             r, C = np.empty((n, 3)), np.empty((n, 3, 3))
             miss, converged = np.empty(n), np.empty(n, dtype=bool)
             iterations, mapped = np.empty(n, dtype=np.int64), np.empty(n, dtype=bool)
-            kernel = _pose_kernels.invert_serial if serial else _pose_kernels.invert_kernel
+            kernel = compiled.choose(_pose_kernels.invert_serial if serial else _pose_kernels.invert_kernel, n)
             kernel(v, start, H.copy(), self._h, *f.kernel_grid, self.max_iterations, self.tolerance, r, C, miss,
                    converged, iterations, mapped)
             return r, C, miss, converged, iterations, mapped

@@ -17,12 +17,16 @@ import numpy as np
 from ivc.dipole.kernels import _principal_eigenvector, closed_form_one, field_matrix
 from ivc.lut.kernels import _cell, _weights
 
+# The helpers below are plain compiled functions, not numba-inlined: inlined three and four times over into
+# one function they made its first compile take over a minute. ``error_model="numpy"`` keeps the arithmetic
+# of a parallel kernel (inf/NaN, no exception) that they had when inlined.
+
 _OPTS = dict(parallel=True, cache=True, nogil=True)
 #: step halvings tried before a sample is given up
 BACKTRACKS = 12
 
 
-@numba.njit(inline="always")
+@numba.njit(error_model="numpy")
 def _grid_value(padded, valid_cells, origin, spacing, shape, p, cubic, value, wx, wy, wz, dx, dy, dz):
     """Value (C,) of the table at p (no gradient); returns whether p is in a valid cell."""
     i, tx, in_x = _cell(p[0], origin[0], spacing, shape[0])
@@ -50,7 +54,7 @@ def _grid_value(padded, valid_cells, origin, spacing, shape, p, cubic, value, wx
     return in_x and in_y and in_z and valid_cells[i, j, k]
 
 
-@numba.njit(inline="always")
+@numba.njit(error_model="numpy")
 def _field_at(r, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, wz, dx, dy, dz, F):
     """F = f_D(r) + g(r) (3, 3); returns (usable, mapped)."""
     rho2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
@@ -66,7 +70,7 @@ def _field_at(r, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, 
     return (tr > 0.0) and np.isfinite(tr), mapped
 
 
-@numba.njit(inline="always")
+@numba.njit(error_model="numpy")
 def _position(F, h, B, wa, wb, ev, phi):
     """The closed-form dipole position of F (docs/math.md §3: range from tr FᵀF, direction its principal
     eigenvector on the hemisphere's side) into phi (3,)."""
@@ -83,7 +87,7 @@ def _position(F, h, B, wa, wb, ev, phi):
         phi[a] = rng * ev[a]
 
 
-@numba.njit(inline="always")
+@numba.njit(error_model="numpy")
 def invert_one(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance, r, C,
                miss_out, converged_out, iterations_out, mapped_out, n):
     """Invert one sample from ``start`` (3,) with the inverse-Jacobian estimate H (3, 3, updated in place) into

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ivc import dipole
+from ivc import compiled, dipole
 from ivc.correct import kernels as _kernels
 from ivc.dipole.pose import hemisphere_vector
 from ivc.errors import InputError
@@ -80,7 +80,7 @@ class Corrector:
         # an all-zero matrix (what a dropout can produce) carries no pose: invalid, not a kernel division by zero
         finite = np.all(np.isfinite(flat), axis=1) & np.any(flat != 0, axis=1)
         S = np.where(finite[:, None, None], S, np.eye(3))
-        kernel = _kernels.correct_serial if serial else _kernels.correct_kernel
+        kernel = compiled.choose(_kernels.correct_serial if serial else _kernels.correct_kernel, n)
         kernel(S, seeds, self._h, f._padded, f.valid_cells, f._origin, f.grid.spacing, f._shape,
                f.interpolation == "cubic", self.max_iterations, STEP_TOLERANCE, self.max_residual, r, T, q, converged,
                iterations, residual, mapped)

@@ -10,8 +10,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ivc import rotations
+from ivc import compiled, rotations
 from ivc.dipole import kernels as _kernels
+from ivc.dipole import numpy_kernels
 from ivc.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -51,7 +52,7 @@ def field(r: ArrayLike) -> FloatArray:
     flat, lead = flat_batch(r, (3,), "r")
     out = np.empty((flat.shape[0], 3, 3))
     with np.errstate(divide="ignore", invalid="ignore"):
-        _kernels.field_kernel(flat, out)
+        compiled.choose(_kernels.field_kernel, len(flat), compiled.VECTORISED, numpy_kernels.field_kernel)(flat, out)
     return out.reshape(lead + (3, 3))
 
 
@@ -100,7 +101,8 @@ def signal(r: ArrayLike, T: ArrayLike, G: ArrayLike | None = None) -> FloatArray
         r_flat, lead = flat_batch(r_b[..., 0, :], (3,), "r")
         T_flat, _ = flat_batch(T_b, (3, 3), "T")
     out = np.empty((r_flat.shape[0], 3, 3))
-    _kernels.signal_kernel(r_flat, T_flat, out)
+    compiled.choose(_kernels.signal_kernel, len(r_flat), compiled.VECTORISED, numpy_kernels.signal_kernel)(
+        r_flat, T_flat, out)
     out = out.reshape(lead + (3, 3))
     if G is not None:
         T_full = T_flat.reshape(lead + (3, 3))

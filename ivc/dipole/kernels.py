@@ -61,7 +61,7 @@ def _matmul3(A, B, out):
             out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
 
 
-@numba.njit(inline="always")
+@numba.njit(error_model="numpy")  # not inlined: compiled once; inf/NaN as in a parallel kernel
 def principal_eigenvector(B, work_a, work_b, v):
     """Unit eigenvector of the largest eigenvalue of a symmetric PSD 3x3 matrix.
 
@@ -171,7 +171,7 @@ def rotation_polar_factor(K, X, work, out):
             out[i, j] = X[i, j]
 
 
-@numba.njit(inline="always")
+@numba.njit(error_model="numpy")  # not inlined: compiled once; inf/NaN as in a parallel kernel
 def closed_form_one(s, hemisphere, r_out, T_out, work_a, work_b, v, B, F, K):
     """Closed-form dipole pose (docs/math.md §3) of one signal matrix s, into r_out (3,) and T_out (3, 3).
 

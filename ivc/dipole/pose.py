@@ -9,7 +9,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ivc import compiled
 from ivc.dipole import kernels as _kernels
+from ivc.dipole import numpy_kernels
 from ivc.dipole.field import flat_batch
 from ivc.errors import InputError
 
@@ -62,5 +64,6 @@ def closed_form_pose(S: ArrayLike, hemisphere: str = "+x") -> tuple[FloatArray, 
     flat, lead = flat_batch(S, (3, 3), "S")
     r = np.empty((flat.shape[0], 3))
     T = np.empty((flat.shape[0], 3, 3))
-    _kernels.closed_form_pose_kernel(flat, h, r, T)
+    compiled.choose(_kernels.closed_form_pose_kernel, len(flat), compiled.VECTORISED,
+                    numpy_kernels.closed_form_pose_kernel)(flat, h, r, T)
     return r.reshape(lead + (3,)), T.reshape(lead + (3, 3))

@@ -23,16 +23,21 @@ from __future__ import annotations
 import logging
 import selectors
 import socket
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ivc import dipole, rotations
+from ivc import compiled, dipole, rotations
 from ivc.correct import Correction, Corrector
+from ivc.correct import kernels as _correct_kernels
+from ivc.correct import pose_kernels as _pose_kernels
 from ivc.correct.pose_domain import PoseCorrector
+from ivc.dipole import kernels as _dipole_kernels
 from ivc.live.igtl import Framer, TrackingDataMessage, encode_transforms
+from ivc.lut import kernels as _lut_kernels
 from ivc.predict import Tuning
 from ivc.predict import make as make_predictor
 
@@ -48,6 +53,9 @@ LATENCY_HISTORY = 1 << 16
 MAX_RANGE_M = 100.0
 #: largest |RᵀR − I| of a TRANSFORM's rotation (float32 matrices are orthonormal to ~1e-6)
 MAX_ORTHONORMALITY_ERROR = 1e-2
+#: the compiled kernels of the live path (streaming correction of signals and poses, the pose path's seed map)
+LIVE_KERNELS = (_correct_kernels.correct_serial, _pose_kernels.invert_serial, _lut_kernels.grid_kernel,
+                _dipole_kernels.closed_form_pose_kernel, _dipole_kernels.field_kernel, _dipole_kernels.signal_kernel)
 
 
 def unusable_frames(frames, length_unit: float) -> dict[int, str]:
@@ -120,12 +128,21 @@ class LiveCorrector:
     on (port 0 picks a free one; :attr:`publish_address` tells which). ``predictor``: a filter
     name of ``ivc predict`` with ``horizon`` s and the stream's ``rate_hz``, tuned by ``tuning``
     (:mod:`ivc.predict.tuning`, made at ``rate_hz``) if given.
+
+    Start-up: the compiled kernels of the correction are run once before the publish port opens
+    (loaded from numba's cache in a fraction of a second). When they are not in the cache (the
+    first run after an install) and ``background_compile`` is on, they compile in a background
+    thread instead, and the loop connects at once: until they are ready each frame is corrected by
+    the same kernels interpreted (:mod:`ivc.compiled`; same results, a few ms per sensor-frame),
+    then by the compiled ones (logged; :attr:`compiled_after_s` says when). A predictor's kernels
+    still compile before the port opens.
     """
 
     def __init__(self, corrector: Corrector, source: tuple[str, int], publish: tuple[str, int] = ("127.0.0.1", 18945),
                  *, length_unit: float = 1e-3, predictor: str | None = None, horizon: float = 0.0,
                  rate_hz: float = 240.0, suffix: str = "_ivc", sensors: list[str] | None = None,
-                 retry_s: float = 0.5, tuning: Tuning | None = None, pose_corrector: PoseCorrector | None = None):
+                 retry_s: float = 0.5, tuning: Tuning | None = None, pose_corrector: PoseCorrector | None = None,
+                 background_compile: bool = True):
         if predictor:
             make_predictor(predictor, rate_hz, tuning)  # an unknown filter or a tuning at another rate: refuse now
         self.corrector, self.source = corrector, source
@@ -142,25 +159,57 @@ class LiveCorrector:
         self._clients: dict[int, _Client] = {}
         self._last_time: dict[str, float] = {}
         self._streams: dict = {}
+        self._stream_time: dict[str, float] = {}  # each predictor stream's latest time stamp (s)
         self._logged: set = set()
-        self._warm_up()  # compiled (or loaded from the cache) before the publish port accepts anyone
+        #: seconds from start-up until the background compilation finished (None: none ran, or not yet)
+        self.compiled_after_s: float | None = None
+        self._compiler: threading.Thread | None = None
+        if background_compile and compiled.SMALL > 0 and not all(compiled.is_ready(k) for k in LIVE_KERNELS):
+            self._compiler = threading.Thread(target=self._compile, args=(time.perf_counter(),), daemon=True,
+                                              name="ivc-compile")
+            log.info("compiling the correction kernels in the background (first run after an install); frames are "
+                     "corrected by their interpreted forms until they are ready")
+            self._compiler.start()
+        else:
+            self._warm_up(self.corrector, self.pose_corrector)  # compiled (or loaded) before anyone connects
+        if self.predictor:
+            self._predicted("warm-up", np.array([1.0, 0.0, 0.0, 0.0]), True)
+            self._streams.clear()
+            self._stream_time.clear()
         self._selector = selectors.DefaultSelector()
         self._listener = socket.create_server(publish, reuse_port=False)
         self._listener.setblocking(False)
         self._selector.register(self._listener, selectors.EVENT_READ, "listen")
         self.publish_address = self._listener.getsockname()[:2]
 
-    def _warm_up(self) -> None:
-        """Run every compiled step once, so the first frames do not wait for it."""
-        centre = self.corrector.field.grid.origin + 0.5 * self.corrector.field.grid.spacing * (
-            np.array(self.corrector.field.grid.shape) - 1)
-        self.corrector.update(dipole.signal(centre[None], np.eye(3)[None]), sensors=["warm-up"])
-        self.corrector.reset()
-        self.pose_corrector.update(centre[None], np.eye(3)[None], sensors=["warm-up"])
-        self.pose_corrector.reset()
-        if self.predictor:
-            self._predicted("warm-up", np.array([1.0, 0.0, 0.0, 0.0]), True)
-            self._streams.clear()
+    @property
+    def compiling(self) -> bool:
+        """Whether the background compilation (see the class docstring) is still running."""
+        return self._compiler is not None and self._compiler.is_alive()
+
+    @staticmethod
+    def _warm_up(corrector: Corrector, pose_corrector: PoseCorrector) -> None:
+        """Run every compiled step of the correction once, so the first frames do not wait for it."""
+        centre = corrector.field.grid.origin + 0.5 * corrector.field.grid.spacing * (
+            np.array(corrector.field.grid.shape) - 1)
+        with compiled.compiling():
+            corrector.update(dipole.signal(centre[None], np.eye(3)[None]), sensors=["warm-up"])
+            corrector.reset()
+            pose_corrector.update(centre[None], np.eye(3)[None], sensors=["warm-up"])
+            pose_corrector.reset()
+
+    def _compile(self, start: float) -> None:
+        """The background compilation: the same warm-up on copies of the correctors (their stream state is
+        the loop's)."""
+        try:
+            self._warm_up(Corrector(self.corrector.field, self.corrector.hemisphere),
+                          PoseCorrector(self.pose_corrector.field, self.pose_corrector.hemisphere,
+                                        solver=self.pose_corrector.solver))
+        except Exception as error:  # noqa: BLE001 - the interpreted forms keep correcting; say why
+            log.error("background compilation failed (%s); correcting with the interpreted kernels", error)
+            return
+        self.compiled_after_s = time.perf_counter() - start
+        log.info("compiled kernels ready after %.1f s: correcting with them from now on", self.compiled_after_s)
 
     # ---- logging once -------------------------------------------------------------------------
     def _once(self, key, message: str, level: int = logging.WARNING) -> None:
@@ -185,6 +234,7 @@ class LiveCorrector:
         self.stats.connections += 1
         self.corrector.reset()
         self._streams.clear()
+        self._stream_time.clear()
         self._last_time.clear()
         log.info("connected to tracking server %s:%d", *self.source)
 
@@ -283,11 +333,21 @@ class LiveCorrector:
             samples = later
         self.stats.latency_s.append(time.perf_counter() - arrived)
 
-    def _predicted(self, name: str, quaternion: np.ndarray, ok: bool) -> np.ndarray | None:
+    def _predicted(self, name: str, quaternion: np.ndarray, ok: bool, stamp: float = 0.0) -> np.ndarray | None:
+        """The sample predicted ``horizon`` s ahead; the predictor runs on the messages' time stamps (s): one without
+        a stamp (0), or not after the last, counts one nominal period later; a sensor that never stamps, none."""
         stream = self._streams.get(name)
         if stream is None:
-            stream = self._streams[name] = make_predictor(self.predictor, self.rate_hz, self.tuning).stream(1)
-        stream.update(np.where(ok, quaternion, np.nan)[None], np.array([ok]))
+            stream = self._streams[name] = make_predictor(self.predictor, self.rate_hz, self.tuning,
+                                                          self.horizon).stream(1)
+        before = self._stream_time.get(name)
+        if stamp > 0.0 and (before is None or stamp > before):
+            self._stream_time[name] = when = float(stamp)
+        elif before is None:
+            when = None
+        else:
+            self._stream_time[name] = when = before + 1.0 / self.rate_hz
+        stream.update(np.where(ok, quaternion, np.nan)[None], np.array([ok]), time=when)
         q = stream.predict(self.horizon)[0]
         return q if np.all(np.isfinite(q)) else None
 
@@ -324,7 +384,7 @@ class LiveCorrector:
         if self.predictor:
             for n, name in enumerate(names):
                 if sent[n]:
-                    q = self._predicted(name, quaternion[n], bool(ok[n]))
+                    q = self._predicted(name, quaternion[n], bool(ok[n]), stamps[n])
                     if q is not None:
                         quaternion[n], predicted[n] = q, True
         m = np.zeros((len(samples), 4, 4))
@@ -442,6 +502,9 @@ class LiveCorrector:
         return self.stats
 
     def close(self) -> None:
+        if self.compiling:
+            log.info("waiting for the background compilation to finish (it is cached for the next run)")
+            self._compiler.join()
         for client in list(self._clients.values()):
             self._drop_client(client, "closed")
         if self._upstream is not None:

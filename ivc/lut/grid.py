@@ -11,7 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ivc import compiled
 from ivc.errors import InputError
+from ivc.lut import grid_numpy
 from ivc.lut import kernels as _kernels
 
 #: Himberg 2010's grid spacing (1.5 inch), metres
@@ -160,8 +162,9 @@ class GridField:
         values = np.empty((len(points), C))
         gradients = np.empty((len(points), C, 3))
         mapped = np.empty(len(points), dtype=bool)
-        _kernels.grid_kernel(self._padded, self.valid_cells, self._origin, self.grid.spacing, self._shape,
-                             points, self.interpolation == "cubic", values, gradients, mapped)
+        kernel = compiled.choose(_kernels.grid_kernel, len(points), compiled.VECTORISED, grid_numpy.grid_kernel)
+        kernel(self._padded, self.valid_cells, self._origin, self.grid.spacing, self._shape, points,
+               self.interpolation == "cubic", values, gradients, mapped)
         finite = np.all(np.isfinite(points), axis=1)
         mapped &= finite
         return (values.reshape(*lead, *self.channel_shape), gradients.reshape(*lead, *self.channel_shape, 3),
