@@ -13,7 +13,7 @@ from ivc import session as session_io
 from ivc.collect.imports import read_recording, sniff
 from ivc.collect.plus import is_plus_sequence, read_plus
 from ivc.predict.timing import stream_timing
-from ivc.session import STEPS, Session, Step
+from ivc.session import STEPS, Session, Step, extension_steps, step_order
 
 
 def summarise_step(step: Step) -> dict:
@@ -52,17 +52,17 @@ def summarise(s: Session) -> dict:
 
 def render(path: str, summary: dict) -> str:
     lines = [f"{path}: ivc session (format {session_io.FORMAT_VERSION}), hemisphere {summary['hemisphere']}", ""]
-    header = f"{'step':<18}{'frames':>9}{'sensors':>9}{'rate Hz':>9}{'seconds':>9}{'valid %':>9}  data"
+    header = f"{'step':<20}{'frames':>9}{'sensors':>9}{'rate Hz':>9}{'seconds':>9}{'valid %':>9}  data"
     lines.append(header)
     lines.append("-" * len(header))
-    for name in STEPS:
+    for name in sorted(set(STEPS) | set(extension_steps(summary["steps"])), key=step_order):
         info = summary["steps"].get(name)
         if info is None:
-            lines.append(f"{name:<18}{'—':>9}")
+            lines.append(f"{name:<20}{'—':>9}")
             continue
         truth = "  +truth" if info["truth"] else ""
         lines.append(
-            f"{name:<18}{info['frames']:>9}{info['sensors']:>9}{info['sample_rate_hz']:>9.1f}"
+            f"{name:<20}{info['frames']:>9}{info['sensors']:>9}{info['sample_rate_hz']:>9.1f}"
             f"{info['duration_s']:>9.2f}{100 * info['valid_fraction']:>9.2f}  {info['data']}{truth}"
         )
     lines.append("")
