@@ -48,10 +48,11 @@ The names below are loaded on first use, so ``import ivc`` stays cheap.
 
 from __future__ import annotations
 
-import importlib
+import importlib as _importlib
 import os as _os
 import sys as _sys
-from importlib.metadata import PackageNotFoundError, version
+from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
+from importlib.metadata import version as _version
 from pathlib import Path as _Path
 
 from ivc.errors import (
@@ -86,8 +87,8 @@ def _numba_cache_dir() -> None:
 _numba_cache_dir()
 
 try:
-    __version__ = version("ivc")
-except PackageNotFoundError:  # running from a source tree that was not installed
+    __version__ = _version("ivc")
+except _PackageNotFoundError:  # running from a source tree that was not installed
     __version__ = "0.0.0+unknown"
 
 #: public name -> (module, attribute); attribute None is the module itself
@@ -152,7 +153,7 @@ def __getattr__(name: str):
         module, attribute = _EXPORTS[name]
     except KeyError:
         raise AttributeError(f"module 'ivc' has no attribute {name!r}") from None
-    value = importlib.import_module(module)
+    value = _importlib.import_module(module)
     if attribute is not None:
         value = getattr(value, attribute)
     globals()[name] = value
@@ -160,4 +161,4 @@ def __getattr__(name: str):
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
+    return sorted(set(__all__) | {"errors"})  # the public names, not this module's own imports
