@@ -93,3 +93,37 @@ def test_options_and_sessions_are_checked():
 
     with pytest.raises(SessionError, match="no extension sweeps"):
         fit_joint(Session(hemisphere="+x"))
+
+
+def test_compiled_wand_solve_equals_the_numpy_form(simulated):
+    """solve_wand_table (numba) against solve_wand (NumPy) on a tabulated field: same poses to 1e-9 m."""
+    from ivc.lut.grid import Grid, GridField
+    from ivc.lut.joint import solve_wand_table
+
+    scene, wand, step, truth = simulated
+    S = step.signal_matrices()[::5]
+    true_r0, q0 = truth.position[::5, 0], truth.quaternion[::5, 0]
+    grid = Grid.around(truth.position.reshape(-1, 3), 0.0381)
+    table = GridField(grid, true_field(scene)(grid.nodes()), np.ones(grid.shape, bool))
+    rng = np.random.default_rng(1)
+    start_r = true_r0 + 0.003 * rng.standard_normal(true_r0.shape)
+    start_T = rotations.to_matrix(q0) @ rotations.to_matrix(rotations.from_rotvec(0.01 * rng.standard_normal(
+        true_r0.shape)))
+    use = rng.random(S.shape[:2]) < 0.6
+    use[:3] = False  # frames with no used sensor come back NaN
+    start_r[3:5] = np.nan  # and so do frames without a start
+    numpy_form = solve_wand(S, use, wand, table.value_and_jacobian, start_r, start_T)
+    compiled = solve_wand_table(S, use, wand, table, start_r, start_T)
+    assert compiled.converged.sum() > 0.9 * len(S)
+    np.testing.assert_array_equal(compiled.converged, numpy_form.converged)
+    ok = compiled.converged
+    assert np.all(np.isnan(compiled.position[:5]))
+    np.testing.assert_allclose(compiled.position[ok], numpy_form.position[ok], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(compiled.rotation[ok], numpy_form.rotation[ok], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(compiled.residual[ok], numpy_form.residual[ok], rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(compiled.position_sigma[ok], numpy_form.position_sigma[ok], rtol=1e-6, atol=1e-15)
+    np.testing.assert_allclose(compiled.angle_sigma[ok], numpy_form.angle_sigma[ok], rtol=1e-6, atol=1e-15)
+    with pytest.raises(Exception, match="GridField"):
+        solve_wand_table(S, use, wand, table.value_and_jacobian, start_r, start_T)
+    with pytest.raises(Exception, match="starting poses"):
+        solve_wand_table(S, use, wand, table, start_r[:-1], start_T)

@@ -40,7 +40,6 @@ from ivc.session import Session, SessionError, extension_steps
 
 #: frame numbers of extension sweep n's samples start at n * FRAME_OFFSET (folds never mix sweeps' blocks)
 FRAME_OFFSET = 10_000_000
-CHUNK_FRAMES = 5_000
 
 FieldFunction = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -85,18 +84,7 @@ def solve_wand(S: np.ndarray, use: np.ndarray, wand: WandCalibration, field: Fie
     Each used sensor's residual is relative to its rms(S). A frame needs at least one used sensor (a
     sensor's 9 signals fix all 6 degrees of freedom); frames without one come back NaN, not converged.
     """
-    S = np.asarray(S, float)
-    if S.ndim != 4 or S.shape[2:] != (3, 3) or use.shape != S.shape[:2]:
-        raise InputError(f"solve_wand: S must be (F, W, 3, 3) and use (F, W), got {S.shape} and {use.shape}")
-    if S.shape[1] != len(wand.positions):
-        raise InputError(f"solve_wand: {S.shape[1]} sensors but the wand calibration has {len(wand.positions)}")
-    use = use & np.all(np.isfinite(S.reshape(*S.shape[:2], -1)), axis=-1)
-    S = np.where(use[..., None, None], S, 0.0)
-    scale = np.where(use, np.sqrt(np.mean(S**2, axis=(-1, -2))), 1.0)
-    F = len(S)
-    r, T = np.array(position0, float), np.array(rotation0, float)
-    active = use.any(axis=1) & np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(T.reshape(F, 9)), axis=1)
-    r[~active], T[~active] = (1.0, 0.0, 0.0), np.eye(3)  # a harmless placeholder, never stepped
+    S, use, scale, r, T, active = _prepare(S, use, wand, position0, rotation0)
     e, J = _wand_residuals(S, scale, use, wand, field, r, T)
 
     def trial(idx, step):
@@ -105,10 +93,35 @@ def solve_wand(S: np.ndarray, use: np.ndarray, wand: WandCalibration, field: Fie
         return (trial_r, trial_T), *_wand_residuals(S[idx], scale[idx], use[idx], wand, field, trial_r, trial_T)
 
     converged, _ = levenberg_marquardt((r, T), e, J, active, trial, max_iterations, step_tolerance)
+    return _wand_solution(r, T, converged, active, use, np.sum(e**2, axis=1), np.swapaxes(J, -1, -2) @ J)
+
+
+def _prepare(S, use, wand, position0, rotation0):
+    """Checked signals, used sensors, their rms(S), starting poses and the active frames of a wand solve."""
+    S = np.asarray(S, float)
+    use = np.asarray(use, bool)
+    if S.ndim != 4 or S.shape[2:] != (3, 3) or use.shape != S.shape[:2]:
+        raise InputError(f"solve_wand: S must be (F, W, 3, 3) and use (F, W), got {S.shape} and {use.shape}")
+    if S.shape[1] != len(wand.positions):
+        raise InputError(f"solve_wand: {S.shape[1]} sensors but the wand calibration has {len(wand.positions)}")
+    F = len(S)
+    r, T = np.array(position0, float), np.array(rotation0, float)
+    if r.shape != (F, 3) or T.shape != (F, 3, 3):
+        raise InputError(f"solve_wand: starting poses must be ({F}, 3) and ({F}, 3, 3), got {r.shape} and {T.shape}")
+    use = use & np.all(np.isfinite(S.reshape(*S.shape[:2], -1)), axis=-1)
+    S = np.where(use[..., None, None], S, 0.0)
+    scale = np.where(use, np.sqrt(np.mean(S**2, axis=(-1, -2))), 1.0)
+    active = use.any(axis=1) & np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(T.reshape(F, 9)), axis=1)
+    r[~active], T[~active] = (1.0, 0.0, 0.0), np.eye(3)  # a harmless placeholder, never stepped
+    return S, use, scale, r, T, active
+
+
+def _wand_solution(r, T, converged, active, use, cost, H) -> WandSolution:
+    """Residuals and standard errors from the final cost (F,) and JᵀJ (F, 6, 6) of each frame."""
+    F = len(r)
     used = use.sum(axis=1)
-    cost = np.sum(e**2, axis=1)
     residual = np.sqrt(cost / np.maximum(9 * used, 1))
-    H = np.swapaxes(J, -1, -2) @ J
+    H = H.copy()
     H[~active] = np.eye(6)
     H[~np.all(np.isfinite(H.reshape(F, -1)), axis=1)] = np.eye(6)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -117,8 +130,28 @@ def solve_wand(S: np.ndarray, use: np.ndarray, wand: WandCalibration, field: Fie
     position_sigma = np.sqrt(np.trace(covariance[:, :3, :3], axis1=1, axis2=2))
     angle_sigma = np.sqrt(np.trace(covariance[:, 3:, 3:], axis1=1, axis2=2))
     r[~active], T[~active] = np.nan, np.nan
-    converged &= active
+    converged = converged & active
     return WandSolution(r, T, converged, residual, position_sigma, angle_sigma, use)
+
+
+def solve_wand_table(S: np.ndarray, use: np.ndarray, wand: WandCalibration, table: GridField, position0: np.ndarray,
+                     rotation0: np.ndarray, max_iterations: int = 40, step_tolerance: float = 1e-10) -> WandSolution:
+    """:func:`solve_wand` compiled (``ivc.lut.joint_kernels``, parallel over frames) for a look-up table's
+    field: the same problem, inputs and result, without the NumPy form's per-chunk (F, W, 9, 6) arrays."""
+    from ivc.lut.joint_kernels import wand_kernel
+
+    if not isinstance(table, GridField):
+        raise InputError(f"solve_wand_table needs a GridField, got {type(table).__name__}")
+    S, use, scale, r, T, active = _prepare(S, use, wand, position0, rotation0)
+    F = len(S)
+    converged = np.zeros(F, dtype=bool)
+    cost, H = np.zeros(F), np.zeros((F, 6, 6))
+    padded, valid_cells, origin, spacing, shape, cubic = table.kernel_grid
+    wand_kernel(np.ascontiguousarray(S), np.ascontiguousarray(use), np.ascontiguousarray(scale),
+                np.ascontiguousarray(wand.positions, dtype=float), np.ascontiguousarray(wand.rotations, dtype=float),
+                padded, valid_cells, origin, float(spacing), shape, bool(cubic), int(max_iterations),
+                float(step_tolerance), active, r, T, converged, cost, H)
+    return _wand_solution(r, T, converged, active, use, cost, H)
 
 
 def seed_from_sensors(correction_position: np.ndarray, correction_quaternion: np.ndarray, trusted: np.ndarray,
@@ -229,13 +262,7 @@ def extension_samples(S: np.ndarray, valid: np.ndarray, wand: WandCalibration, t
     solvable = trusted.sum(axis=1) >= options.min_sensors
     r0, T0 = seed_from_sensors(corrected.position, corrected.quaternion, trusted & solvable[:, None],
                                corrected.residual, wand)
-    parts = []
-    for start in range(0, len(S), CHUNK_FRAMES):
-        part = slice(start, start + CHUNK_FRAMES)
-        parts.append(solve_wand(S[part], trusted[part] & solvable[part, None], wand, table.value_and_jacobian,
-                                r0[part], T0[part]))
-    solution = WandSolution(*(np.concatenate([getattr(p, k) for p in parts])
-                              for k in WandSolution.__dataclass_fields__))
+    solution = solve_wand_table(S, trusted & solvable[:, None], wand, table, r0, T0)
     positions, rots = wand.propagate(np.where(solution.converged[:, None], solution.position, 0.0),
                                      np.where(solution.converged[:, None, None], solution.rotation, np.eye(3)))
     still_mapped = table.mapped(positions) | ~solution.used  # the constraining sensors stay in the map
