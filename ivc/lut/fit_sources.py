@@ -142,16 +142,28 @@ def default_sources(positions: np.ndarray, standoff: float = STANDOFF, spacing: 
     return np.concatenate([shell(low, high, standoff, spacing), shell(low, high, outer_standoff, outer_spacing)])
 
 
-def fit_sources(samples: FieldSamples, sources: np.ndarray | None = None, dampings=DAMPINGS, folds: int = 5,
-                max_samples: int = MAX_SAMPLES, progress: Callable[[int], None] | None = None,
-                block_frames: int = 500) -> tuple[SourceModel, dict]:
-    """Fit the dipole moments of ``sources`` (K, 3) m (default: :func:`default_sources` around the samples).
+@dataclass
+class NormalEquations:
+    """The fold normal equations of an equivalent-source fit (:func:`normal_equations`): per fold f,
+    ``gram[f] = XᵀWX`` (3K, 3K), ``rhs[f] = XᵀWY`` (3K, 3), ``yy[f] = YᵀWY`` and ``count[f]`` (the CV
+    score's normaliser), for the ``sources`` (K, 3) m; ``samples_used``, ``sample_stride`` and
+    ``nearest_source_mm`` for the report."""
 
-    Weighted damped least squares with the samples' pose-equivalent weights; the damping is the lowest-scoring
-    of ``dampings`` in ``folds``-fold cross-validation over blocks of frames (held out together); a single
-    damping is used as given, without cross-validation. At most
-    ``max_samples`` samples are used (every k-th). Returns the model and a report (sources, damping chosen,
-    CV score per damping, mm)."""
+    sources: np.ndarray
+    gram: np.ndarray
+    rhs: np.ndarray
+    yy: np.ndarray
+    count: np.ndarray
+    samples_used: int
+    sample_stride: int
+    nearest_source_mm: float
+
+
+def normal_equations(samples: FieldSamples, sources: np.ndarray | None = None, folds: int = 5,
+                     max_samples: int = MAX_SAMPLES, progress: Callable[[int], None] | None = None,
+                     block_frames: int = 500) -> NormalEquations:
+    """Accumulate the fold normal equations of :func:`fit_sources` (its arguments; the costly part of a fit:
+    samples x sources²). Solving them for any number of dampings is :func:`solve_normal_equations`."""
     if len(samples) < 100:
         raise InputError(f"{len(samples)} samples are too few for an equivalent-source fit")
     stride = max(1, -(-len(samples) // max_samples))
@@ -187,13 +199,19 @@ def fit_sources(samples: FieldSamples, sources: np.ndarray | None = None, dampin
             count[f] += np.sum(weight[part] / lever[part] ** 2)
             if progress is not None:
                 progress(len(part))
-    for f in range(folds):  # symmetrise once per fold, not per block
-        gram[f] += np.triu(gram[f], 1).T
+        gram[f] += np.triu(gram[f], 1).T  # symmetrised once per fold, not per block
+    return NormalEquations(sources, gram, rhs, yy, count, len(samples), stride, 1000 * nearest)
+
+
+def solve_normal_equations(normal: NormalEquations, dampings=DAMPINGS) -> tuple[SourceModel, dict]:
+    """The model and report of :func:`fit_sources` from its accumulated normal equations: the damping is
+    the lowest-scoring of ``dampings`` in the folds' cross-validation; a single damping is used as given."""
+    gram, rhs, yy, count = normal.gram, normal.rhs, normal.yy, normal.count
     total_gram, total_rhs = gram.sum(axis=0), rhs.sum(axis=0)
     scores = {}
     for damping in dampings if len(dampings) > 1 else ():  # a single damping is used as given
         sse = 0.0
-        for f in range(folds):
+        for f in range(len(gram)):
             if count[f] == 0:
                 continue
             c = _solve(total_gram - gram[f], total_rhs - rhs[f], damping)
@@ -201,14 +219,29 @@ def fit_sources(samples: FieldSamples, sources: np.ndarray | None = None, dampin
         scores[damping] = float(np.sqrt(max(sse, 0.0) / count.sum()))
     chosen = min(scores, key=scores.get) if scores else float(dampings[0])
     coefficients = _solve(total_gram, total_rhs, chosen)  # (3K, 3): row (k, a), column j
+    sources = normal.sources
     model = SourceModel(sources, coefficients.reshape(len(sources), 3, 3))
     report = {"sources": len(sources), "damping": chosen,
               "damping_chosen_by": "cross-validation" if scores else "given",
               "cv_rms_mm": 1000 * scores[chosen] if scores else None,
               "cv_rms_mm_by_damping": {f"{d:g}": 1000 * s for d, s in scores.items()},
-              "cv_folds": folds, "samples_used": len(samples), "sample_stride": stride,
-              "nearest_source_mm": 1000 * nearest}
+              "cv_folds": len(gram), "samples_used": normal.samples_used, "sample_stride": normal.sample_stride,
+              "nearest_source_mm": normal.nearest_source_mm}
     return model, report
+
+
+def fit_sources(samples: FieldSamples, sources: np.ndarray | None = None, dampings=DAMPINGS, folds: int = 5,
+                max_samples: int = MAX_SAMPLES, progress: Callable[[int], None] | None = None,
+                block_frames: int = 500) -> tuple[SourceModel, dict]:
+    """Fit the dipole moments of ``sources`` (K, 3) m (default: :func:`default_sources` around the samples).
+
+    Weighted damped least squares with the samples' pose-equivalent weights; the damping is the lowest-scoring
+    of ``dampings`` in ``folds``-fold cross-validation over blocks of frames (held out together); a single
+    damping is used as given, without cross-validation. At most
+    ``max_samples`` samples are used (every k-th). Returns the model and a report (sources, damping chosen,
+    CV score per damping, mm)."""
+    normal = normal_equations(samples, sources, folds, max_samples, progress, block_frames)
+    return solve_normal_equations(normal, dampings)
 
 
 def _nearest_distance(points: np.ndarray, sources: np.ndarray) -> float:

@@ -29,7 +29,7 @@ from ivc.correct.solver import Corrector
 from ivc.errors import InputError
 from ivc.fixtures.mapping import FixtureModel, Gates, map_sweep
 from ivc.fixtures.wand import WandCalibration
-from ivc.lut.fit_sources import SourceModel, fit_sources
+from ivc.lut.fit_sources import SourceModel, fit_sources, normal_equations, solve_normal_equations
 from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
 from ivc.lut.refine import skew
 from ivc.lut.samples import FieldSamples, leverage
@@ -175,7 +175,10 @@ class JointOptions:
     """``spacing``: table grid spacing (m). ``min_support``: samples around a node for it to be mapped.
     ``max_iterations``: rounds of re-solve and refit. ``tolerance``: stop when the map changes by less
     than this (pose-equivalent RMS over the nodes mapped before, m) and the mapped volume grows by less
-    than ``min_growth`` (fraction). ``max_residual``: a re-solved frame's relative residual gate.
+    than ``min_growth`` (fraction); or when it grows by less than ``stall_growth`` (fraction) whatever its
+    change (on the cockpit scene the change stays at millimetres, carried by the edge nodes, while the
+    volume stops growing: further rounds cost time and add nothing). ``max_residual``: a re-solved
+    frame's relative residual gate.
     ``max_error``: a sample's estimated error gate (m, eq. 101 with the rigid solve's standard errors).
     ``max_frames``: the cube sweep decimated to this many frames; ``max_extension_frames``: each
     extension sweep decimated to this many. ``min_sensors``: mapped sensors a frame needs to be solved."""
@@ -185,6 +188,7 @@ class JointOptions:
     max_iterations: int = 6
     tolerance: float = 5e-6
     min_growth: float = 0.01
+    stall_growth: float = 0.02
     max_residual: float = 1e-3
     max_error: float = 1e-3
     max_frames: int = 25_000
@@ -192,6 +196,8 @@ class JointOptions:
     min_sensors: int = 2
 
     def __post_init__(self):
+        if not (np.isfinite(self.stall_growth) and self.stall_growth >= 0):
+            raise InputError(f"stall_growth must be a fraction of at least 0, got {self.stall_growth}")
         for name in ("spacing", "tolerance", "max_residual", "max_error"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
@@ -335,7 +341,7 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
     grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support)
     history = [{"iteration": 0, "samples": len(samples), "mapped_litres": mapped_litres(grid, valid),
                 "map_change_mm": None, "frames_solved": {name: 0 for name in names}}]
-    solutions, stopped = {}, None
+    solutions, stopped, normal = {}, None, None
     for iteration in range(1, options.max_iterations + 1):
         table = GridField(grid, values, valid)
         parts, solved = [anchor], {}
@@ -346,7 +352,8 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
             solutions[name] = (solution, kept)
         samples = _concatenate(parts)
         bar = progress(f"round {iteration}: refit", len(samples))
-        field, _ = fit_sources(samples, dampings=(damping,), progress=bar)
+        normal = normal_equations(samples, progress=bar)
+        field, _ = solve_normal_equations(normal, (damping,))
         change = _change(field, grid, values, valid)
         before = mapped_litres(grid, valid)
         grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support)
@@ -357,9 +364,11 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
             stopped = (f"the map changed by less than {1e6 * options.tolerance:g} µm and grew by less than "
                        f"{100 * options.min_growth:g} %")
             break
+        if litres < (1 + options.stall_growth) * before:
+            stopped = f"the mapped volume grew by less than {100 * options.stall_growth:g} % (it has stopped growing)"
+            break
     stopped = stopped or f"max_iterations {options.max_iterations} reached"
-    bar = progress("final fit (cross-validated damping)", len(samples))
-    field, fit = fit_sources(samples, progress=bar)
+    field, fit = solve_normal_equations(normal)  # the last round's samples: its normal equations, cross-validated
     grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support)
     never = [name for name in names if all(step["frames_solved"].get(name, 0) == 0 for step in history)]
     report = {"method": "equivalent sources, joint", **fit, "rounds": history, "stopped": stopped,
