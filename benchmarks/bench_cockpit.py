@@ -78,7 +78,9 @@ def run() -> list[Figure]:
     single = session.select_frames("wand_sweep", slice(None))
     for name in extension_steps(list(single.steps)):
         del single.steps[name], single.truth[name]
+    single_start = time.perf_counter()
     single_table = fit_lut(single)
+    single_fit = time.perf_counter() - single_start
     single_errors = check_errors(single_table, session)
 
     volume = scene.volume
@@ -127,8 +129,11 @@ def run() -> list[Figure]:
     ratio = medians[-1] / medians[0]
     figures.append(Figure("cockpit: outer / inner fifth, median error", ratio, "x", target="<= 2",
                           passed=bool(ratio <= 2), higher_is_better=False))
-    figures.append(Figure("cockpit: whole pipeline time", total, "s", target="<= 300 s", passed=total <= 300,
+    figures.append(Figure("cockpit: whole pipeline time", total, "s", "collect + single-sweep fit + evaluate",
+                          total - (fitted - collected) + single_fit, "<= 300 s", total <= 300,
                           higher_is_better=False))
+    figures.append(Figure("cockpit: joint fit time", fitted - collected, "s", "single-sweep fit", single_fit,
+                          "(reference)", higher_is_better=False))
     figures.append(Figure("cockpit: peak memory (RSS)", peak_gb, "GB", target="<= 4 GB", passed=peak_gb <= 4,
                           higher_is_better=False))
     figures.append(Figure("cockpit: mapped volume", mapped_litres(table.grid, table.valid), "litres",
