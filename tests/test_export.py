@@ -298,17 +298,19 @@ def test_itk_transform_read_by_simpleitk_moves_reported_positions_to_the_correct
     nodes = c.source[c.valid][::37]
     at = np.array([transform.TransformPoint(tuple(p)) for p in nodes * lps * MM]) * lps / MM
     assert np.abs(at - c.target[c.valid][::37]).max() < 1e-12
-    # undefined nodes hold their nearest defined node's displacement, never a zero "correction"
+    # undefined nodes hold the map's extension past the mapped volume (or their nearest node's), never zero
     with h5py.File(path, "r") as h5:
         valid = np.transpose(h5["ivc/valid"][()], (2, 1, 0)).astype(bool)
-        assert "nearest defined node" in h5["ivc"].attrs["undefined_nodes"]
+        assert "extension of the map" in h5["ivc"].attrs["undefined_nodes"]
     assert np.array_equal(valid, c.valid) and not valid.all()
-    nearest = c.nearest_valid()
-    bad = np.argwhere(~c.valid)[::11]
-    for idx in map(tuple, bad):
+    filled = c.filled_displacement()
+    assert np.all(np.isfinite(filled))
+    extended = ~c.valid & np.all(np.isfinite(c.extension), axis=-1)
+    assert extended.any()
+    assert np.allclose(filled[extended], (c.extension - c.source)[extended], atol=1e-15)
+    for idx in map(tuple, np.argwhere(~c.valid)[::11]):
         shift = np.array(transform.TransformPoint(tuple(c.source[idx] * lps * MM))) * lps / MM - c.source[idx]
-        k = tuple(n[idx] for n in nearest)
-        assert np.allclose(shift, c.target[k] - c.source[k], atol=1e-12)
+        assert np.allclose(shift, filled[idx], atol=1e-12) and np.linalg.norm(shift) > 0
     # outside the grid, ITK moves nothing
     far = tuple((c.grid.origin - 0.1) * lps * MM)
     assert transform.TransformPoint(far) == pytest.approx(far)

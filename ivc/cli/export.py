@@ -25,7 +25,7 @@ _HELP = "; ".join(f"{name}: {text}" for name, (_, _, text) in FORMATS.items())
               "mm only; vrui needs it: the tracker driver's unit (in for Vrui's Polhemus drivers).")
 @click.option("--spacing", type=click.FloatRange(min=0.5, max=1000.0),
               help=f"Node spacing in mm of the grid over the reported region ({', '.join(REPORTED_GRID_FORMATS)}; "
-              "default: the table's spacing / 2).")
+              "default: the table's spacing / 8 for slicer-itk and itk, / 4 for vrui).")
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists.")
 def export(lut_file, fmt, output, unit, spacing, force):
     """Write LUT_FILE in another format; docs/export.md says what each holds and which direction it maps."""

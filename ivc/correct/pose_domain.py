@@ -231,6 +231,16 @@ class PoseCorrector:
         r[~finite], q[~finite], miss[~finite] = np.nan, np.nan, np.nan
         return Correction(r, q, flags, miss, iterations)
 
+    def invert_from_probes(self, position: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Invert ``φ`` at reported positions (n, 3) m from each one's nearest probe of :attr:`seeds` rather than
+        from the position itself: (true positions (n, 3) m, whether each reproduces its reported position to
+        ``max_residual``, whether it is in the mapped volume). No ambiguity test: a start of last resort, for
+        grids an export fills (ivc.export.distortion), never for trusting a measurement."""
+        v = np.ascontiguousarray(np.asarray(position, float).reshape(-1, 3))
+        start, H, _, _ = self.seeds.starts(v)
+        r, _, miss, converged, _, mapped = self._invert(v, start, H, serial=False)
+        return r, converged & (miss <= self.max_residual), mapped
+
     def batch(self, position: np.ndarray, quaternion: np.ndarray, valid: np.ndarray | None = None) -> Correction:
         """Correct reported poses: positions (..., 3) m and quaternions (..., 4) [w, x, y, z], each sample on
         its own. Samples with ``valid`` False are flagged INVALID_INPUT. ``residual`` is |v − φ(r)| in m."""

@@ -23,7 +23,7 @@
 ``unit`` is honoured by every format that can carry it and refused by the others (hdf5: the
 canonical table is in metres; slicer, slicer-itk, itk: Slicer and ITK work in millimetres); vrui
 requires it. ``spacing`` (m) sets the node spacing of the grids over the reported region
-(slicer-itk, itk, vrui; default the table's spacing / 2).
+(slicer-itk, itk: default the table's spacing / 8; vrui: / 4).
 """
 
 from __future__ import annotations
@@ -48,8 +48,11 @@ from ivc.units import LENGTH_UNITS
 #: units each format can be written in (None: any of LENGTH_UNITS), and the default
 UNITS = {"hdf5": (("m",), "m"), "npz": (None, "m"), "csv": (None, "m"), "vti": (None, "m"),
          "slicer": (("mm",), "mm"), "slicer-itk": (("mm",), "mm"), "itk": (("mm",), "mm"), "vrui": (None, None)}
-#: formats on a grid over the reported region (they take ``spacing``)
+#: formats on a grid over the reported region (they take ``spacing``), and the table's spacing divided by
+#: what gives their default (measured on the default scene, docs/export.md: ITK interpolates the field
+#: trilinearly, so its nodes are closer; a Vrui grid is text, eight times the vertices would be 50 MB)
 REPORTED_GRID_FORMATS = ("slicer-itk", "itk", "vrui")
+SUBDIVISION = {"slicer-itk": 8, "itk": 8, "vrui": 4}
 #: the ITK transform class 3D Slicer reads as a to-parent (modelling-convention) grid transform; plain ITK
 #: does not know it (Slicer registers it), so the same field is also written as ``itk``
 SLICER_TO_PARENT_CLASS = "InverseDisplacementFieldTransform_double_3_3"
@@ -171,17 +174,16 @@ def _simpleitk():
 
 
 def _itk_displacement(c: distortion.DistortionGrid) -> np.ndarray:
-    """The correction's displacement r − v (nx, ny, nz, 3) in LPS mm; an undefined node holds its nearest
-    defined node's displacement (docs/export.md)."""
-    shift = (c.target - c.source)[c.nearest_valid()]
-    return shift * LPS * 1000.0
+    """The correction's displacement r − v (nx, ny, nz, 3) in LPS mm; an undefined node holds the map's
+    extension or its nearest node's displacement (:meth:`DistortionGrid.filled_displacement`)."""
+    return c.filled_displacement() * LPS * 1000.0
 
 
 def _itk(table: LookupTable, path: Path, unit: str, spacing: float | None = None, slicer: bool = False) -> None:
     sitk = _simpleitk()
     import h5py
 
-    c = distortion.reported_correction(table, spacing)
+    c = distortion.reported_correction(table, spacing or table.grid.spacing / SUBDIVISION["itk"])
     g = c.grid
     # SimpleITK's array order is (z, y, x, component): x fastest
     image = sitk.GetImageFromArray(np.ascontiguousarray(np.transpose(_itk_displacement(c), (2, 1, 0, 3))),
@@ -207,9 +209,10 @@ def _itk(table: LookupTable, path: Path, unit: str, spacing: float | None = None
                                  "; the class name makes 3D Slicer read it as the to-parent transform, applied "
                                  "with no inversion" if slicer else ""),
                 "undefined_nodes": "where the correction is not defined (no unique true position in the mapped "
-                                   "volume) a node holds the displacement of its nearest defined node; /ivc/valid "
-                                   "is 0 there, and points whose cell touches such a node are not corrected "
-                                   "reliably",
+                                   "volume) a node holds the table's extension of the map just past the mapped "
+                                   "volume where its inversion converges there, else the displacement of the "
+                                   "nearest node that has one; /ivc/valid is 0 at those nodes, and points whose "
+                                   "cell touches one are not corrected reliably",
                 "orientation": "not in a displacement field: use ivc correct, or the vrui export, for attitudes",
                 "tracker_solver": str(table.fit.get("tracker_solver", "closed-form")),
             })
@@ -224,7 +227,7 @@ def _slicer_itk(table: LookupTable, path: Path, unit: str, spacing: float | None
 
 def _vrui(table: LookupTable, path: Path, unit: str, spacing: float | None = None) -> None:
     scale = 1.0 / LENGTH_UNITS[unit]
-    c = distortion.reported_correction(table, spacing)
+    c = distortion.reported_correction(table, spacing or table.grid.spacing / SUBDIVISION["vrui"])
     # Vrui corrects a raw pose P by C·P with C = (offset, R), offset = (file translation − vertex): so for
     # P at vertex v to land on the true position t, the file's translation is t − R v + v.
     v = c.source
@@ -276,7 +279,8 @@ def export(table: LookupTable, fmt: str, path: str | os.PathLike, *, unit: str |
     ``unit``: length unit of the file (m, cm, mm, in; default: the format's, :data:`UNITS`). hdf5 is in
     metres, slicer, slicer-itk and itk in millimetres only; vrui needs it (Vrui corrects in the tracker
     driver's unit: inches for Polhemus). ``spacing`` (m): node spacing of the grid over the reported
-    region (:data:`REPORTED_GRID_FORMATS`; default the table's / 2), refused for the other formats.
+    region (:data:`REPORTED_GRID_FORMATS`; default the table's divided by :data:`SUBDIVISION`), refused
+    for the other formats.
     """
     unit = resolve_unit(fmt, unit)
     if spacing is not None and fmt not in REPORTED_GRID_FORMATS:
