@@ -75,8 +75,34 @@ def test_streaming_matches_batch(exact_table, rng):
     corrector = PoseCorrector(exact_table)
     batch = corrector.batch(v, rotations.from_matrix(Q))
     streamed = [corrector.update(v[k : k + 4], Q[k : k + 4], sensors="abcd") for k in range(0, 400, 4)]
-    np.testing.assert_allclose(np.concatenate([s.position for s in streamed]), batch.position, atol=1e-9)
+    np.testing.assert_allclose(np.concatenate([s.position for s in streamed]), batch.position, atol=1e-10)
+    q = np.concatenate([s.quaternion for s in streamed])
+    assert rotations.angle_between(q, batch.quaternion).max() < 1e-9
     assert all(np.all(s.flags == 0) for s in streamed)
+
+
+def test_compiled_stream_frame_is_the_batch_computation_from_the_same_start(exact_table, rng):
+    """A frame whose sensors continue their tracks goes through one compiled call; given the same warm starts
+    the batch's path gives the same numbers, bit for bit, and the same new warm starts."""
+    _, _, v, Q = reported(rng, 40)
+    Q[9] = np.nan  # an invalid sample mid-stream: flagged, and its sensor's track restarts
+    stream = PoseCorrector(exact_table)
+    stream.update(v[:4], Q[:4], sensors="abcd")  # starts every track (through the batch's path)
+    for k in range(4, 40, 4):
+        slots = stream._slots("abcd", 4)
+        offsets = np.where(stream._tracked[slots][:, None], stream._offset[slots], np.nan)
+        expected = stream._run(v[k : k + 4], Q[k : k + 4], offsets, serial=True)
+        out = stream.update(v[k : k + 4], Q[k : k + 4], sensors="abcd")
+        for name in ("position", "quaternion", "flags", "residual", "iterations"):
+            np.testing.assert_array_equal(getattr(out, name), getattr(expected, name), err_msg=name)
+        ok = out.flags == 0
+        assert np.array_equal(stream._tracked[slots], ok)
+        np.testing.assert_array_equal(stream._offset[slots][ok], (out.position - v[k : k + 4])[ok])
+    assert stream.update(v[8:12], Q[8:12], sensors="abcd").flags[1] == INVALID_INPUT
+    stream.reset()
+    assert not stream._tracked.any()
+    with pytest.raises(InputError, match="sensor names"):
+        stream.update(v[:4], Q[:4], sensors="abc")
 
 
 def test_flags_mean_what_they_say(exact_table, rng):
