@@ -15,6 +15,7 @@ import numpy as np
 
 from ivc import dipole
 from ivc.correct.evaluate import CheckErrors, check_errors, summarise
+from ivc.correct.pose_domain import PoseCorrector
 from ivc.correct.solver import Corrector
 from ivc.errors import InputError
 from ivc.fixtures.cube import CUBE_BITS, NOMINAL_EDGE, declared_pose, placed_vertices
@@ -194,7 +195,9 @@ def check_view(table: LookupTable, session: Session, check: Session | None, step
     # the table's frame is the session's declared cube frame: judge the check poses in it
     found = declared_frame_map(session) if "cube_survey" in session.truth else None
     frame_map = None if found is None else found[:2]
-    corrector = Corrector(table, check.hemisphere)
+    # signals through the signal path; reported poses alone through the pose path, with the table's tracker solver
+    corrector = (Corrector(table, check.hemisphere) if check.steps[step].signal is not None
+                 else PoseCorrector(table, check.hemisphere))
     errors = check_errors(corrector, check, step, frame_map,
                           progress("correcting the check poses", check.steps[step].n_frames))
     distance = None if cube_centre is None else np.linalg.norm(errors.true_position - cube_centre, axis=-1)
