@@ -25,7 +25,7 @@ from ivc.live import LiveCorrector
 from ivc.live.igtl import Framer
 from ivc.lut.build import FitOptions
 from ivc.pose.reported import invert_distortion
-from ivc.report.compute import check_view
+from ivc.report.compute import POSE_ONLY, check_view, gather
 from ivc.session import Session
 from tests.helpers import CENTRE, ball, quadratic_field
 
@@ -216,6 +216,9 @@ def test_report_corrects_pose_only_check_poses_through_the_pose_path(pose_only_t
     assert why is None
     expected = summarise(check_errors(PoseCorrector(table), poses))
     assert summarise(view.errors)["ivc"] == expected["ivc"] and expected["corrected"] > 0
+    data = gather(poses, table)
+    assert data.model is None and data.sweep is None and data.mapping_missing == (POSE_ONLY,)
+    assert summarise(data.check.errors)["ivc"] == expected["ivc"]
     least_squares = replace(table, fit={**table.fit, "tracker_solver": "least-squares"})
     view, _ = check_view(least_squares, poses, None, "check", None, "the session")
     other = summarise(check_errors(PoseCorrector(least_squares), poses))
