@@ -54,7 +54,7 @@ def _session() -> Session:
 def run() -> list[Figure]:
     session, noiseless = _session()
     tables, seconds = {}, {}
-    for name, options in (("poly", FitOptions(method="poly")), ("harmonic", FitOptions()),
+    for name, options in (("poly", FitOptions(fitter="poly")), ("harmonic", FitOptions(refine=False)),
                           ("harmonic refined", FitOptions(refine=True))):
         start = time.perf_counter()
         tables[name] = fit_lut(session, options)

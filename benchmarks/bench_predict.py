@@ -26,8 +26,9 @@ from benchmarks.harness import Figure
 from ivc.predict import TUNABLE, make
 from ivc.predict.delta import delta_q, delta_q_jacobian, deltas
 from ivc.predict.dq import SIGMA_CA1, SIGMA_CA2, SIGMA_CV1, SIGMA_DQ, dqekf_cv, mmdq2, mmdq3
-from ivc.predict.evaluate import NoPrediction, evaluate
+from ivc.predict.hold import NoPrediction
 from ivc.predict.motion import head_motion
+from ivc.predict.studies.evaluate import evaluate
 from ivc.predict.tuning import synthetic
 
 TAU = 1.0 / 120.0

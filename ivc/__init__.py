@@ -8,7 +8,7 @@ on a simulated room::
     import ivc
 
     session = ivc.Simulator(ivc.load_scene("default"), seed=0).protocol({"wand_sweep": 20_000})
-    table = ivc.fit_lut(session, ivc.FitOptions(method="harmonic"))
+    table = ivc.fit_lut(session, ivc.FitOptions(fitter="harmonic"))
     check = session.steps["check"]
     corrected = ivc.Corrector(table).batch(check.signal_matrices(), check.valid_mask)
     report = ivc.evaluate(table, session)                 # errors against truth, mm and mrad
@@ -106,6 +106,8 @@ _EXPORTS = {
     "FixtureModel": ("ivc.fixtures.mapping", "FixtureModel"),
     "fit_lut": ("ivc.lut", "fit_lut"),
     "FitOptions": ("ivc.lut", "FitOptions"),
+    "HarmonicFit": ("ivc.lut", "HarmonicFit"),
+    "PolyFit": ("ivc.lut", "PolyFit"),
     "LookupTable": ("ivc.lut", "LookupTable"),
     "read_lut": ("ivc.lut", "read"),
     "write_lut": ("ivc.lut", "write"),

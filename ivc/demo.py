@@ -94,7 +94,7 @@ def run(scene: str | Scene = "default", *, seed: int = 0, sweep_frames: int = 10
         session_io.write(result.session, result.session_file, overwrite=force)
     stage("fit", result)
     fit_start = time.perf_counter()
-    result.table = lut.fit_lut(result.session, FitOptions(method=method), source=result.session_file,
+    result.table = lut.fit_lut(result.session, FitOptions(fitter=method), source=result.session_file,
                                progress=fit_progress)
     result.fit_seconds = time.perf_counter() - fit_start
     if result.table_file is not None:

@@ -115,3 +115,12 @@ def rig_fixtures(rng):
         return rigid_transform(rotations.to_matrix(rotations.from_rotvec(0.03 * rng.standard_normal(3))), t)
 
     return Fixtures(np.eye(4), small(np.array([0.01, 0.25, -0.01])), small(0.005 * rng.standard_normal(3)))
+
+
+def reported_matrices(S):
+    """What a tracker reports for signals S (..., 3, 3): the dipole solution as 4x4 matrices with translations
+    in mm, in float32 as OpenIGTLink carries them."""
+    position, rotation = dipole.closed_form_pose(S)
+    m = np.zeros((*S.shape[:-2], 4, 4))
+    m[..., :3, :3], m[..., :3, 3], m[..., 3, 3] = rotation, position * 1000.0, 1.0
+    return m.astype(np.float32)

@@ -18,7 +18,7 @@ from ivc.correct.pose_domain import PoseCorrector
 from ivc.live import LiveCorrector, NDArrayMessage, TrackingDataMessage
 from ivc.live.igtl import Framer
 from ivc.lut import write as write_lut
-from tests.helpers import distorted
+from tests.helpers import distorted, reported_matrices
 
 SENSORS = ("S0", "S1", "S2", "S3")
 
@@ -27,15 +27,6 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def reported_matrices(S):
-    """What a tracker reports for signals S (..., 3, 3): the dipole solution as 4x4 matrices with translations
-    in mm, in float32 as OpenIGTLink carries them."""
-    position, rotation = dipole.closed_form_pose(S)
-    m = np.zeros((*S.shape[:-2], 4, 4))
-    m[..., :3, :3], m[..., :3, 3], m[..., 3, 3] = rotation, position * 1000.0, 1.0
-    return m.astype(np.float32)
 
 
 def reported_poses(rng, frames):
@@ -203,7 +194,7 @@ def test_bad_input_is_dropped_and_logged_once_and_slow_clients_do_not_block(exac
 def test_live_prediction_matches_offline_correct_then_predict(exact_table, rng):  # noqa: F811
     """`--predict`: each sensor's corrected orientation predicted 50 ms ahead, as `ivc correct --predict` offline."""
     from ivc.predict import make
-    from tests.test_correct import quadratic_field
+    from tests.helpers import quadratic_field
 
     frames, rate, horizon = 60, 240.0, 0.05
     r = np.broadcast_to(exact_table.grid.nodes()[10, 10, 10] + [[0.05, 0.02, -0.03], [-0.04, 0.06, 0.01]],

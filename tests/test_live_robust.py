@@ -14,8 +14,7 @@ from ivc.correct import Corrector
 from ivc.live import LiveCorrector, NDArrayMessage
 from ivc.live.igtl import BODY_LIMITS, HEADER, Framer
 from ivc.live.loop import output_device_name
-from tests.helpers import distorted
-from tests.test_live import reported_matrices
+from tests.helpers import distorted, reported_matrices
 
 
 def transform(k: int, name: str = "S0") -> bytes:

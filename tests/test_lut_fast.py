@@ -35,15 +35,16 @@ def test_huber_reweighting_by_downdates_equals_a_full_pass(rng):
     samples.fields[::40] *= 1.5  # outliers
     centre, scale, degree, k = samples.positions.mean(axis=0), 0.2, 4, 5
     fold, base, lever = samples.folds(k, block_frames=100), samples.weights(), samples.leverage()
-    unweighted = fh._accumulate(samples, lever, base, fold, k, centre, scale, degree, None)
+    unweighted = fh.accumulate_normal(samples, lever, base, fold, k, centre, scale, degree, None)
     for got, want in zip((unweighted.gram, unweighted.rhs, unweighted.yy, unweighted.count),
                          _normal_direct(samples, base, fold, k, centre, scale, degree), strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-11, atol=1e-12 * np.abs(want).max())
-    coefficients = fh._solve(unweighted.gram.sum(axis=0)[:8, :8], unweighted.rhs.sum(axis=0)[:8])  # degree 2
+    coefficients = fh.solve_normal(unweighted.gram.sum(axis=0)[:8, :8], unweighted.rhs.sum(axis=0)[:8])  # degree 2
     rows = harmonics.gradient_rows((samples.positions - centre) / scale, 2)
-    residual = fh._standardised_residual(samples, lever, np.arange(len(samples)), rows, coefficients)
+    residual = fh.standardised_residual(samples, lever, np.arange(len(samples)), rows, coefficients)
     cut = 2.0 * np.median(residual)
-    normal, weights = fh._reweight(unweighted, samples, lever, base, fold, k, centre, scale, degree, coefficients, cut,
+    normal, weights = fh.reweight_normal(unweighted, samples, lever, base, fold, k, centre, scale, degree, coefficients,
+                                         cut,
                                    None)
     np.testing.assert_allclose(weights, base * np.minimum(1.0, cut / residual), rtol=1e-12)
     assert np.sum(weights < base) > 0.2 * len(samples)

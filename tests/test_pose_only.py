@@ -23,7 +23,7 @@ from ivc.fixtures.pose_report import pose_fixture_report
 from ivc.fixtures.report import fixture_report
 from ivc.live import LiveCorrector
 from ivc.live.igtl import Framer
-from ivc.lut.build import FitOptions
+from ivc.lut import FitOptions, HarmonicFit
 from ivc.pose.reported import invert_distortion
 from ivc.report.compute import POSE_ONLY, check_view, gather
 from ivc.session import Session
@@ -137,7 +137,7 @@ def test_rigid_alignment_recovers_a_rigid_map(rng):
 def pose_only_table(small_session):
     _, session = small_session
     poses = without_signals(session)
-    return poses, lut.fit_lut(poses, FitOptions(degree=5, max_frames=1500))
+    return poses, lut.fit_lut(poses, FitOptions(fitter=HarmonicFit(degree=5), max_frames=1500))
 
 
 @pytest.mark.slow

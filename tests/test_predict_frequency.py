@@ -7,19 +7,19 @@ from scipy.integrate import quad
 from ivc import rotations
 from ivc.predict.base import PredictorError
 from ivc.predict.delta import delta_q
-from ivc.predict.frequency import (
+from ivc.predict.gains import kinematic_gain
+from ivc.predict.linear import alpha_beta, kinematic, polynomial
+from ivc.predict.mmae import Elemental, frame_from_axes
+from ivc.predict.studies.frequency import (
     AB_CASES,
     AB_PERIOD,
     crossovers,
-    kinematic_gain,
     polynomial_magnitude,
     polynomial_phase,
     polynomial_response,
     response,
     rms_error,
 )
-from ivc.predict.linear import alpha_beta, kinematic, polynomial
-from ivc.predict.mmae import Elemental, frame_from_axes
 
 
 @pytest.mark.parametrize("p, f, magnitude, phase_deg, err", [

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from ivc.predict import make
-from ivc.predict.evaluate import HORIZONS_MS, error_table, evaluate, plot_error_vs_horizon, snr_table
 from ivc.predict.motion import head_motion
+from ivc.predict.studies.evaluate import HORIZONS_MS, error_table, evaluate, plot_error_vs_horizon, snr_table
 
 NAMES = ("none", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf")
 

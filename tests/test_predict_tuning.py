@@ -7,8 +7,8 @@ from scipy.ndimage import gaussian_filter1d
 from ivc.predict import PredictorError, make
 from ivc.predict.delta import deltas
 from ivc.predict.dq import SIGMA_CA, SIGMA_CV1, SIGMA_DQ, TABLE_10, table_10
-from ivc.predict.evaluate import evaluate
 from ivc.predict.motion import head_motion
+from ivc.predict.studies.evaluate import evaluate
 from ivc.predict.tuning import EDGES_MMDQ2, EDGES_MMDQ3, Tuning, estimate
 
 WHITE = 1e-4  # rad per axis

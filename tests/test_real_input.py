@@ -358,9 +358,9 @@ def test_demo_without_keep_names_no_file_it_deletes_and_draws_no_bars_off_a_term
     assert "ivc demo finished" in result.output
 
 
-def test_refine_is_shown_as_the_default():
+def test_the_cli_and_the_library_agree_that_refinement_is_on_by_default():
     help_text = run("fit", "--help").output
-    assert "[default: refine]" in help_text
+    assert "[default: refine]" in help_text and FitOptions().refine is True
     readme = (ROOT / "README.md").read_text()
     assert "[--no-refine]" in readme
 

@@ -32,6 +32,17 @@ def test_shipped_table_corrects_the_shipped_check_poses():
     assert report["dipole"]["position_mm"]["p50"] > 30.0
 
 
+def test_the_shipped_table_is_written_by_this_version_of_the_format():
+    # its units text is the one the writer gives today (no reference to a file outside the repository)
+    import h5py
+
+    from ivc.lut.table import FIELD_UNIT
+
+    with h5py.File(TABLE, "r") as h5:
+        assert h5.attrs["field_unit"] == FIELD_UNIT
+    assert lut.read(TABLE).provenance["parameters"]["method"] == "harmonic"
+
+
 def test_correct_the_shipped_csv_against_its_truth(tmp_path):
     out = tmp_path / "corrected.csv"
     result = CliRunner().invoke(cli, ["correct", str(TABLE), str(CHECK_CSV), "-o", str(out)])

@@ -9,9 +9,9 @@ import pytest
 from ivc import dipole, rotations
 from ivc.dipole.calibrate import (
     Fixtures,
-    _jacobian,
-    _Layout,
+    ParameterLayout,
     calibrate,
+    calibration_jacobian,
     canonical_gauge,
     pose_errors,
     predicted_signal,
@@ -143,8 +143,8 @@ def test_calibration_jacobian_matches_finite_differences(rng, source_fixture):
     J_so, J_st = stage_pattern(xyz_mm=(-40.0, 40.0), rz_deg=(-60.0, 30.0), sensor_fixtures=("YoutZup", "ZinYup"))
     if source_fixture:
         J_so[::2, :3, :3] = rotations.to_matrix(rotations.from_rotvec([0.0, 0.0, np.pi / 2]))
-    layout = _Layout(True, source_fixture, bias=True)
-    _, J = _jacobian(layout, tr, fixtures, J_so, J_st)
+    layout = ParameterLayout(True, source_fixture, bias=True)
+    _, J = calibration_jacobian(layout, tr, fixtures, J_so, J_st)
     for k in range(layout.size):
         e = np.zeros(layout.size)
         e[k] = 1.0
@@ -308,8 +308,8 @@ def test_calibration_jacobian_with_free_source_motions(rng):
     fixtures.motion_errors = [np.eye(4)] + [
         rigid_transform(rotations.to_matrix(rotations.from_rotvec(0.01 * rng.standard_normal(3))),
                    0.002 * rng.standard_normal(3)) for _ in motions[1:]]
-    layout = _Layout(True, False, motion_groups=len(motions))
-    _, J = _jacobian(layout, tr, fixtures, J_so, J_st)
+    layout = ParameterLayout(True, False, motion_groups=len(motions))
+    _, J = calibration_jacobian(layout, tr, fixtures, J_so, J_st)
     for k in range(layout.fix, layout.size):
         e = np.zeros(layout.size)
         e[k] = 1.0

@@ -86,8 +86,9 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
               "the data with a one-cell margin).")
 @click.option("--degree", type=click.IntRange(1, 40),
               help="harmonic: fixed degree (default: cross-validated); poly: degree (2).")
-@click.option("--refine/--no-refine", default=True, show_default=True,
-              help="Re-solve the wand frames as rigid bodies against the map and refit until it settles.")
+@click.option("--refine/--no-refine", default=FitOptions.refine, show_default=True,
+              help="Re-solve the wand frames as rigid bodies against the map and refit while the cross-validation "
+              "score improves (docs/lut.md, Refinement).")
 @click.option("--max-refinements", type=click.IntRange(0, 100), default=FitOptions.max_refinements, show_default=True)
 @click.option("--max-frames", type=click.IntRange(1), default=FitOptions.max_frames, show_default=True,
               help="Decimate the sweep to at most this many frames.")
@@ -107,7 +108,8 @@ def fit(session_file, output, method, grid_spec, degree, refine, max_refinements
         max_residual, max_error_mm, tracker, force, as_json, tracker_file):
     """Fit the secondary-field look-up table of SESSION_FILE and write it to OUTPUT."""
     check_output(output, force, {"SESSION_FILE": session_file})
-    options = FitOptions(method=method, degree=degree, refine=refine, max_refinements=max_refinements,
+    fitter = lut.make_fitter(method, **({} if degree is None else {"degree": degree}))
+    options = FitOptions(fitter=fitter, refine=refine, max_refinements=max_refinements,
                          max_frames=max_frames, min_support=min_support, max_residual=max_residual,
                          max_error=max_error_mm / 1000, **parse_grid(grid_spec))
     data = with_tracker(session_io.read(session_file), tracker_file)

@@ -21,7 +21,9 @@ from ivc.collect.replay import CsvColumns, read_csv_columns, write_csv
 from ivc.predict import DEFAULT_FILTER, FILTERS, TUNABLE, make
 from ivc.predict import steps as steps_lib
 from ivc.predict.base import MAX_HORIZON
-from ivc.predict.evaluate import (
+from ivc.predict.motion import MOTIONS, head_motion
+from ivc.predict.recording import Score
+from ivc.predict.studies.evaluate import (
     error_table,
     evaluate,
     horizon_table,
@@ -30,8 +32,6 @@ from ivc.predict.evaluate import (
     snr_table,
     velocity_table,
 )
-from ivc.predict.motion import MOTIONS, head_motion
-from ivc.predict.recording import Score
 from ivc.predict.tuning import Tuning, synthetic
 from ivc.session import Session, Step
 

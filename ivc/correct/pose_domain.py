@@ -190,9 +190,8 @@ class PoseCorrector:
             miss, converged = np.empty(n), np.empty(n, dtype=bool)
             iterations, mapped = np.empty(n, dtype=np.int64), np.empty(n, dtype=bool)
             kernel = _pose_kernels.invert_serial if serial else _pose_kernels.invert_kernel
-            kernel(v, start, H.copy(), self._h, f._padded, f.valid_cells, f._origin, f.grid.spacing, f._shape,
-                   f.interpolation == "cubic", self.max_iterations, self.tolerance, r, C, miss, converged, iterations,
-                   mapped)
+            kernel(v, start, H.copy(), self._h, *f.kernel_grid, self.max_iterations, self.tolerance, r, C, miss,
+                   converged, iterations, mapped)
             return r, C, miss, converged, iterations, mapped
         inv = invert_distortion(v, self._secondary, self.solver, self.hemisphere, start, self.tolerance,
                                 self.max_iterations)

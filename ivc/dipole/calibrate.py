@@ -30,8 +30,8 @@ from ivc.dipole.field import field as dipole_field
 from ivc.dipole.tracker import Tracker, model
 from ivc.errors import TrackerError
 
-__all__ = ["CalibrationResult", "Fixtures", "calibrate", "canonical_gauge", "chain", "fit_output_correction",
-           "pose_errors", "predicted_signal", "residue", "solve_chain_poses"]
+__all__ = ["CalibrationResult", "Fixtures", "ParameterLayout", "calibrate", "calibration_jacobian", "canonical_gauge",
+           "chain", "fit_output_correction", "pose_errors", "predicted_signal", "residue", "solve_chain_poses"]
 
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
@@ -199,7 +199,7 @@ class CalibrationResult:
     parameter_sigma: dict  # standard errors of the tracker's free parameters, same layout
 
 
-class _Layout:
+class ParameterLayout:
     """Where each free parameter sits in θ, and how it moves the model."""
 
     def __init__(self, offsets: bool, source_fixture: bool, bias: bool = False, motion_groups: int = 0):
@@ -271,7 +271,8 @@ def _adjoint_inverse(Y: np.ndarray) -> np.ndarray:
     return out
 
 
-def _jacobian(layout: _Layout, tracker: Tracker, fixtures: Fixtures, J_so, J_st) -> tuple[np.ndarray, np.ndarray]:
+def calibration_jacobian(layout: ParameterLayout, tracker: Tracker, fixtures: Fixtures, J_so,
+                         J_st) -> tuple[np.ndarray, np.ndarray]:
     """Predicted S (N, 3, 3) and ∂S/∂θ (N, 9, n)."""
     P = chain(fixtures, J_so, J_st)
     S, d = model(P[:, :3, :3], P[:, :3, 3], tracker, parts=True)
@@ -343,7 +344,7 @@ def _initial(S, J_so, J_st, source_fixture, stage_offsets, motions=()) -> tuple[
 
 
 def _levenberg_marquardt(layout, tracker, fixtures, S, J_so, J_st, weights, max_iterations, tolerance, progress):
-    S_pred, J = _jacobian(layout, tracker, fixtures, J_so, J_st)
+    S_pred, J = calibration_jacobian(layout, tracker, fixtures, J_so, J_st)
     e = ((S - S_pred) * weights[:, None, None]).reshape(-1)
     Jw = -(J * weights[:, None, None]).reshape(-1, layout.size)
     cost = float(e @ e)
@@ -360,7 +361,7 @@ def _levenberg_marquardt(layout, tracker, fixtures, S, J_so, J_st, weights, max_
             damping *= 10.0
             continue
         t_trial, f_trial = layout.apply(tracker, fixtures, step)
-        S_t, J_t = _jacobian(layout, t_trial, f_trial, J_so, J_st)
+        S_t, J_t = calibration_jacobian(layout, t_trial, f_trial, J_so, J_st)
         e_t = ((S - S_t) * weights[:, None, None]).reshape(-1)
         cost_t = float(e_t @ e_t)
         if progress is not None:
@@ -446,9 +447,9 @@ def calibrate(
                                       [np.eye(4) for _ in motions])
         tracker, fixtures = canonical_gauge(start[0], start_fixtures, J_so[0], fit_source_fixture)
     total = 0
-    layouts = [_Layout(False, fit_source_fixture, motion_groups=len(motions))]
+    layouts = [ParameterLayout(False, fit_source_fixture, motion_groups=len(motions))]
     if offsets or bias:
-        layouts.append(_Layout(offsets, fit_source_fixture, bias, motion_groups=len(motions)))
+        layouts.append(ParameterLayout(offsets, fit_source_fixture, bias, motion_groups=len(motions)))
     for layout in layouts:
         tracker, fixtures, Jw, e, its, converged = _levenberg_marquardt(
             layout, tracker, fixtures, S, J_so, J_st, weights, max_iterations, tolerance, progress)

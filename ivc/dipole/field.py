@@ -17,7 +17,7 @@ from ivc.errors import InputError
 FloatArray = NDArray[np.float64]
 
 
-def _flat(a: ArrayLike, tail: tuple[int, ...], name: str) -> tuple[FloatArray, tuple[int, ...]]:
+def flat_batch(a: ArrayLike, tail: tuple[int, ...], name: str) -> tuple[FloatArray, tuple[int, ...]]:
     """C-contiguous float64 view of ``a`` flattened to ``(M, *tail)``, and its leading shape."""
     a = np.asarray(a, dtype=np.float64)
     if a.shape[a.ndim - len(tail) :] != tail or a.ndim < len(tail):
@@ -48,7 +48,7 @@ def field(r: ArrayLike) -> FloatArray:
            [ 0., -1.,  0.],
            [ 0.,  0., -1.]])
     """
-    flat, lead = _flat(r, (3,), "r")
+    flat, lead = flat_batch(r, (3,), "r")
     out = np.empty((flat.shape[0], 3, 3))
     with np.errstate(divide="ignore", invalid="ignore"):
         _kernels.field_kernel(flat, out)
@@ -93,12 +93,12 @@ def signal(r: ArrayLike, T: ArrayLike, G: ArrayLike | None = None) -> FloatArray
     -------
     array, shape (..., 3, 3)
     """
-    r_flat, lead = _flat(r, (3,), "r")
-    T_flat, lead_T = _flat(T, (3, 3), "T")
+    r_flat, lead = flat_batch(r, (3,), "r")
+    T_flat, lead_T = flat_batch(T, (3, 3), "T")
     if lead != lead_T:
         r_b, T_b = np.broadcast_arrays(np.asarray(r, float)[..., None, :], np.asarray(T, float))
-        r_flat, lead = _flat(r_b[..., 0, :], (3,), "r")
-        T_flat, _ = _flat(T_b, (3, 3), "T")
+        r_flat, lead = flat_batch(r_b[..., 0, :], (3,), "r")
+        T_flat, _ = flat_batch(T_b, (3, 3), "T")
     out = np.empty((r_flat.shape[0], 3, 3))
     _kernels.signal_kernel(r_flat, T_flat, out)
     out = out.reshape(lead + (3, 3))

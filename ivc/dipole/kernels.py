@@ -14,7 +14,7 @@ _OPTS = dict(parallel=True, cache=True, nogil=True)
 
 
 @numba.njit(inline="always")
-def _field_entries(x, y, z):
+def field_entries(x, y, z):
     """The six distinct entries of f_D(r) = (3 r rᵀ/|r|² − I)/|r|³ (eq. 72)."""
     rho2 = x * x + y * y + z * z
     inv3 = 1.0 / (rho2 * np.sqrt(rho2))
@@ -25,7 +25,7 @@ def _field_entries(x, y, z):
 @numba.njit(inline="always")
 def field_matrix(x, y, z, out):
     """f_D(r) (eq. 72) written into the (3, 3) array out."""
-    f00, f11, f22, f01, f02, f12 = _field_entries(x, y, z)
+    f00, f11, f22, f01, f02, f12 = field_entries(x, y, z)
     out[0, 0] = f00
     out[1, 1] = f11
     out[2, 2] = f22
@@ -44,7 +44,7 @@ def field_kernel(r, out):  # pragma: no cover - compiled
 def signal_kernel(r, T, out):  # pragma: no cover - compiled
     """out[n] = T[n]ᵀ f_D(r[n]) (eq. 73 with G = 0)."""
     for n in numba.prange(r.shape[0]):
-        f00, f11, f22, f01, f02, f12 = _field_entries(r[n, 0], r[n, 1], r[n, 2])
+        f00, f11, f22, f01, f02, f12 = field_entries(r[n, 0], r[n, 1], r[n, 2])
         for i in range(3):
             a = T[n, 0, i]
             b = T[n, 1, i]
@@ -62,7 +62,7 @@ def _matmul3(A, B, out):
 
 
 @numba.njit(inline="always")
-def _principal_eigenvector(B, work_a, work_b, v):
+def principal_eigenvector(B, work_a, work_b, v):
     """Unit eigenvector of the largest eigenvalue of a symmetric PSD 3x3 matrix.
 
     Power iteration by repeated squaring: after k squarings the other eigen-directions
@@ -133,7 +133,7 @@ def _fro(A):
 
 
 @numba.njit
-def _rotation_polar_factor(K, X, work, out):
+def rotation_polar_factor(K, X, work, out):
     """Rotation nearest to K (orthogonal Procrustes), written into out.
 
     Scaled Newton iteration for the polar factor, X <- (γX + X⁻ᵀ/γ)/2, which converges
@@ -181,7 +181,7 @@ def closed_form_one(s, hemisphere, r_out, T_out, work_a, work_b, v, B, F, K):
         for j in range(3):
             B[i, j] = s[0, i] * s[0, j] + s[1, i] * s[1, j] + s[2, i] * s[2, j]
     tr = B[0, 0] + B[1, 1] + B[2, 2]
-    _principal_eigenvector(B, work_a, work_b, v)
+    principal_eigenvector(B, work_a, work_b, v)
     sign = 1.0
     if v[0] * hemisphere[0] + v[1] * hemisphere[1] + v[2] * hemisphere[2] < 0.0:
         sign = -1.0
@@ -197,7 +197,7 @@ def closed_form_one(s, hemisphere, r_out, T_out, work_a, work_b, v, B, F, K):
     for i in range(3):
         for j in range(3):
             K[i, j] = F[i, 0] * s[j, 0] + F[i, 1] * s[j, 1] + F[i, 2] * s[j, 2]
-    _rotation_polar_factor(K, work_a, work_b, T_out)
+    rotation_polar_factor(K, work_a, work_b, T_out)
 
 
 @numba.njit(**_OPTS)
@@ -206,3 +206,7 @@ def closed_form_pose_kernel(S, hemisphere, r_out, T_out):  # pragma: no cover - 
     for n in numba.prange(S.shape[0]):
         closed_form_one(S[n], hemisphere, r_out[n], T_out[n], np.empty((3, 3)), np.empty((3, 3)), np.empty(3),
                         np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)))
+
+
+#: the names ivc.correct.kernels and ivc.correct.pose_kernels still import (until their own rework)
+_rotation_polar_factor, _principal_eigenvector = rotation_polar_factor, principal_eigenvector

@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ivc.dipole import kernels as _kernels
-from ivc.dipole.field import _flat
+from ivc.dipole.field import flat_batch
 from ivc.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -59,7 +59,7 @@ def closed_form_pose(S: ArrayLike, hemisphere: str = "+x") -> tuple[FloatArray, 
     ``−r`` with its true orientation. Signal matrices that are not finite give NaN.
     """
     h = hemisphere_vector(hemisphere)
-    flat, lead = _flat(S, (3, 3), "S")
+    flat, lead = flat_batch(S, (3, 3), "S")
     r = np.empty((flat.shape[0], 3))
     T = np.empty((flat.shape[0], 3, 3))
     _kernels.closed_form_pose_kernel(flat, h, r, T)

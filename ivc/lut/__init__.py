@@ -1,8 +1,20 @@
-"""Stage 4: the look-up table of the room's secondary field, fitted from the wand's samples."""
+"""Stage 4: the look-up table of the room's secondary field, fitted from the wand's samples.
+
+The fitters (:class:`HarmonicFit`, :class:`PolyFit`) share one interface (:class:`Fitter`) and one
+blocked cross-validation (:class:`BlockedKFold`); docs/lut.md, "Adding a fitter", describes both.
+"""
 
 from ivc.lut.build import METHODS, FitOptions, fit_lut
+from ivc.lut.cross_validation import BlockedKFold, cross_validate, held_out_score
+from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
+from ivc.lut.fit_poly import PolyFit
+from ivc.lut.fitter import FITTERS, Fitter, fit_table, make_fitter, register
 from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
+from ivc.lut.refine import MapFit, fit_map, refine_map
+from ivc.lut.samples import FieldSamples
 from ivc.lut.table import LookupTable, LutError, read, write
 
-__all__ = ["DEFAULT_SPACING", "METHODS", "FitOptions", "Grid", "GridField", "LookupTable", "LutError", "fit_lut",
-           "read", "write"]
+__all__ = ["DEFAULT_SPACING", "FITTERS", "METHODS", "BlockedKFold", "FieldSamples", "FitOptions", "Fitter", "Grid",
+           "GridField", "HarmonicFit", "HarmonicModel", "LookupTable", "LutError", "MapFit", "PolyFit",
+           "cross_validate", "fit_lut", "fit_map", "fit_table", "held_out_score", "make_fitter", "read", "refine_map",
+           "register", "write"]

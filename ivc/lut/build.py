@@ -4,7 +4,7 @@ Stages: the fixtures are calibrated and the sweep solved through the cube
 (:mod:`ivc.fixtures.mapping`); the gated samples are fitted on the grid by the chosen
 method; then, optionally, the wand frames are re-solved as rigid bodies against the map
 and the map refitted until it stops changing or stops gaining (:mod:`ivc.lut.refine`):
-each refinement must lower the cross-validation score by ``REFINE_MIN_GAIN``, and the map
+each refinement must lower the cross-validation score by ``ivc.lut.refine.REFINE_MIN_GAIN``, and the map
 with the lowest score is the one kept.
 """
 
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, fields
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -21,16 +21,17 @@ import numpy as np
 from ivc import __version__, dipole
 from ivc.errors import InputError
 from ivc.fixtures.mapping import DROP_REASONS, FixtureModel, Gates, map_sweep
-from ivc.lut.fit_harmonic import PASSES, fit_harmonic
-from ivc.lut.fit_poly import fit_poly
-from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
-from ivc.lut.refine import resolve_sweep
-from ivc.lut.samples import FieldSamples, leverage, pose_equivalent_rms
-from ivc.lut.support import MIN_SUPPORT, node_support
+from ivc.lut.fitter import FITTERS, Fitter, make_fitter
+from ivc.lut.grid import DEFAULT_SPACING, Grid
+from ivc.lut.refine import fit_map, refine_map
+from ivc.lut.samples import FieldSamples
+from ivc.lut.support import MIN_SUPPORT
 from ivc.lut.table import LookupTable
 from ivc.session import Session, SessionError
 
-METHODS = ("harmonic", "poly")
+make_fitter("harmonic")  # registers the built-in fitters
+#: the fit methods (:data:`ivc.lut.fitter.FITTERS`' names)
+METHODS = tuple(FITTERS)
 #: fewest gated samples worth fitting, and the smallest fraction of the sweep that may pass the gates
 MIN_SAMPLES = 2_000
 MIN_KEPT_FRACTION = 0.05
@@ -41,10 +42,6 @@ MAX_SPACING = 1.0
 BYTES_PER_NODE = 2048
 #: largest estimated grid memory a fit starts with (bytes)
 MAX_GRID_MEMORY = 4 << 30
-#: refinement stops when the map changes by less than this, pose-equivalent RMS over valid nodes (m)
-REFINE_TOLERANCE = 5e-6
-#: ... or when its cross-validation score improves by less than this fraction; the best-scoring map is kept
-REFINE_MIN_GAIN = 0.01
 
 #: what to redo when most samples fail a gate
 _ADVICE = {
@@ -65,37 +62,38 @@ Progress = Callable[[str, int], Callable[[int], None]]
 
 @dataclass
 class FitOptions:
-    """``method``: harmonic (default) or poly. ``degree``: harmonic degree (None: cross-validated) or the
-    polynomial degree (default 2). ``radius``: poly neighbourhood, m (default: the spacing).
-    ``origin``/``shape``: a user grid (else derived from the data, one-cell margin).
-    ``max_frames``: the sweep is decimated to at most this many frames (every k-th frame).
-    At 240 Hz consecutive frames are a fraction of a millimetre apart, so this loses no
-    coverage; it bounds the time of the sweep solve, the fit and the refinement."""
+    """How :func:`fit_lut` builds a table.
 
-    method: str = "harmonic"
+    ``fitter``: a configured :class:`~ivc.lut.fitter.Fitter` (``HarmonicFit(degree=6)``,
+    ``PolyFit(radius=0.05)``, ...) or a method name with its defaults (``METHODS``); it is
+    copied, never fitted in place. ``spacing`` (m), ``origin``/``shape``: a user grid (else
+    derived from the data, one-cell margin). ``refine``: re-solve the wand frames as rigid
+    bodies against the map and refit (:func:`ivc.lut.refine.refine_map`), at most
+    ``max_refinements`` times while it pays; on by default, as in ``ivc fit`` (docs/lut.md,
+    "Refinement", says why). ``min_support``: samples around
+    a node for it to count as mapped. ``max_residual``/``max_error`` (m): the sweep's gates.
+    ``max_frames``: the sweep is decimated to at most this many frames (every k-th frame). At
+    240 Hz consecutive frames are a fraction of a millimetre apart, so this loses no coverage;
+    it bounds the time of the sweep solve, the fit and the refinement."""
+
+    fitter: Fitter | str = "harmonic"
     spacing: float = DEFAULT_SPACING
     origin: tuple[float, float, float] | None = None
     shape: tuple[int, int, int] | None = None
-    degree: int | None = None
-    radius: float | None = None
-    refine: bool = False
+    refine: bool = True
     max_refinements: int = 3
     min_support: int = MIN_SUPPORT
-    folds: int = 5
     max_residual: float = Gates.max_residual
     max_error: float = Gates.max_error
     max_frames: int = 25_000
 
     def __post_init__(self):
-        if self.method not in METHODS:
-            raise InputError(f"unknown fit method {self.method!r}; use one of {', '.join(METHODS)}")
+        self.fitter = make_fitter(self.fitter)
         if (self.origin is None) != (self.shape is None):
             raise InputError("a user grid needs both an origin and a shape")
-        _check_range("degree", self.degree, 1, None, optional=True)
         _check_range("max_refinements", self.max_refinements, 0)
         _check_range("max_frames", self.max_frames, 1)
         _check_range("min_support", self.min_support, 1)
-        _check_range("folds", self.folds, 2)
         for name in ("max_residual", "max_error"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
@@ -103,10 +101,19 @@ class FitOptions:
         if not (np.isfinite(self.spacing) and 0 < self.spacing <= MAX_SPACING):
             raise InputError(f"grid spacing must be more than 0 and at most {1000 * MAX_SPACING:g} mm, got "
                              f"{1000 * self.spacing:g} mm")
-        if self.radius is not None and not (np.isfinite(self.radius) and self.radius > 0):
-            raise InputError(f"radius must be a positive number of metres, got {self.radius}")
         if self.shape is not None:
             check_grid_memory(tuple(self.shape))
+
+    @property
+    def method(self) -> str:
+        """The fitter's method name."""
+        return self.fitter.name
+
+    def describe(self) -> dict:
+        """The options as JSON-able values (the table's provenance ``parameters``): the fitter's
+        configuration (:meth:`~ivc.lut.fitter.Fitter.describe`) beside the others."""
+        others = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "fitter"}
+        return {**self.fitter.describe(), **others}
 
 
 def _check_range(name: str, value, low: int, high: int | None = None, optional: bool = False) -> None:
@@ -138,62 +145,6 @@ def check_grid_memory(shape: tuple[int, int, int], limit: int | None = None) -> 
 
 def _noop(desc: str, total: int) -> Callable[[int], None]:
     return lambda n: None
-
-
-def _grid_cross_validation(samples: FieldSamples, grid: Grid, fit: Callable, folds: int) -> float:
-    """K-fold CV of a grid fit: held-out samples against the table interpolated without them (m)."""
-    fold = samples.folds(folds)
-    predicted = np.full_like(samples.fields, np.nan)
-    for f in range(folds):
-        held = fold == f
-        values = fit(samples.subset(~held))
-        table = GridField(grid, values, np.ones(grid.shape, bool))  # GridField drops the unfitted (NaN) nodes
-        g, _, mapped = table.evaluate(samples.positions[held])
-        g[~mapped] = np.nan
-        predicted[held] = g
-    precision = samples.weights() / samples.leverage() ** 2
-    return pose_equivalent_rms(samples, predicted, precision)
-
-
-def _fitting(options: FitOptions) -> str:
-    """The fit's progress label: a harmonic fit passes over every sample PASSES times."""
-    return f"fitting (harmonic, {PASSES} passes)" if options.method == "harmonic" else f"fitting ({options.method})"
-
-
-def _work(options: FitOptions, samples: FieldSamples) -> int:
-    """Progress units of one fit: samples times passes (harmonic) or grid nodes (poly)."""
-    return len(samples) * PASSES if options.method == "harmonic" else 0
-
-
-def tabulate(samples: FieldSamples, grid: Grid, options: FitOptions,
-             progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, dict]:
-    """Fit the samples by ``options.method``; node values (nx, ny, nz, 3, 3) and the fit report."""
-    if options.method == "harmonic":
-        model, report = fit_harmonic(samples, options.degree, folds=options.folds, progress=progress)
-        return model(grid.nodes()), report
-    degree = 2 if options.degree is None else options.degree
-    radius = grid.spacing if options.radius is None else options.radius
-
-    def fit(part: FieldSamples) -> np.ndarray:
-        return fit_poly(part, grid, degree, radius)
-
-    values = fit_poly(samples, grid, degree, radius, progress=progress)
-    report = {"degree": degree, "degree_chosen_by": "user" if options.degree is not None else "default",
-              "radius_mm": 1000 * radius, "cv_folds": options.folds,
-              "cv_rms_mm": 1000 * _grid_cross_validation(samples, grid, fit, options.folds)}
-    return values, report
-
-
-def _mapped_nodes(values: np.ndarray, support: np.ndarray, min_support: int) -> np.ndarray:
-    """Nodes with enough supporting samples and a fitted (finite) value (nx, ny, nz)."""
-    return (support >= min_support) & np.all(np.isfinite(values.reshape(*support.shape, 9)), axis=-1)
-
-
-def map_change(grid: Grid, before: np.ndarray, after: np.ndarray, valid: np.ndarray) -> float:
-    """Pose-equivalent RMS difference of two tables over the valid nodes where both are defined (m)."""
-    valid = valid & np.all(np.isfinite(after.reshape(*grid.shape, 9)), axis=-1)
-    change = leverage(grid.nodes()[valid]) * np.linalg.norm(after[valid] - before[valid], axis=(1, 2))
-    return float(np.sqrt(np.mean(change**2)))
 
 
 def file_digest(path: str | Path) -> str:
@@ -269,52 +220,17 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
     else:
         grid = Grid.around(samples.positions, options.spacing)
     outside = int(np.sum(~grid.contains(samples.positions)))
-    values, report = tabulate(samples, grid, options, progress(_fitting(options), _work(options, samples)))
-    support = node_support(grid, samples.positions)
-    valid = _mapped_nodes(values, support, options.min_support)
+    fitter = options.fitter.clone()
+    result = fit_map(fitter, samples, grid, options.min_support,
+                     progress(fitter.progress_label, fitter.progress_units(samples)))
     history, stopped = [], None
     if options.refine:
-        S = sweep.signal_matrices()
-        position0, rotation0 = mapping.positions[:, 0], mapping.rotations[:, 0]
-        best = (report["cv_rms_mm"], values, valid, support, samples, report, 0)
-        for iteration in range(1, options.max_refinements + 1):
-            table = GridField(grid, values, valid)
-            r0, T0, ok = resolve_sweep(S, sweep.valid_mask, model.wand, model.interpolant.value_and_jacobian,
-                                       table, position0, rotation0,
-                                       progress(f"refinement {iteration}: rigid wand solve", len(S)))
-            positions, rots = model.wand.propagate(np.where(ok[:, None], r0, 0.0),
-                                                   np.where(ok[:, None, None], T0, np.eye(3)))
-            keep = mapping.keep & ok[:, None]
-            frame, sensor = np.nonzero(keep)
-            fields = rots[frame, sensor] @ S[frame, sensor] - dipole.field(positions[frame, sensor])
-            samples = FieldSamples(positions[frame, sensor], fields, mapping.error_estimate[frame, sensor], frame,
-                                   sensor)
-            new_values, report = tabulate(samples, grid, options,
-                                          progress(f"refinement {iteration}: refit", _work(options, samples)))
-            change = map_change(grid, values, new_values, valid)
-            moved = np.linalg.norm(r0[ok] - position0[ok], axis=1)
-            history.append({"iteration": iteration, "frames_converged": int(ok.sum()),
-                            "sensor0_moved_median_mm": float(1000 * np.median(moved)),
-                            "map_change_mm": 1000 * change, "cv_rms_mm": report["cv_rms_mm"]})
-            values, position0, rotation0 = new_values, np.where(ok[:, None], r0, position0), np.where(
-                ok[:, None, None], T0, rotation0)
-            support = node_support(grid, samples.positions)
-            valid = _mapped_nodes(values, support, options.min_support)
-            gained = report["cv_rms_mm"] < (1 - REFINE_MIN_GAIN) * best[0]
-            if report["cv_rms_mm"] < best[0]:
-                best = (report["cv_rms_mm"], values, valid, support, samples, report, iteration)
-            if change < REFINE_TOLERANCE:
-                stopped = f"the map changed by less than {1e6 * REFINE_TOLERANCE:g} µm"
-                break
-            if not gained:
-                stopped = f"the cross-validation score improved by less than {100 * REFINE_MIN_GAIN:g} %"
-                break
-        _, values, valid, support, samples, report, kept = best
-        for step in history:
-            step["kept"] = step["iteration"] == kept
-        stopped = stopped or f"--max-refinements {options.max_refinements} reached"
+        result, history, stopped = refine_map(result, mapping, model, sweep.signal_matrices(), sweep.valid_mask, grid,
+                                              fitter, options.max_refinements, options.min_support, progress)
+    values, valid, support, samples, report = (result.values, result.valid, result.support, result.samples,
+                                               result.report)
     fit = {
-        "method": options.method, **report,
+        "method": fitter.name, **report,
         "frames": {"recorded": recorded, "used": sweep.n_frames, "stride": stride},
         "samples": {"total": int(mapping.keep.size), "kept": mapping.kept, "used": len(samples),
                     "outside_grid": outside, "dropped": mapping.dropped},
@@ -327,7 +243,7 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
     provenance = {
         "ivc_version": __version__,
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "parameters": {k: v for k, v in asdict(options).items()},
+        "parameters": options.describe(),
         "fixtures": {"vertices": model.vertices, "interpolant": type(model.interpolant).__name__},
     }
     if source is not None:

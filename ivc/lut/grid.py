@@ -144,6 +144,13 @@ class GridField:
         self._origin = np.ascontiguousarray(grid.origin)
         self._shape = np.array(grid.shape, dtype=np.int64)
 
+    @property
+    def kernel_grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, bool]:
+        """The table as compiled look-ups take it: padded values (nx+2, ny+2, nz+2, C), valid cells
+        (nx-1, ny-1, nz-1), origin (3,) m, spacing m, shape (3,) int64 and whether the interpolation is cubic."""
+        return (self._padded, self.valid_cells, self._origin, self.grid.spacing, self._shape,
+                self.interpolation == "cubic")
+
     def evaluate(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(g (..., *channels), ∂g/∂r (..., *channels, 3), mapped (...))`` at points r (..., 3), metres."""
         r = np.asarray(r, float)

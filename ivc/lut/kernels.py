@@ -14,7 +14,7 @@ _OPTS = dict(parallel=True, cache=True, nogil=True)
 
 
 @numba.njit(inline="always")
-def _cell(p, origin, spacing, n):
+def cell_of(p, origin, spacing, n):
     """Cell index in [0, n − 2] and the local coordinate clamped to [0, 1], and whether p is in the grid."""
     u = (p - origin) / spacing
     i = int(np.floor(u))
@@ -32,7 +32,7 @@ def _cell(p, origin, spacing, n):
 
 
 @numba.njit(inline="always")
-def _weights(t, cubic, w, dw):
+def axis_weights(t, cubic, w, dw):
     """Stencil weights of nodes i − 1 .. i + 2 at local coordinate t, and their derivatives in t.
 
     Cubic: Catmull-Rom (interpolating, C1, exact for quadratics). Otherwise linear.
@@ -62,12 +62,12 @@ def _weights(t, cubic, w, dw):
 @numba.njit
 def grid_point(padded, valid_cells, origin, spacing, shape, p, cubic, value, gradient, wx, wy, wz, dx, dy, dz):
     """Value (C,) and gradient (C, 3) of the table at one point p; returns whether p is in a valid cell."""
-    i, tx, in_x = _cell(p[0], origin[0], spacing, shape[0])
-    j, ty, in_y = _cell(p[1], origin[1], spacing, shape[1])
-    k, tz, in_z = _cell(p[2], origin[2], spacing, shape[2])
-    _weights(tx, cubic, wx, dx)
-    _weights(ty, cubic, wy, dy)
-    _weights(tz, cubic, wz, dz)
+    i, tx, in_x = cell_of(p[0], origin[0], spacing, shape[0])
+    j, ty, in_y = cell_of(p[1], origin[1], spacing, shape[1])
+    k, tz, in_z = cell_of(p[2], origin[2], spacing, shape[2])
+    axis_weights(tx, cubic, wx, dx)
+    axis_weights(ty, cubic, wy, dy)
+    axis_weights(tz, cubic, wz, dz)
     C = padded.shape[3]
     for c in range(C):
         value[c] = 0.0
@@ -172,3 +172,7 @@ def _gradient_row(X, Y, Z, degree, re, im, out):
                 out[1, k] = -0.5 * (dr + ur)
                 out[2, k] = zi
                 k += 1
+
+
+#: the names ivc.correct.pose_kernels still imports (until its own rework)
+_cell, _weights = cell_of, axis_weights

@@ -11,7 +11,6 @@ table as the signal path's (the secondary field), so it corrects signals and pos
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import asdict
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -22,11 +21,11 @@ from ivc.dipole.tracker_solver import check_solver
 from ivc.errors import InputError
 from ivc.fixtures.pose_mapping import DROP_REASONS, PoseFixtureModel, map_sweep_poses
 from ivc.lut import harmonics
-from ivc.lut.build import MIN_KEPT_FRACTION, MIN_SAMPLES, FitOptions, _mapped_nodes, file_digest
-from ivc.lut.fit_harmonic import HarmonicModel
+from ivc.lut.build import MIN_KEPT_FRACTION, MIN_SAMPLES, FitOptions, file_digest
+from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
 from ivc.lut.grid import Grid
 from ivc.lut.pose_fit import fit_through_tracker
-from ivc.lut.support import node_support
+from ivc.lut.support import mapped_nodes, node_support
 from ivc.lut.table import LookupTable
 from ivc.session import Session, SessionError
 
@@ -58,12 +57,14 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
 
     ``solver``: the tracker's own pose solver (``ivc.dipole.tracker_solver.SOLVERS``), recorded in the
     table so that corrections invert the same model. ``options``: as :func:`ivc.lut.fit_lut` (the
-    method is always harmonic here; ``refine`` does not apply).
+    fitter must be a :class:`~ivc.lut.fit_harmonic.HarmonicFit`, whose ``degree`` (None: cross-validated
+    up to MAX_DEGREE) and number of folds apply; ``refine`` does not apply).
     """
     check_solver(solver)
     options = options or FitOptions()
     progress = progress or _noop
-    if options.method != "harmonic":
+    harmonic_fit = options.fitter
+    if not isinstance(harmonic_fit, HarmonicFit):
         raise InputError("a pose-only session is fitted with the harmonic method only (through the tracker model)")
     missing = session.missing_for_fit()
     if missing:
@@ -85,7 +86,7 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
     used = pairs.subset(slice(None, None, thin)) if thin > 1 else pairs
     centre = 0.5 * (used.position.min(axis=0) + used.position.max(axis=0))
     scale = float(np.max(np.linalg.norm(used.position - centre, axis=1)))
-    top = MAX_DEGREE if options.degree is None else int(options.degree)
+    top = MAX_DEGREE if harmonic_fit.degree is None else int(harmonic_fit.degree)
     if not 1 <= top <= 12:
         raise InputError(f"harmonic degree {top}: use 1 to 12")
     counts = {d: harmonics.count(d) for d in range(1, top + 1)}
@@ -93,9 +94,9 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
     def basis(r: np.ndarray) -> np.ndarray:
         return harmonics.gradients((r - centre) / scale, top)
 
-    coefficients, report = fit_through_tracker(used, basis, counts, solver, session.hemisphere, options.degree,
-                                               options.folds, progress=progress("fitting through the tracker "
-                                                                                "model", 0))
+    coefficients, report = fit_through_tracker(used, basis, counts, solver, session.hemisphere,
+                                               harmonic_fit.degree, harmonic_fit.cv.k,
+                                               progress=progress("fitting through the tracker model", 0))
     K = harmonics.count(report["degree"])
     harmonic = HarmonicModel(centre, scale, report["degree"], coefficients[:K])
     if options.origin is not None:
@@ -104,7 +105,7 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
         grid = Grid.around(pairs.position, options.spacing)
     values = harmonic(grid.nodes())
     support = node_support(grid, pairs.position)
-    valid = _mapped_nodes(values, support, options.min_support)
+    valid = mapped_nodes(values, support, options.min_support)
     dropped = dict(mapping.dropped)
     fit = {
         "method": "harmonic", **report, "input": "reported poses", "tracker_solver": solver,
@@ -120,7 +121,7 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
     provenance = {
         "ivc_version": __version__,
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "parameters": {**asdict(options), "tracker_solver": solver, "max_pairs": max_pairs},
+        "parameters": {**options.describe(), "tracker_solver": solver, "max_pairs": max_pairs},
         "fixtures": {"vertices": model.vertices, "interpolant": "HarmonicField (through the tracker model)"},
     }
     if source is not None:

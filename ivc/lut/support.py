@@ -24,3 +24,8 @@ def node_support(grid: Grid, positions: np.ndarray) -> np.ndarray:
             for dz in (0, 1):
                 support += padded[dx : dx + grid.shape[0], dy : dy + grid.shape[1], dz : dz + grid.shape[2]]
     return support
+
+
+def mapped_nodes(values: np.ndarray, support: np.ndarray, min_support: int) -> np.ndarray:
+    """Nodes (nx, ny, nz) with at least ``min_support`` samples around them and a fitted (finite) value."""
+    return (support >= min_support) & np.all(np.isfinite(values.reshape(*support.shape, 9)), axis=-1)

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from ivc.predict.auto import AutoPredictor
 from ivc.predict.base import Predictor, PredictorError, Stream
 from ivc.predict.dq import DQPredictor, dqekf_ca, dqekf_cv, mmdq2, mmdq3
-from ivc.predict.evaluate import NoPrediction
+from ivc.predict.hold import NoPrediction
 from ivc.predict.linear import LinearPredictor, alpha_beta, kinematic, polynomial
 from ivc.predict.mmae import MMAE
 from ivc.predict.nasa import NasaEKF

@@ -37,7 +37,7 @@ from ivc.predict.base import (
     check_stream,
 )
 from ivc.predict.dq import SIGMA_CV1, dqekf_ca, dqekf_cv, mmdq2
-from ivc.predict.evaluate import NoPrediction
+from ivc.predict.hold import NoPrediction
 from ivc.predict.linear import polynomial
 from ivc.predict.recording import REFERENCE_MAX_STEP_S, future_reference
 from ivc.predict.timing import check_time, repeats

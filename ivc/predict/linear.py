@@ -5,7 +5,7 @@ rotation ``Δq(k) = q(k) ⊗ q(k−1)*`` is turned into a rotation vector and ac
 θ(k) (rad, reference frame, per axis); a linear predictor with steady-state recursion
 ``X(k) = G X(k−1) + K θ(k)`` predicts θ(k + p) = D(p) X(k), and the prediction is applied to
 the measurement: ``q̂(k + p) = exp(D(p) X(k) − θ(k)) ⊗ q(k)``. Because the whole chain is
-linear in θ, its frequency response is exactly :func:`ivc.predict.frequency.response` of
+linear in θ, its frequency response is exactly :func:`ivc.predict.studies.frequency.response` of
 (G, K, D), which the tests check against the time-domain output.
 
 * ``polynomial``: x + v p (+ ½ a p²) with v, a from a least-squares fit to the last samples of θ;
@@ -36,7 +36,7 @@ from ivc.predict.base import (
     check_stream,
 )
 from ivc.predict.delta import deltas
-from ivc.predict.frequency import kinematic_gain
+from ivc.predict.gains import kinematic_gain
 from ivc.predict.quat import delta_q, qmul, qmul_conj, rate_of
 from ivc.predict.timing import check_time, repeats, restarts
 

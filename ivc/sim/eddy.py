@@ -46,7 +46,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from ivc import dipole
-from ivc.dipole.kernels import _field_entries
+from ivc.dipole.kernels import field_entries
 
 #: Dunavant's degree-5 rule on a triangle: barycentric points and weights (sum 1)
 _A1, _B1, _W1 = 0.059715871789770, 0.470142064105115, 0.132394152788506
@@ -251,7 +251,7 @@ def _dipole_sum_kernel(points, centres, moments, out):  # pragma: no cover - com
             x = px - centres[f, 0]
             y = py - centres[f, 1]
             z = pz - centres[f, 2]
-            f00, f11, f22, f01, f02, f12 = _field_entries(x, y, z)
+            f00, f11, f22, f01, f02, f12 = field_entries(x, y, z)
             for j in range(3):
                 m0 = moments[f, 0, j]
                 m1 = moments[f, 1, j]

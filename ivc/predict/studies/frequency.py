@@ -1,4 +1,8 @@
-"""Frequency-domain analysis of linear predictors (Azuma & Bishop 1995; docs/math.md §16).
+"""Frequency-domain analysis of linear predictors (Azuma & Bishop 1995; docs/math.md §16): a study.
+
+Reproduces Azuma & Bishop 1995's transfer functions and their steady-state Kalman cases (the
+tables of docs/predict.md); the predictors themselves live in :mod:`ivc.predict`, which does
+not import this module.
 
 Equations: docs/math.md §16.
 
@@ -17,7 +21,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg import solve_discrete_are
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
@@ -74,13 +77,6 @@ def crossovers(f: ArrayLike, a: ArrayLike, b: ArrayLike) -> FloatArray:
     return f[i] - d[i] * (f[i + 1] - f[i]) / (d[i + 1] - d[i])
 
 
-def steady_state_gain(Phi: ArrayLike, H: ArrayLike, W: ArrayLike, V: ArrayLike) -> FloatArray:
-    """Steady-state Kalman gain (N, F) of x(k+1) = Φx + w, y = Hx + v, from the discrete Riccati equation."""
-    Phi, H, W, V = (np.atleast_2d(np.asarray(a, dtype=float)) for a in (Phi, H, W, V))
-    P = solve_discrete_are(Phi.T, H.T, W, V)  # a-priori covariance
-    return P @ H.T @ np.linalg.inv(H @ P @ H.T + V)
-
-
 @dataclass(frozen=True)
 class ABCase:
     """One of A&B95's steady-state Kalman + polynomial predictors (docs/math.md §16.3)."""
@@ -115,9 +111,3 @@ AB_CASES = {
     3: ABCase("case 3: position + acceleration", np.array([[1.0, 0, 0], [0, 0, 1.0]]),
               np.array([[0.0807, 0.000016], [0.342, 0.00345], [0.0467, 0.618]]), (0, 2)),
 }
-
-
-def kinematic_gain(h: float, w_a: float, V: float) -> FloatArray:
-    """NASA's per-axis translational KF (eq. 12-14): 3 states [p, v, a], position measured, noise on a only."""
-    Phi = np.array([[1, h, h * h / 2], [0, 1, h], [0, 0, 1]])
-    return steady_state_gain(Phi, [[1.0, 0, 0]], np.diag([0.0, 0.0, w_a]), [[V]])

@@ -1,4 +1,7 @@
-"""Prediction error against time-shifted truth: the metrics and tables of the thesis (docs/math.md §14.1).
+"""Prediction error against time-shifted truth: the metrics and tables of the thesis (docs/math.md §14.1), a study.
+
+The product's baseline (:class:`~ivc.predict.hold.NoPrediction`) lives in :mod:`ivc.predict`,
+which does not import this module.
 
 The prediction made at frame k for δ = nτ ahead is compared with the orientation at frame
 k + n: by default the *measured* one (as the thesis does), or the noiseless truth of a
@@ -27,7 +30,7 @@ from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter1d
 
 from ivc import rotations
-from ivc.predict.base import Predictor, Stream, as_given, check_horizons, check_stream
+from ivc.predict.base import Predictor
 
 FloatArray = NDArray[np.float64]
 
@@ -89,38 +92,6 @@ class Evaluation:
 
     def at(self, horizon_ms: float) -> dict[str, float]:
         return self.rows[int(np.argmin(np.abs(self.horizons_ms - horizon_ms)))]
-
-
-class LastSample(Stream):
-    """The live baseline: the latest valid measurement of each sensor, NaN where the last one was invalid."""
-
-    def __init__(self, n_sensors: int):
-        super().__init__(None, n_sensors)
-
-    def update(self, q, valid=None, time=None):
-        qs, ok = self._check_frame(q, valid)
-        self.last = np.where(ok[:, None], qs, np.nan)
-
-    def predict(self, horizon):
-        return self.last.copy()
-
-
-class NoPrediction(Predictor):
-    """The baseline: show the latest measurement (the display lags by the horizon)."""
-
-    name = "none"
-
-    def __init__(self, rate_hz: float = 120.0):
-        self.rate_hz = rate_hz
-
-    def predict(self, q, horizons, valid=None, time=None):
-        h = check_horizons(horizons)
-        qs, _, single = check_stream(q, valid)  # invalid samples are NaN
-        out = np.broadcast_to(qs, (len(h),) + qs.shape).copy()
-        return as_given(out, single)
-
-    def stream(self, n_sensors=1):
-        return LastSample(n_sensors)
 
 
 def evaluate(predictor: Predictor, measured: FloatArray, rate_hz: float, motion: str = "",
