@@ -92,18 +92,18 @@ def test_compiled_stream_frame_is_the_batch_computation_from_the_same_start(exac
     stream = PoseCorrector(exact_table)
     stream.update(v[:4], Q[:4], sensors="abcd")  # starts every track (through the batch's path)
     for k in range(4, 40, 4):
-        slots = stream._slots("abcd", 4)
-        offsets = np.where(stream._tracked[slots][:, None], stream._offset[slots], np.nan)
-        expected = stream._run(v[k : k + 4], Q[k : k + 4], offsets, serial=True)
+        offsets = stream.warm_starts("abcd")
+        expected = stream.correct_from(v[k : k + 4], Q[k : k + 4], offsets)
         out = stream.update(v[k : k + 4], Q[k : k + 4], sensors="abcd")
         for name in ("position", "quaternion", "flags", "residual", "iterations"):
             np.testing.assert_array_equal(getattr(out, name), getattr(expected, name), err_msg=name)
         ok = out.flags == 0
-        assert np.array_equal(stream._tracked[slots], ok)
-        np.testing.assert_array_equal(stream._offset[slots][ok], (out.position - v[k : k + 4])[ok])
+        after = stream.warm_starts("abcd")
+        assert np.array_equal(np.isfinite(after).all(axis=1), ok)
+        np.testing.assert_array_equal(after[ok], (out.position - v[k : k + 4])[ok])
     assert stream.update(v[8:12], Q[8:12], sensors="abcd").flags[1] == INVALID_INPUT
     stream.reset()
-    assert not stream._tracked.any()
+    assert np.isnan(stream.warm_starts("abcd")).all()
     with pytest.raises(InputError, match="sensor names"):
         stream.update(v[:4], Q[:4], sensors="abc")
 

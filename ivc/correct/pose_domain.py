@@ -282,8 +282,7 @@ class PoseCorrector:
             r, q, flags = np.empty((n, 3)), np.empty((n, 4)), np.empty(n, dtype=np.uint8)
             miss, iterations = np.empty(n), np.empty(n, dtype=np.int64)
             f = self.field
-            _pose_kernels.stream_kernel(v, Q, slots, self._offset, self._tracked, self._h, f._padded, f.valid_cells,
-                                        f._origin, f.grid.spacing, f._shape, f.interpolation == "cubic",
+            _pose_kernels.stream_kernel(v, Q, slots, self._offset, self._tracked, self._h, *f.kernel_grid,
                                         self.max_iterations, self.tolerance, self.max_residual, r, q, flags, miss,
                                         iterations)
             return Correction(r, q, flags, miss, iterations)
@@ -295,6 +294,23 @@ class PoseCorrector:
             if out.flags[n] == 0:
                 self._offset[slot] = out.position[n] - v[n]
         return out
+
+    def warm_starts(self, sensors: list | tuple | str) -> np.ndarray:
+        """Each named sensor's current warm start for :meth:`update`: its previous good correction offset
+        ``r − v`` (n, 3) m, NaN where it has none (a new sensor, after a flagged sample or :meth:`reset`)."""
+        slots = self._slots(sensors, len(tuple(sensors)))
+        return np.where(self._tracked[slots][:, None], self._offset[slots], np.nan)
+
+    def correct_from(self, position: np.ndarray, rotation: np.ndarray, offsets: np.ndarray) -> Correction:
+        """The batch's path for reported positions (n, 3) m and rotations (n, 3, 3), each sample started at
+        ``position + offsets`` ((n, 3) m; a NaN row: at the position, with the ambiguity test), without touching
+        any sensor's warm start: what :meth:`update` computes for a frame, in the batch's steps."""
+        v = np.ascontiguousarray(np.asarray(position, dtype=float).reshape(-1, 3))
+        Q = np.asarray(rotation, dtype=float).reshape(-1, 3, 3)
+        offsets = np.asarray(offsets, dtype=float).reshape(-1, 3)
+        if not len(v) == len(Q) == len(offsets):
+            raise InputError(f"{len(v)} positions, {len(Q)} rotations and {len(offsets)} offsets: give one each")
+        return self._run(v, Q, offsets, serial=True)
 
     def _slots(self, sensors, n: int) -> np.ndarray:
         """Rows of the warm-start arrays (``_offset``, ``_tracked``) of the frame's sensors, added on first use."""

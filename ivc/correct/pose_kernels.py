@@ -22,8 +22,8 @@ import numpy as np
 
 from ivc.correct.kernels import quaternion_of
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
-from ivc.dipole.kernels import _principal_eigenvector, closed_form_one, field_matrix
-from ivc.lut.kernels import _cell, _weights
+from ivc.dipole.kernels import closed_form_one, field_matrix, principal_eigenvector
+from ivc.lut.kernels import axis_weights, cell_of
 
 _OPTS = dict(parallel=True, cache=True, nogil=True)
 #: step halvings tried before a sample is given up
@@ -33,12 +33,12 @@ BACKTRACKS = 12
 @numba.njit(inline="always")
 def _grid_value(padded, valid_cells, origin, spacing, shape, p, cubic, value, wx, wy, wz, dx, dy, dz):
     """Value (C,) of the table at p (no gradient); returns whether p is in a valid cell."""
-    i, tx, in_x = _cell(p[0], origin[0], spacing, shape[0])
-    j, ty, in_y = _cell(p[1], origin[1], spacing, shape[1])
-    k, tz, in_z = _cell(p[2], origin[2], spacing, shape[2])
-    _weights(tx, cubic, wx, dx)
-    _weights(ty, cubic, wy, dy)
-    _weights(tz, cubic, wz, dz)
+    i, tx, in_x = cell_of(p[0], origin[0], spacing, shape[0])
+    j, ty, in_y = cell_of(p[1], origin[1], spacing, shape[1])
+    k, tz, in_z = cell_of(p[2], origin[2], spacing, shape[2])
+    axis_weights(tx, cubic, wx, dx)
+    axis_weights(ty, cubic, wy, dy)
+    axis_weights(tz, cubic, wz, dz)
     C = padded.shape[3]
     for c in range(C):
         value[c] = 0.0
@@ -82,7 +82,7 @@ def _position(F, h, B, wa, wb, ev, phi):
         for j in range(3):
             B[i, j] = F[0, i] * F[0, j] + F[1, i] * F[1, j] + F[2, i] * F[2, j]
     tr = B[0, 0] + B[1, 1] + B[2, 2]
-    _principal_eigenvector(B, wa, wb, ev)
+    principal_eigenvector(B, wa, wb, ev)
     sign = 1.0
     if ev[0] * h[0] + ev[1] * h[1] + ev[2] * h[2] < 0.0:
         sign = -1.0
