@@ -300,7 +300,7 @@ def test_itk_transform_read_by_simpleitk_moves_reported_positions_to_the_correct
     assert np.abs(at - c.target[c.valid][::37]).max() < 1e-12
     # undefined nodes hold the map's extension past the mapped volume (or their nearest node's), never zero
     with h5py.File(path, "r") as h5:
-        valid = np.transpose(h5["ivc/valid"][()], (2, 1, 0)).astype(bool)
+        valid = np.transpose(h5["/ivc/valid"][()], (2, 1, 0)).astype(bool)
         assert "extension of the map" in h5["ivc"].attrs["undefined_nodes"]
     assert np.array_equal(valid, c.valid) and not valid.all()
     filled = c.filled_displacement()
@@ -327,7 +327,7 @@ def test_slicer_itk_is_the_itk_field_under_the_class_slicer_reads_as_to_parent(t
         assert b["TransformGroup/0/TransformType"][0].decode() == "DisplacementFieldTransform_double_3_3"
         for name in ("TransformParameters", "TransformFixedParameters"):
             assert np.array_equal(a["TransformGroup/0/" + name][()], b["TransformGroup/0/" + name][()])
-        assert np.array_equal(a["ivc/valid"][()], b["ivc/valid"][()])
+        assert np.array_equal(a["/ivc/valid"][()], b["/ivc/valid"][()])
         assert "to-parent" in a["ivc"].attrs["direction"]
     with pytest.raises(RuntimeError, match="InverseDisplacementFieldTransform"):
         sitk.ReadTransform(str(slicer))
