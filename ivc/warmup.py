@@ -4,8 +4,8 @@ Every kernel is compiled lazily, on its first call, and written to numba's on-di
 (``cache=True``), so only the first run after an install (or an upgrade) pays for it. This
 module runs each kernel a command uses once on a tiny synthetic problem, through the same
 public functions (hence the same argument types) as the commands, so that the cache is
-filled before a user waits on it: ``correct`` (batched and streaming correction, poses
-rebuilt as signals, ``ivc correct`` and ``--live``), ``fit`` (the cube solve, the harmonic
+filled before a user waits on it: ``correct`` (batched and streaming correction, of signals
+and of reported poses, ``ivc correct`` and ``--live``), ``fit`` (the cube solve, the harmonic
 basis, the rigid-wand refinement, table evaluation: ``ivc fit``, ``ivc demo``).
 
 The cache lives beside the sources (``__pycache__``) when the package directory is
@@ -45,7 +45,7 @@ def _table():
 
 def _correct() -> None:
     from ivc import dipole
-    from ivc.correct import Corrector
+    from ivc.correct import Corrector, PoseCorrector
 
     corrector = Corrector(_table(), "+x")
     r = np.array([0.4, 0.01, -0.02]) + 0.01 * np.random.default_rng(0).standard_normal((64, 3))
@@ -55,6 +55,10 @@ def _correct() -> None:
     corrector.batch(S[:4])  # fewer: the serial one
     corrector.batch_poses(r[:4], q[:4])
     corrector.update(S[:2])  # the streaming path (ivc correct --live)
+    poses = PoseCorrector(_table(), "+x")  # reported poses alone (ivc correct on poses, TRANSFORM with --live)
+    poses.batch(r, q)
+    poses.batch(r[:4], q[:4])
+    poses.warm_up(r[0])
 
 
 def _fit() -> None:

@@ -103,6 +103,7 @@ def test_compiled_stream_frame_is_the_batch_computation_from_the_same_start(exac
         np.testing.assert_array_equal(after[ok], (out.position - v[k : k + 4])[ok])
     assert stream.update(v[8:12], Q[8:12], sensors="abcd").flags[1] == INVALID_INPUT
     stream.reset()
+    stream.warm_up(v[0])  # runs the compiled steps, touches no sensor's warm start
     assert np.isnan(stream.warm_starts("abcd")).all()
     with pytest.raises(InputError, match="sensor names"):
         stream.update(v[:4], Q[:4], sensors="abc")

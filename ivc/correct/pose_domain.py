@@ -312,6 +312,19 @@ class PoseCorrector:
             raise InputError(f"{len(v)} positions, {len(Q)} rotations and {len(offsets)} offsets: give one each")
         return self._run(v, Q, offsets, serial=True)
 
+    def warm_up(self, position: np.ndarray) -> None:
+        """Run the compiled steps of :meth:`batch` and :meth:`update` once, at a reported position (3,) m, so
+        that a stream's first frames do not wait for them; no sensor's warm start is touched."""
+        v = np.asarray(position, dtype=float).reshape(1, 3)
+        Q = np.eye(3)[None]
+        self.correct_from(v, Q, np.zeros((1, 3)))
+        if self.solver == "closed-form":
+            out = [np.empty((1, 3)), np.empty((1, 4)), np.empty(1, dtype=np.uint8), np.empty(1),
+                   np.empty(1, dtype=np.int64)]
+            _pose_kernels.stream_kernel(np.ascontiguousarray(v), Q, np.zeros(1, dtype=np.int64), np.zeros((1, 3)),
+                                        np.ones(1, dtype=bool), self._h, *self.field.kernel_grid,
+                                        self.max_iterations, self.tolerance, self.max_residual, *out)
+
     def _slots(self, sensors, n: int) -> np.ndarray:
         """Rows of the warm-start arrays (``_offset``, ``_tracked``) of the frame's sensors, added on first use."""
         keys = tuple(range(n)) if sensors is None else tuple(sensors)

@@ -156,8 +156,7 @@ class LiveCorrector:
             np.array(self.corrector.field.grid.shape) - 1)
         self.corrector.update(dipole.signal(centre[None], np.eye(3)[None]), sensors=["warm-up"])
         self.corrector.reset()
-        self.pose_corrector.update(centre[None], np.eye(3)[None], sensors=["warm-up"])
-        self.pose_corrector.reset()
+        self.pose_corrector.warm_up(centre)
         if self.predictor:
             self._predicted("warm-up", np.array([1.0, 0.0, 0.0, 0.0]), True)
             self._streams.clear()
