@@ -34,7 +34,8 @@ from ivc.predict.tuning import synthetic
 TAU = 1.0 / 120.0
 #: every timing is the best of this many runs, ours and the baseline's alike (the least disturbed by other load)
 REPEATS = 5
-COMPARED = ("dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", "mmae", "alpha-beta", "kinematic", "poly1", "poly2")
+COMPARED = ("dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", "mmae", "alpha-beta", "kinematic", "poly1", "poly2",
+            "direct", "auto")
 
 
 def _per_step(fn, steps: int) -> float:

@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from ivc import session as session_io
@@ -85,6 +86,7 @@ def test_predict_benchmark_prints_the_tables(tmp_path):
     assert tuned.exit_code == 0 and "DQ    sigma_v" in tuned.output and "tuned on the set above" in tuned.output
 
 
+@pytest.mark.slow
 def test_compensators_prints_table1_and_the_designs_it_scored():
     from ivc.predict.studies import compensator
 

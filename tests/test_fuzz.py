@@ -23,6 +23,9 @@ from ivc.session import Step
 from ivc.session import read as read_session
 from ivc.session.model import STEPS
 
+#: slow (2,000 generated inputs per reader, about two minutes); deselected by -m "not slow"
+pytestmark = pytest.mark.slow
+
 EXAMPLES = int(os.environ.get("IVC_FUZZ_EXAMPLES", 2000))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,

@@ -136,6 +136,7 @@ def _synthetic_recordings(tmp_path, rng):
     return paths
 
 
+@pytest.mark.slow
 def test_reader_and_cli_on_a_synthetic_recording(tmp_path, rng):
     paths = _synthetic_recordings(tmp_path, rng)
     rec = read_ilemt(paths[0])

@@ -140,6 +140,7 @@ def test_ivc_correct_live_matches_offline_and_survives_a_server_restart(exact_ta
     assert "Traceback" not in err, err
 
 
+@pytest.mark.slow
 def test_bad_input_is_dropped_and_logged_once_and_slow_clients_do_not_block(exact_table, rng, caplog):  # noqa: F811
     """Garbage bytes, other message types, unknown sensors, out-of-order stamps and NaN poses on a raw socket."""
     matrices = reported_poses(rng, 6)
@@ -191,6 +192,7 @@ def test_bad_input_is_dropped_and_logged_once_and_slow_clients_do_not_block(exac
     assert sum("'S1': dropped a TRANSFORM message: it holds NaN" in w for w in warnings) == 1
 
 
+@pytest.mark.slow
 def test_live_prediction_matches_offline_correct_then_predict(exact_table, rng):  # noqa: F811
     """`--predict`: each sensor's corrected orientation predicted 50 ms ahead, as `ivc correct --predict` offline."""
     from ivc.predict import make
@@ -253,6 +255,7 @@ def test_live_prediction_matches_offline_correct_then_predict(exact_table, rng):
     assert np.allclose(ahead, np.linalg.norm(omega, axis=1) * horizon, rtol=0.05)
 
 
+@pytest.mark.slow
 def test_live_prediction_takes_the_tuning(exact_table):  # noqa: F811
     """--tune-from reaches each sensor's filter; a tuning made at another rate is refused before any socket opens."""
     from ivc.predict import PredictorError, Tuning, make
@@ -272,3 +275,30 @@ def test_live_prediction_takes_the_tuning(exact_table):  # noqa: F811
     finally:
         live.close()
         listener.close()
+
+
+def test_live_prediction_runs_on_the_time_stamps_and_auto_scores_at_the_horizon(exact_table, rng):  # noqa: F811
+    """Jittered stamps reach the predictor (as the batch with those times); auto and direct learn at --horizon."""
+    from ivc.predict import make
+    from ivc.predict.delta import delta_q
+
+    n, rate, horizon = 240, 60.0, 0.08
+    t = 1000.0 + np.cumsum(rng.uniform(0.010, 0.025, n))
+    w = np.stack([1.5 * np.sin(2 * np.pi * 0.7 * (t - 1000.0)), 0.4 + 0 * t, 0.6 * np.cos(2 * np.pi * 0.3 * t)], 1)
+    q = np.empty((n, 4))
+    q[0] = rotations.random(1, rng)[0]
+    for k in range(1, n):
+        q[k] = rotations.multiply(delta_q(w[k] * (t[k] - t[k - 1]), 1.0), q[k - 1])
+    listener = socket.create_server(("127.0.0.1", 0))
+    live = LiveCorrector(Corrector(exact_table), listener.getsockname(), ("127.0.0.1", 0), predictor="auto",
+                         horizon=horizon, rate_hz=rate)
+    try:
+        got = np.array([live._predicted("S0", q[k], True, t[k]) for k in range(n)])
+        stream = live._streams["S0"]
+        assert stream.predictor.horizon_s == horizon
+        assert [p.horizon_s for p in stream.predictor.bank if p.name == "direct"] == [horizon]
+    finally:
+        live.close()
+        listener.close()
+    batch = make("auto", rate).predict(q, [horizon], time=t)[0]  # batch weights are per horizon
+    assert np.max(rotations.angle_between(got[20:], batch[20:])) < 1e-9

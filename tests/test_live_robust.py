@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pyigtl
+import pytest
 from pyigtl import TransformMessage
 from pyigtl.messages import CRC64
 
@@ -125,6 +126,7 @@ def _run_live(table, payloads, names_wanted, caplog, sensors=None):
     return names, live.stats, [r.getMessage() for r in caplog.records]
 
 
+@pytest.mark.slow
 def test_zero_signals_and_absurd_translations_are_dropped_and_logged_and_the_loop_goes_on(exact_table, rng,  # noqa: F811
                                                                                           caplog):
     r, T, S = distorted(rng, 6)
@@ -147,6 +149,7 @@ def test_zero_signals_and_absurd_translations_are_dropped_and_logged_and_the_loo
     assert sum("published as 'StylusTipToRefer_ivc'" in w for w in log) == 1
 
 
+@pytest.mark.slow
 def test_a_phantom_header_does_not_lose_the_messages_after_it(exact_table, rng, caplog):  # noqa: F811
     r, T, S = distorted(rng, 40)
     good = reported_matrices(S).astype(float)

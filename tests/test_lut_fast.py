@@ -82,7 +82,7 @@ def test_compiled_rigid_solve_equals_numpy(small_session):
     from ivc.lut.refine import solve_rigid
 
     _, session = small_session
-    table = fit_lut(session, FitOptions(min_support=5))
+    table = fit_lut(session, FitOptions(min_support=5, refine=False))
     model = FixtureModel.from_session(session)
     part = session.select_frames("wand_sweep", slice(0, 600))
     mapping = map_sweep(part, model, Gates())

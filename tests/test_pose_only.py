@@ -53,6 +53,7 @@ def test_noise_free_round_trip_recovers_the_true_pose(exact_table, rng):
     assert np.all(out.residual < 1e-10)
 
 
+@pytest.mark.slow
 def test_round_trip_with_the_least_squares_tracker_model(exact_table, rng):
     r, T, v, Q = reported(rng, 40, solver="least-squares")
     assert PoseCorrector(exact_table, solver="least-squares").solver == "least-squares"
@@ -109,6 +110,7 @@ def test_compiled_stream_frame_is_the_batch_computation_from_the_same_start(exac
         stream.update(v[:4], Q[:4], sensors="abc")
 
 
+@pytest.mark.slow
 def test_flags_mean_what_they_say(exact_table, rng):
     r, T, v, Q = reported(rng, 4)
     q = rotations.from_matrix(Q)

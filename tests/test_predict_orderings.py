@@ -7,6 +7,9 @@ from ivc.predict import make
 from ivc.predict.motion import head_motion
 from ivc.predict.studies.evaluate import HORIZONS_MS, error_table, evaluate, plot_error_vs_horizon, snr_table
 
+#: slow (four synthetic motions through every predictor); deselected by -m "not slow"
+pytestmark = pytest.mark.slow
+
 NAMES = ("none", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf")
 
 

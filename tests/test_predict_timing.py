@@ -10,7 +10,7 @@ from ivc.predict.delta import delta_q
 from ivc.predict.motion import head_motion
 from ivc.predict.timing import MAX_GAP_S, stream_timing
 
-VARIABLE_STEP = ["dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", "poly1", "poly2"]
+VARIABLE_STEP = ["dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", "poly1", "poly2", "direct"]
 
 
 def _rotation(rng, n=400, gap_at=None, gap_s=0.0):
@@ -59,7 +59,7 @@ def test_repeated_samples_are_dropped_not_taken_as_no_motion(rng, name):
     assert timing.repeats == [len(stale)]
 
 
-@pytest.mark.parametrize("name", ["dqekf-cv", "mmdq2", "poly1", "q-ekf", "kinematic"])
+@pytest.mark.parametrize("name", ["dqekf-cv", "mmdq2", "poly1", "q-ekf", "kinematic", "direct", "nasa-ekf"])
 def test_a_long_gap_restarts_the_filter_and_is_reported(rng, name):
     t, w, q0, q = _rotation(rng, gap_at=200, gap_s=2.0)
     predictor = make(name, 30.0)
@@ -108,3 +108,78 @@ def test_timing_report_and_bad_times():
     stream.update(rotations.random(1, 0), time=1.0)
     with pytest.raises(PredictorError, match="does not come after"):
         stream.update(rotations.random(1, 1), time=1.0)
+
+
+def test_the_nasa_ekf_runs_on_the_actual_steps(rng):
+    """Its cycle spans each actual step (Φ = expm(hF), W_r scaled by h / τ): once converged, exact; repeats dropped."""
+    t, w, q0, q = _rotation(rng)
+    q[40::9] = q[39::9][: len(q[40::9])]  # stale frames
+    predictor = make("nasa-ekf", 30.0)
+    pred = predictor.predict(q, [0.05], time=t)[0]
+    truth = rotations.multiply(delta_q(w * (t[:, None] + 0.05), 1.0), q0)
+    assert rotations.angle_between(pred[100:], truth[100:]).max() < 1e-6
+    stream = predictor.stream(1)
+    live = np.empty((len(t), 4))
+    for k in range(len(t)):
+        stream.update(q[k:k + 1], time=t[k])
+        live[k] = stream.predict(0.05)[0]
+    assert np.array_equal(np.isnan(live), np.isnan(pred))
+    assert np.nanmax(rotations.angle_between(live, pred)) < 1e-9
+
+
+@pytest.mark.parametrize("name", ["alpha-beta", "kinematic"])
+def test_the_steady_state_designs_run_on_the_actual_steps(rng, name):
+    """Fed time stamps, the α-β and kinematic filters are the time-varying Kalman filters of their models: the
+    steady-state filter at steps of exactly 1 / rate_hz, exact on a constant rotation at random steps once settled."""
+    predictor = make(name, 30.0)
+    t, w, q0, q = _rotation(rng)
+    q[40::9] = q[39::9][: len(q[40::9])]  # stale frames
+    pred = predictor.predict(q, [0.05], time=t)[0]
+    truth = rotations.multiply(delta_q(w * (t[:, None] + 0.05), 1.0), q0)
+    assert rotations.angle_between(pred[100:], truth[100:]).max() < 1e-6
+    stream = predictor.stream(1)
+    live = np.empty((len(t), 4))
+    for k in range(len(t)):
+        stream.update(q[k:k + 1], time=t[k])
+        live[k] = stream.predict(0.05)[0]
+    assert np.nanmax(rotations.angle_between(live, pred)) < 1e-9
+    uniform = np.arange(300) / 30.0
+    turning = rotations.multiply(delta_q(np.sin(uniform)[:, None] * w, 1.0), q0)
+    steady = predictor.predict(turning, [0.05])[0]  # no time stamps: the steady-state filter
+    assert np.max(rotations.angle_between(predictor.predict(turning, [0.05], time=uniform)[0], steady)) < 1e-12
+
+
+def test_mmae_runs_on_the_actual_steps(rng):
+    """Fed time stamps, each MMAE cycle is over the actual step (Φ, Qd by Van Loan there): on jittered samples as
+    accurate as on uniform ones, where the nominal step is 8x worse; the nominal step itself is unchanged."""
+    def motion(t):
+        return rotations.from_rotvec(np.stack([0.8 * np.sin(1.3 * t), 0.5 * np.sin(0.7 * t + 1), 0.3 * np.cos(2.1 * t)],
+                                              axis=1))
+
+    dt = rng.uniform(0.010, 0.030, 1500)
+    jittered, uniform = np.cumsum(dt), np.arange(1, 1501) * dt.mean()
+    predictor = make("mmae", 1.0 / dt.mean())
+    errors = {}
+    for label, t in (("jittered", jittered), ("uniform", uniform)):
+        q, truth = motion(t), motion(t + 0.05)
+        errors[label] = np.median(rotations.angle_between(predictor.predict(q, [0.05], time=t)[0], truth)[100:])
+        errors[label, "nominal"] = np.median(rotations.angle_between(predictor.predict(q, [0.05])[0], truth)[100:])
+    assert errors["jittered"] < 1.1 * errors["uniform"]
+    assert errors["jittered", "nominal"] > 5 * errors["jittered"]
+    q = motion(uniform)
+    assert np.max(rotations.angle_between(predictor.predict(q, [0.05], time=uniform)[0],
+                                          predictor.predict(q, [0.05])[0])) < 1e-12
+    t, q = jittered[:400].copy(), motion(jittered[:400])
+    t[200:] += 2.0  # a gap: restarts, reported
+    q[50::9] = q[49::9][: len(q[50::9])]  # stale frames
+    pred = predictor.predict(q, [0.05], time=t)[0]
+    fresh = predictor.predict(q[200:], [0.05], time=t[200:])[0]
+    assert np.nanmax(rotations.angle_between(pred[200:], fresh)) < 1e-12
+    stream = predictor.stream(1)
+    live = np.empty((len(t), 4))
+    for k in range(len(t)):
+        stream.update(q[k:k + 1], time=t[k])
+        live[k] = stream.predict(0.05)[0]
+    assert np.array_equal(np.isnan(live), np.isnan(pred))
+    assert np.nanmax(rotations.angle_between(live, pred)) < 1e-9
+    assert stream.restarts == 1

@@ -134,6 +134,7 @@ def _interrupt(args, tmp_path, after_s, wait_for=None):
     return process.returncode, err
 
 
+@pytest.mark.slow
 def test_an_interrupted_fit_or_collect_leaves_no_partial_output_and_the_input_intact(small_session, tmp_path):
     _, session = small_session
     session_file = tmp_path / "in.h5"
@@ -372,6 +373,7 @@ def test_a_session_step_with_a_repeated_time_is_refused(tmp_path, rng):
         session_io.write(session_io.Session(steps={"check": step}), tmp_path / "s.h5")
 
 
+@pytest.mark.slow
 def test_evaluate_and_report_survive_an_all_zero_signal(tmp_path):
     samples = ROOT / "sample_data" / "recordings"
     data = session_io.read(samples / "default_room_check.h5")

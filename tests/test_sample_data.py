@@ -73,6 +73,7 @@ def test_correcting_a_recording_from_elsewhere_says_what_to_check(tmp_path):
     assert "--max-residual 0.001" in result.output
 
 
+@pytest.mark.slow
 def test_report_on_the_shipped_table_and_check_poses(tmp_path):
     out = tmp_path / "report"
     result = CliRunner().invoke(cli, ["report", str(CHECK), str(TABLE), "-o", str(out), "--quiet"])

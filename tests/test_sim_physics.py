@@ -124,6 +124,7 @@ def test_secondary_field_is_divergence_and_curl_free(scene_field):
         assert np.abs(div).max() < 2e-2 * scale and np.abs(curl).max() < 2e-2 * scale
 
 
+@pytest.mark.slow
 def test_tabulated_field_matches_exact_sum(scene_field):
     scene, field = scene_field
     rng = np.random.default_rng(4)

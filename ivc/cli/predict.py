@@ -36,7 +36,7 @@ from ivc.predict.tuning import Tuning, synthetic
 from ivc.session import Session, Step
 
 #: the benchmark's default filters: the thesis's, Kyger's and the linear ones
-BENCHMARK_FILTERS = ("none", "auto", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", "mmae", "alpha-beta",
+BENCHMARK_FILTERS = ("none", "auto", "direct", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", "mmae", "alpha-beta",
                      "kinematic", "poly1", "poly2")
 
 

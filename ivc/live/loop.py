@@ -142,6 +142,7 @@ class LiveCorrector:
         self._clients: dict[int, _Client] = {}
         self._last_time: dict[str, float] = {}
         self._streams: dict = {}
+        self._stream_time: dict[str, float] = {}  # each predictor stream's latest time stamp (s)
         self._logged: set = set()
         self._warm_up()  # compiled (or loaded from the cache) before the publish port accepts anyone
         self._selector = selectors.DefaultSelector()
@@ -160,6 +161,7 @@ class LiveCorrector:
         if self.predictor:
             self._predicted("warm-up", np.array([1.0, 0.0, 0.0, 0.0]), True)
             self._streams.clear()
+            self._stream_time.clear()
 
     # ---- logging once -------------------------------------------------------------------------
     def _once(self, key, message: str, level: int = logging.WARNING) -> None:
@@ -184,6 +186,7 @@ class LiveCorrector:
         self.stats.connections += 1
         self.corrector.reset()
         self._streams.clear()
+        self._stream_time.clear()
         self._last_time.clear()
         log.info("connected to tracking server %s:%d", *self.source)
 
@@ -282,11 +285,21 @@ class LiveCorrector:
             samples = later
         self.stats.latency_s.append(time.perf_counter() - arrived)
 
-    def _predicted(self, name: str, quaternion: np.ndarray, ok: bool) -> np.ndarray | None:
+    def _predicted(self, name: str, quaternion: np.ndarray, ok: bool, stamp: float = 0.0) -> np.ndarray | None:
+        """The sample predicted ``horizon`` s ahead; the predictor runs on the messages' time stamps (s): one without
+        a stamp (0), or not after the last, counts one nominal period later; a sensor that never stamps, none."""
         stream = self._streams.get(name)
         if stream is None:
-            stream = self._streams[name] = make_predictor(self.predictor, self.rate_hz, self.tuning).stream(1)
-        stream.update(np.where(ok, quaternion, np.nan)[None], np.array([ok]))
+            stream = self._streams[name] = make_predictor(self.predictor, self.rate_hz, self.tuning,
+                                                          self.horizon).stream(1)
+        before = self._stream_time.get(name)
+        if stamp > 0.0 and (before is None or stamp > before):
+            self._stream_time[name] = when = float(stamp)
+        elif before is None:
+            when = None
+        else:
+            self._stream_time[name] = when = before + 1.0 / self.rate_hz
+        stream.update(np.where(ok, quaternion, np.nan)[None], np.array([ok]), time=when)
         q = stream.predict(self.horizon)[0]
         return q if np.all(np.isfinite(q)) else None
 
@@ -323,7 +336,7 @@ class LiveCorrector:
         if self.predictor:
             for n, name in enumerate(names):
                 if sent[n]:
-                    q = self._predicted(name, quaternion[n], bool(ok[n]))
+                    q = self._predicted(name, quaternion[n], bool(ok[n]), stamps[n])
                     if q is not None:
                         quaternion[n], predicted[n] = q, True
         m = np.zeros((len(samples), 4, 4))

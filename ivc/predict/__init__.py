@@ -11,6 +11,7 @@ from collections.abc import Callable
 
 from ivc.predict.auto import AutoPredictor
 from ivc.predict.base import Predictor, PredictorError, Stream
+from ivc.predict.direct import DirectPredictor
 from ivc.predict.dq import DQPredictor, dqekf_ca, dqekf_cv, mmdq2, mmdq3
 from ivc.predict.hold import NoPrediction
 from ivc.predict.linear import LinearPredictor, alpha_beta, kinematic, polynomial
@@ -23,6 +24,7 @@ from ivc.predict.tuning import Tuning
 FILTERS: dict[str, Callable[[float], Predictor]] = {
     "auto": AutoPredictor,
     "none": NoPrediction,
+    "direct": DirectPredictor,
     "dqekf-cv": dqekf_cv,
     "dqekf-ca": dqekf_ca,
     "mmdq2": mmdq2,
@@ -45,8 +47,11 @@ DEFAULT_FILTER = "auto"
 TUNABLE = ("q-ekf", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3")
 
 
-def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Predictor:
+def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None, horizon_s: float | None = None) -> Predictor:
     """The predictor called ``name`` (see :data:`FILTERS`) for a stream at ``rate_hz``.
+
+    ``horizon_s`` (s, above 0): the horizon the live form of a predictor that learns from its own errors (``auto``,
+    ``direct``) scores and learns at; the others predict any horizon alike and ignore it.
 
     With ``tuning``, the filters of :data:`TUNABLE` take their measurement and process noise from it
     instead of the thesis's tracker and head (Table 3, eq. 67, Table 10); the other filters have no
@@ -55,6 +60,8 @@ def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Pre
     if name not in FILTERS:
         raise PredictorError(f"unknown filter {name!r}; choose one of {', '.join(FILTERS)}")
     if tuning is None or name not in TUNABLE:
+        if horizon_s and name in ("auto", "direct"):
+            return FILTERS[name](rate_hz, horizon_s=horizon_s)
         return FILTERS[name](rate_hz)
     if not tuning.matches_rate(rate_hz):
         raise PredictorError(f"the tuning is for {tuning.rate_hz:g} Hz, the stream is at {rate_hz:g} Hz: "
@@ -64,5 +71,5 @@ def make(name: str, rate_hz: float = 120.0, tuning: Tuning | None = None) -> Pre
     return FILTERS[name](rate_hz, sigma_w=tuning.sigma_w, sigma_v=tuple(tuning.sigma_v_dq))
 
 
-__all__ = ["AutoPredictor", "DEFAULT_FILTER", "DQPredictor", "FILTERS", "LinearPredictor", "MMAE", "NasaEKF",
-           "NoPrediction", "Predictor", "PredictorError", "QEKF", "Stream", "TUNABLE", "Tuning", "make"]
+__all__ = ["AutoPredictor", "DEFAULT_FILTER", "DQPredictor", "DirectPredictor", "FILTERS", "LinearPredictor", "MMAE",
+           "NasaEKF", "NoPrediction", "Predictor", "PredictorError", "QEKF", "Stream", "TUNABLE", "Tuning", "make"]

@@ -30,15 +30,17 @@ from ivc.predict.base import (
     Predictor,
     PredictorError,
     Stream,
-    _Clock,
+    StreamClock,
     as_given,
     check_horizons,
     check_rate,
     check_stream,
 )
+from ivc.predict.direct import DirectPredictor
 from ivc.predict.dq import SIGMA_CV1, dqekf_ca, dqekf_cv, mmdq2
 from ivc.predict.hold import NoPrediction
 from ivc.predict.linear import polynomial
+from ivc.predict.quat import delta_q, qmul, qmul_conj, rate_of, slerp
 from ivc.predict.recording import REFERENCE_MAX_STEP_S, future_reference
 from ivc.predict.timing import check_time, repeats
 
@@ -58,6 +60,10 @@ CANDIDATES = {
     "dqekf-cv-x3": _cv_brisk,
     "dqekf-ca": dqekf_ca,
     "mmdq2": mmdq2,
+    "direct": DirectPredictor,
+    # the same learner with twice the history and with ten times the memory: members that differ where it matters
+    "direct-8": lambda rate_hz: DirectPredictor(rate_hz, lags=8, name="direct-8"),
+    "direct-30s": lambda rate_hz: DirectPredictor(rate_hz, memory_s=30.0, name="direct-30s"),
 }
 #: time constant (s) of the forgetting of past errors
 MEMORY_S = 1.0
@@ -147,40 +153,38 @@ def _score(shown, sensors, q, knot_q, knot_t, now, target, max_step, total):
                 ref[i] = q[s, i]
         elif np.isfinite(knot_t[s]) and target >= knot_t[s] and now - knot_t[s] <= max_step:
             u = (target - knot_t[s]) / (now - knot_t[s])
-            _slerp(knot_q[s], q[s], u, ref)
+            slerp(knot_q[s], q[s], u, ref)
         else:
             continue
         for c in range(C):
-            _qmul_conj(shown[s, c], ref, d)
+            qmul_conj(shown[s, c], ref, d)
             v = np.sqrt(d[1] ** 2 + d[2] ** 2 + d[3] ** 2)
             total[s, c] += 1e3 * 2.0 * np.arctan2(v, abs(d[0]))
 
 
-@numba.njit(cache=True, inline="always")
-def _qmul_conj(p, q, out):
-    """out = p ⊗ q*."""
-    out[0] = p[0] * q[0] + p[1] * q[1] + p[2] * q[2] + p[3] * q[3]
-    out[1] = -p[0] * q[1] + p[1] * q[0] - p[2] * q[3] + p[3] * q[2]
-    out[2] = -p[0] * q[2] + p[1] * q[3] + p[2] * q[0] - p[3] * q[1]
-    out[3] = -p[0] * q[3] - p[1] * q[2] + p[2] * q[1] + p[3] * q[0]
-
-
 @numba.njit(cache=True)
-def _slerp(q0, q1, u, out):
-    """out = slerp from q0 to q1 at u along the shorter arc (exp(u log(q1 q0*)) q0)."""
+def _blend_frame(ahead, weights, last, ok, out):
+    """out (S, 4) = :func:`blend` of one frame: ahead (C, S, 4), weights (S, C), last (S, 4); NaN where not ok."""
+    C, S = ahead.shape[0], ahead.shape[1]
     d = np.empty(4)
-    _qmul_conj(q1, q0, d)
-    if d[0] < 0.0:
-        for i in range(4):
-            d[i] = -d[i]
-    v = np.sqrt(d[1] ** 2 + d[2] ** 2 + d[3] ** 2)
-    half = np.arctan2(v, d[0]) * u
-    scale = np.sin(half) / v if v > 1e-300 else u
-    w, x, y, z = np.cos(half), scale * d[1], scale * d[2], scale * d[3]
-    out[0] = w * q0[0] - x * q0[1] - y * q0[2] - z * q0[3]
-    out[1] = w * q0[1] + x * q0[0] + y * q0[3] - z * q0[2]
-    out[2] = w * q0[2] - x * q0[3] + y * q0[0] + z * q0[1]
-    out[3] = w * q0[3] + x * q0[2] - y * q0[1] + z * q0[0]
+    v = np.empty(3)
+    dq = np.empty(4)
+    for s in range(S):
+        if not ok[s]:
+            out[s, :] = np.nan
+            continue
+        mx = my = mz = 0.0
+        for c in range(C):
+            qmul_conj(ahead[c, s], last[s], d)
+            if d[0] < 0.0:
+                for i in range(4):
+                    d[i] = -d[i]
+            rate_of(d, 1.0, v)
+            mx += weights[s, c] * v[0]
+            my += weights[s, c] * v[1]
+            mz += weights[s, c] * v[2]
+        delta_q(mx, my, mz, 1.0, dq)
+        qmul(dq, last[s], out[s])
 
 
 def blend(shown: FloatArray, weights: FloatArray, q: FloatArray) -> FloatArray:
@@ -212,6 +216,9 @@ class AutoPredictor(Predictor):
             raise PredictorError("memory_s and max_step_s must be positive numbers of seconds, power >= 0")
         check_horizons(self.horizon_s)
         self.bank = [CANDIDATES[c](self.rate_hz) for c in self.candidates]
+        for p in self.bank:  # a member that learns from its errors (direct) learns at the horizon auto scores at
+            if hasattr(p, "horizon_s") and self.horizon_s > 0:
+                p.horizon_s = float(self.horizon_s)
 
     def selections(self, q, horizons, valid=None, time=None) -> tuple[FloatArray, np.ndarray]:
         """(predictions (H, F, S, 4) as :meth:`predict`, the candidates' weights (H, F, S, C), in candidates' order)."""
@@ -252,7 +259,7 @@ class AutoStream(Stream):
     def __init__(self, predictor: AutoPredictor, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.streams = [p.stream(n_sensors) for p in predictor.bank]
-        self.clock = _Clock(predictor.rate_hz, n_sensors)
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
         self.total = np.zeros((n_sensors, len(self.streams)))
         self.weights = np.zeros((n_sensors, len(self.streams)))
         self.weights[:, 0] = 1.0
@@ -261,6 +268,7 @@ class AutoStream(Stream):
         self.knot_t = np.full(n_sensors, np.nan)  # the latest usable sample: time, orientation
         self.knot_q = np.full((n_sensors, 4), np.nan)
         self.ok = np.zeros(n_sensors, bool)
+        self.ahead = None  # the candidates' predictions (C, S, 4) at horizon_s from the latest frame
 
     @property
     def restarts(self) -> int:
@@ -288,17 +296,21 @@ class AutoStream(Stream):
         self.knot_t = np.where(usable, now, self.knot_t)
         self.knot_q = np.where(usable[:, None], qs, self.knot_q)
         _weigh(self.total, p.power, self.weights)
+        self.ahead = None
         if np.any(ok):
-            ahead = np.stack([s.predict(p.horizon_s) for s in self.streams], axis=1)  # (S, C, 4)
-            ahead = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, qs[:, None])
-            self.pending.append((now + p.horizon_s, ahead, ok.copy()))
+            ahead = np.stack([s.predict(p.horizon_s) for s in self.streams])  # (C, S, 4)
+            self.ahead = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, qs[None])
+            self.pending.append((now + p.horizon_s, np.ascontiguousarray(self.ahead.transpose(1, 0, 2)), ok.copy()))
         self.ok = ok
         self.last = qs
 
     def predict(self, horizon):
         d = float(check_horizons(horizon)[0])
-        ahead = np.stack([s.predict(d) for s in self.streams])  # (C, S, 4)
-        ahead = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, self.last[None])  # as the batch
-        out = blend(ahead, self.weights.T, self.last)
-        out[~self.ok] = np.nan
+        if self.ahead is not None and d == self.predictor.horizon_s:  # the live loop's case: computed by update
+            ahead = self.ahead
+        else:
+            ahead = np.stack([s.predict(d) for s in self.streams])  # (C, S, 4)
+            ahead = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, self.last[None])  # as batch
+        out = np.empty((self.n_sensors, 4))
+        _blend_frame(ahead, self.weights, self.last, self.ok, out)
         return out

@@ -149,7 +149,7 @@ class Predictor(ABC):
         return None
 
 
-class _Clock:
+class StreamClock:
     """A live stream's time keeping: the frame's dt, and the last time each sensor had a valid sample."""
 
     def __init__(self, rate_hz: float, n_sensors: int):
@@ -213,7 +213,7 @@ class FixedRateStream(Stream):
     def __init__(self, predictor: FixedRatePredictor, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.inner = predictor._stream_uniform(n_sensors)
-        self.clock = _Clock(predictor.rate_hz, n_sensors)
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
         self.previous = np.full((self.n_sensors, 4), np.nan)  # each sensor's last valid sample
         self.restarts = 0
 

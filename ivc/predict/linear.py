@@ -29,7 +29,7 @@ from ivc.predict.base import (
     FloatArray,
     PredictorError,
     Stream,
-    _Clock,
+    StreamClock,
     as_given,
     check_horizons,
     check_rate,
@@ -37,6 +37,11 @@ from ivc.predict.base import (
 )
 from ivc.predict.delta import deltas
 from ivc.predict.gains import kinematic_gain
+from ivc.predict.linear_steps import ACCELERATION_NOISE, WHITE_ACCELERATION, steady_posterior
+from ivc.predict.linear_steps import _frame as _steps_frame
+from ivc.predict.linear_steps import _run as _steps_run
+from ivc.predict.linear_steps import _show as _steps_show
+from ivc.predict.linear_steps import state as steps_state
 from ivc.predict.quat import delta_q, qmul, qmul_conj, rate_of
 from ivc.predict.timing import check_time, repeats, restarts
 
@@ -56,6 +61,9 @@ class LinearPredictor(FixedRatePredictor):
     rate_hz: float = 120.0
     name: str = "linear"
     order: int = 0  # 1 or 2 for a polynomial predictor, 0 otherwise
+    #: the Kalman model (states, kind, noise, measurement variance) behind a steady-state design, to run it on a
+    #: stream's own time steps (:mod:`ivc.predict.linear_steps`); None: the nominal step only
+    model: tuple | None = None
     _cache: dict = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self):
@@ -86,7 +94,9 @@ class LinearPredictor(FixedRatePredictor):
 
     def predict(self, q, horizons, valid=None, time=None):
         if not self.order:
-            return super().predict(q, horizons, valid, time)
+            if self.model is None or time is None:
+                return super().predict(q, horizons, valid, time)
+            return self._predict_steps(q, horizons, valid, time)
         h = check_horizons(horizons)
         qs, ok, single = check_stream(q, valid)
         t = check_time(time, qs.shape[0], self.rate_hz)
@@ -135,8 +145,27 @@ class LinearPredictor(FixedRatePredictor):
         out[:, ~ok] = np.nan
         return out
 
+    def _steps_config(self) -> tuple:
+        n, kind, noise, R = self.model
+        T = 1.0 / self.rate_hz
+        return int(n), int(kind), float(noise), float(R), T, steady_posterior(n, kind, noise, R, T)
+
+    def _predict_steps(self, q, horizons, valid, time):
+        """The time-varying Kalman filter of the design's model at the stream's own steps (linear_steps)."""
+        h = check_horizons(horizons)
+        qs, ok, single = check_stream(q, valid)
+        F, S = ok.shape
+        t = check_time(time, F, self.rate_hz)
+        use = ok & ~repeats(qs, ok)
+        cfg = self._steps_config()
+        out = np.empty((len(h), F, S, 4))
+        _steps_run(qs, ok, use, restarts(t, ok, self.max_gap_s), t, h, *cfg, *steps_state(S, cfg[0]), out)
+        return as_given(out, single)
+
     def stream(self, n_sensors: int = 1) -> Stream:
-        return PolynomialStream(self, n_sensors) if self.order else super().stream(n_sensors)
+        if self.order:
+            return PolynomialStream(self, n_sensors)
+        return StepLinearStream(self, n_sensors) if self.model is not None else super().stream(n_sensors)
 
     def _stream_uniform(self, n_sensors: int) -> LinearStream:
         return LinearStream(self, n_sensors)
@@ -237,7 +266,7 @@ class PolynomialStream(Stream):
         super().__init__(predictor, n_sensors)
         w = predictor.K.size
         self.window = w
-        self.clock = _Clock(predictor.rate_hz, n_sensors)
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
         self.theta = np.zeros((n_sensors, w, 3))  # newest first
         self.times = np.zeros((n_sensors, w))
         self.count = np.zeros(n_sensors, np.int64)  # accepted samples since the start or the last gap
@@ -304,6 +333,54 @@ class LinearStream(Stream):
         return out
 
 
+class StepLinearStream(Stream):
+    """The live α-β or kinematic filter: fed time stamps, on the actual steps (:mod:`ivc.predict.linear_steps`);
+    fed none (decided at the first frame), the steady-state filter at the nominal rate, as the batch without times."""
+
+    def __init__(self, predictor: LinearPredictor, n_sensors: int):
+        super().__init__(predictor, n_sensors)
+        self.inner: Stream | None = None
+        self.cfg = predictor._steps_config()
+        self.state = steps_state(self.n_sensors, self.cfg[0])
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
+        self.previous = np.full((self.n_sensors, 4), np.nan)
+        self.ok = np.zeros(self.n_sensors, bool)
+
+    @property
+    def restarts(self) -> int:
+        return self.inner.restarts if self.inner is not None else self._restarts
+
+    _restarts = 0
+
+    def update(self, q, valid=None, time=None):
+        if self.inner is None and time is None and self.clock.now is None:
+            self.inner = FixedRatePredictor.stream(self.predictor, self.n_sensors)
+        if self.inner is not None:
+            self.inner.update(q, valid, time)
+            self.last = self.inner.last
+            return
+        qs, ok = self._check_frame(q, valid)
+        self.clock.tick(time)
+        now = self.clock.now
+        gap = ok & (now - self.clock.last_valid > self.predictor.max_gap_s) & np.isfinite(self.clock.last_valid)
+        self._restarts += int(gap.sum())
+        new = ok & ~np.all(qs == self.previous, axis=1)
+        self.previous = np.where(ok[:, None], qs, self.previous)
+        self.clock.last_valid = np.where(ok, now, self.clock.last_valid)
+        _steps_frame(qs, ok, new, gap, now, *self.cfg, *self.state)
+        self.ok, self.last = ok, qs
+
+    def predict(self, horizon):
+        if self.inner is not None:
+            return self.inner.predict(horizon)
+        d = float(check_horizons(horizon)[0])
+        out = np.empty((self.n_sensors, 4))
+        x, _, theta, base, scal = self.state
+        _steps_show(self.ok, self.clock.now if self.clock.now is not None else 0.0, d, self.cfg[0], x, theta, base,
+                    scal, out)
+        return out
+
+
 def polynomial(rate_hz: float = 120.0, order: int = 2, window: int | None = None) -> LinearPredictor:
     """x + v p (+ ½ a p²), A&B's polynomial predictor with derivatives estimated from the stream.
 
@@ -346,7 +423,9 @@ def alpha_beta(rate_hz: float = 120.0, alpha: float = 0.568) -> LinearPredictor:
     K = np.array([alpha, beta / T])
     A = np.array([[1.0, T], [0, 1]])
     G = A - np.outer(K, [1.0, 0]) @ A
-    return LinearPredictor(G, K, lambda p: np.array([1.0, p]), rate_hz, name="alpha-beta")
+    # the white-acceleration model whose steady state this is: λ² = β² / (1 − α), σ_w² = λ² σ_v² / T⁴ (σ_v = 1)
+    model = (2, WHITE_ACCELERATION, beta**2 / (1 - alpha) / T**4, 1.0)
+    return LinearPredictor(G, K, lambda p: np.array([1.0, p]), rate_hz, name="alpha-beta", model=model)
 
 
 def kinematic(rate_hz: float = 120.0, w_a: float = 100.0, v: float = 1e-6) -> LinearPredictor:
@@ -357,4 +436,5 @@ def kinematic(rate_hz: float = 120.0, w_a: float = 100.0, v: float = 1e-6) -> Li
     A = np.array([[1.0, h, h * h / 2], [0, 1, h], [0, 0, 1]])
     K = kinematic_gain(h, w_a, v)[:, 0]
     G = A - np.outer(K, [1.0, 0, 0]) @ A
-    return LinearPredictor(G, K, lambda p: np.array([1.0, p, p * p / 2]), rate_hz, name="kinematic")
+    return LinearPredictor(G, K, lambda p: np.array([1.0, p, p * p / 2]), rate_hz, name="kinematic",
+                           model=(3, ACCELERATION_NOISE, w_a, v))

@@ -33,14 +33,17 @@ from scipy.linalg import expm
 from ivc import rotations
 from ivc.predict.base import (
     FixedRatePredictor,
+    FixedRateStream,
     FloatArray,
     PredictorError,
     Stream,
+    StreamClock,
     as_given,
     check_horizons,
     check_rate,
     check_stream,
 )
+from ivc.predict.timing import check_time, repeats, restarts
 
 KINDS = ("cp", "fogmv", "fogma", "phi2")
 LOG_2PI = np.log(2.0 * np.pi)
@@ -246,6 +249,9 @@ class MMAE(FixedRatePredictor):
                 P0[j, 2, 2] = self.p0_acceleration
         thr = np.array([e.threshold for e in self.bank], float)
         self._config = (np.array(Phi), np.array(Qd), P0, thr)
+        F, GQG = zip(*(e.continuous() for e in self.bank), strict=True)
+        kappa = np.array([e.kappa if e.kind == "phi2" else 1.0 for e in self.bank])
+        self._models = (np.array(F), np.array(GQG), kappa)
 
     def position_rows(self, horizons: FloatArray) -> FloatArray:
         """Position rows of Φ_j(δ) (H, J, 3): the prediction operator of each elemental filter."""
@@ -274,6 +280,28 @@ class MMAE(FixedRatePredictor):
     def _stream_uniform(self, n_sensors: int = 1) -> MMAEStream:
         return MMAEStream(self, n_sensors)
 
+    def predict(self, q, horizons, valid=None, time=None):
+        """Without ``time``, the bank at the nominal step; with it, each cycle over the actual step (Φ and Qd by
+        Van Loan at that step), repeats dropped and predicted from the sample they repeat, gaps restarting it."""
+        if time is None:
+            return super().predict(q, horizons, valid)
+        h = check_horizons(horizons)
+        qs, ok, single = check_stream(q, valid)
+        F, S = ok.shape
+        t = check_time(time, F, self.rate_hz)
+        use = ok & ~repeats(qs, ok)
+        T = rotations.to_matrix(np.where(ok[..., None], qs, rotations.IDENTITY))
+        vectors = np.ascontiguousarray(np.stack([T[..., :, 0], T[..., :, 2]], axis=2))
+        out = np.zeros((F, S, len(h), 2, 3))
+        _run_steps(vectors, ok, use, restarts(t, ok, self.max_gap_s), t, h, *self._state(S), np.zeros(S),
+                   *self._models, self.r, self._config[3], np.log(self.p_min), self._config[2], self.tau, out)
+        pred = frame_from_axes(out[..., 0, :], out[..., 1, :])
+        pred[~ok] = np.nan
+        return as_given(np.moveaxis(pred, 2, 0), single)
+
+    def stream(self, n_sensors: int = 1) -> Stream:
+        return MMAEStepStream(self, n_sensors)
+
 
 class MMAEStream(Stream):
     def __init__(self, predictor: MMAE, n_sensors: int):
@@ -300,6 +328,170 @@ class MMAEStream(Stream):
         x = self.state[0]  # (S, 2, J, 3 states, 3 axes)
         w = self.state[4]
         pos = np.einsum("svj,jm,svjmc->svc", w, self._rows[d], x)
+        out = frame_from_axes(pos[:, 0], pos[:, 1])
+        out[~self.ok] = np.nan
+        return out
+
+
+# ---- on a stream's own time steps ---------------------------------------------------------------------------
+
+
+@numba.njit(cache=True)
+def _expm(A):
+    """expm(A) of a small matrix by scaling and squaring of its Taylor series (18 terms after scaling to ‖A‖ <= 1/2)."""
+    n = A.shape[0]
+    norm = 0.0
+    for i in range(n):
+        row = 0.0
+        for j in range(n):
+            row += abs(A[i, j])
+        norm = max(norm, row)
+    s = 0
+    while norm > 0.5:
+        norm /= 2.0
+        s += 1
+    B = A / 2.0**s
+    E = np.eye(n)
+    term = np.eye(n)
+    for k in range(1, 19):
+        term = term @ B / k
+        E += term
+    for _ in range(s):
+        E = E @ E
+    return E
+
+
+@numba.njit(cache=True)
+def _discrete(F, GQG, kappa, dt, Phi, Qd):
+    """Phi (J, 3, 3), Qd (J, 3, 3) over dt: Van Loan, as :meth:`Elemental.discrete` (phi2: Φ(κ dt), Qd(dt))."""
+    J = F.shape[0]
+    M = np.zeros((6, 6))
+    for j in range(J):
+        for a in range(3):
+            for b in range(3):
+                M[a, b] = -F[j, a, b] * dt
+                M[a, 3 + b] = GQG[j, a, b] * dt
+                M[3 + a, 3 + b] = F[j, b, a] * dt
+                M[3 + a, b] = 0.0
+        E = _expm(M)
+        Ph = np.ascontiguousarray(E[3:, 3:].T)
+        Q = Ph @ np.ascontiguousarray(E[:3, 3:])
+        Phi[j] = _expm(F[j] * (dt * kappa[j]))
+        for a in range(3):
+            for b in range(3):
+                Qd[j, a, b] = 0.5 * (Q[a, b] + Q[b, a])
+
+
+@numba.njit(cache=True)
+def _show_steps(F, kappa, x, w, horizon, out):
+    """out (2, 3) = Σ_j w_j [Φ_j(horizon) x̂_j]_position for both look vectors (x (2, J, 3, 3), w (2, J))."""
+    J = F.shape[0]
+    for j in range(J):
+        row = _expm(F[j] * (horizon * kappa[j]))[0]
+        for v in range(2):
+            for c in range(3):
+                if j == 0:
+                    out[v, c] = 0.0
+                acc = 0.0
+                for m in range(3):
+                    acc += row[m] * x[v, j, m, c]
+                out[v, c] += w[v, j] * acc
+
+
+@numba.njit(cache=True)
+def _frame_steps(vectors, ok, use, restart, now, x, P, logp, init, w, last, F, GQG, kappa, r, thr, log_pmin, P0, tau):
+    """One frame for every sensor on its actual step: vectors (S, 2, 3); last (S,) each one's latest usable time."""
+    S, J = vectors.shape[0], F.shape[0]
+    Phi = np.empty((J, 3, 3))
+    Qd = np.empty((J, 3, 3))
+    none = np.zeros((0, J, 3))
+    dummy = np.empty((0, 3))
+    for s in range(S):
+        if not ok[s]:
+            continue
+        if restart[s]:
+            for v in range(2):
+                init[s, v, 0] = 0
+                for j in range(J):
+                    P[s, v, j] = P0[j]
+                    logp[s, v, j] = -np.log(J)
+                    w[s, v, j] = 1.0 / J
+        if not use[s]:
+            continue
+        dt = now - last[s] if init[s, 0, 0] == 1 else tau
+        _discrete(F, GQG, kappa, dt, Phi, Qd)
+        for v in range(2):
+            _step(vectors[s, v], True, x[s, v], P[s, v], logp[s, v], init[s, v], w[s, v], Phi, Qd, r, thr, log_pmin,
+                  none, dummy)
+        last[s] = now
+
+
+@numba.njit(cache=True)
+def _run_steps(vectors, ok, use, restart, t, horizons, x, P, logp, init, w, last, F, GQG, kappa, r, thr, log_pmin,
+               P0, tau, out):
+    """The batch on the stream's steps: out (F, S, H, 2, 3) the blended look vectors, from each frame's latest usable
+    sample (horizon + its age)."""
+    for k in range(vectors.shape[0]):
+        _frame_steps(vectors[k], ok[k], use[k], restart[k], t[k], x, P, logp, init, w, last, F, GQG, kappa, r, thr,
+                     log_pmin, P0, tau)
+        for s in range(vectors.shape[1]):
+            if ok[k, s] and init[s, 0, 0] == 1:
+                for i in range(horizons.shape[0]):
+                    _show_steps(F, kappa, x[s], w[s], horizons[i] + t[k] - last[s], out[k, s, i])
+            else:
+                out[k, s, :, :, :] = np.nan
+
+
+class MMAEStepStream(Stream):
+    """The live MMAE: fed time stamps, each cycle over the actual step (as the batch with times); fed none (decided
+    at the first frame), the bank at the nominal step (:class:`FixedRateStream`), as the batch without times."""
+
+    def __init__(self, predictor: MMAE, n_sensors: int):
+        super().__init__(predictor, n_sensors)
+        self.inner: Stream | None = None
+        self.state = predictor._state(self.n_sensors)
+        self.latest = np.zeros(self.n_sensors)
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
+        self.previous = np.full((self.n_sensors, 4), np.nan)
+        self.ok = np.zeros(self.n_sensors, bool)
+        self._restarts = 0
+
+    @property
+    def restarts(self) -> int:
+        return self.inner.restarts if self.inner is not None else self._restarts
+
+    def update(self, q, valid=None, time=None):
+        if self.inner is None and time is None and self.clock.now is None:
+            self.inner = FixedRateStream(self.predictor, self.n_sensors)
+        if self.inner is not None:
+            self.inner.update(q, valid, time)
+            self.last = self.inner.last
+            return
+        qs, ok = self._check_frame(q, valid)
+        self.clock.tick(time)
+        now = self.clock.now
+        gap = ok & (now - self.clock.last_valid > self.predictor.max_gap_s) & np.isfinite(self.clock.last_valid)
+        self._restarts += int(gap.sum())
+        new = ok & ~np.all(qs == self.previous, axis=1)
+        self.previous = np.where(ok[:, None], qs, self.previous)
+        self.clock.last_valid = np.where(ok, now, self.clock.last_valid)
+        T = rotations.to_matrix(np.where(ok[:, None], qs, rotations.IDENTITY))
+        vectors = np.ascontiguousarray(np.stack([T[:, :, 0], T[:, :, 2]], axis=1))
+        p = self.predictor
+        _frame_steps(vectors, ok, new, gap, now, *self.state, self.latest, *p._models, p.r, p._config[3],
+                     np.log(p.p_min), p._config[2], p.tau)
+        self.ok, self.last = ok, qs
+
+    def predict(self, horizon):
+        if self.inner is not None:
+            return self.inner.predict(horizon)
+        d = float(check_horizons(horizon)[0])
+        x, w, init = self.state[0], self.state[4], self.state[3]
+        pos = np.full((self.n_sensors, 2, 3), np.nan)
+        now = self.clock.now if self.clock.now is not None else 0.0
+        for s in np.flatnonzero(self.ok & (init[:, 0, 0] == 1)):
+            _show_steps(self.predictor._models[0], self.predictor._models[2], x[s], w[s], d + now - self.latest[s],
+                        pos[s])
         out = frame_from_axes(pos[:, 0], pos[:, 1])
         out[~self.ok] = np.nan
         return out

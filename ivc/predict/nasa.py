@@ -11,7 +11,13 @@ rate when used to propagate):
   renormalised after each update (neither is stated in the paper; both are needed).
 
 Measurement z = q + v, H = [I₄ 0], V_r = diag(1e-4) (the paper's). W_r is diagonal, the design
-parameter (10 entries: q_w, q_x, q_y, q_z, ω_x, ω_y, ω_z, α_x, α_y, α_z). A&B94's default W_r is
+parameter (10 entries: q_w, q_x, q_y, q_z, ω_x, ω_y, ω_z, α_x, α_y, α_z), per nominal frame 1 / rate_hz.
+
+Real time steps (:mod:`ivc.predict.timing`): each cycle propagates over the actual time h since the
+sensor's previous usable sample (across invalid samples), with Φ = expm(hF) and process noise
+W_r · h · rate_hz (white noise whose variance grows with the time elapsed, W_r at the nominal step);
+exact repeats are dropped and predicted from the sample they repeat, as old as it is; a gap longer
+than ``max_gap_s`` restarts the filter at the next sample. A&B94's default W_r is
 not listed by Adelstein, Jung & Ellis 2001: :data:`DEFAULT_W` is ours, chosen on the synthetic yaw record of
 :mod:`ivc.predict.studies.compensator` (a placeholder for it).
 """
@@ -25,9 +31,10 @@ import numpy as np
 
 from ivc.linalg import congruence
 from ivc.predict.base import (
-    FixedRatePredictor,
+    Predictor,
     PredictorError,
     Stream,
+    StreamClock,
     as_given,
     check_horizons,
     check_rate,
@@ -35,6 +42,7 @@ from ivc.predict.base import (
 )
 from ivc.predict.qekf import quaternion_update
 from ivc.predict.quat import normalise, qmul
+from ivc.predict.timing import MAX_GAP_S, check_time, repeats, restarts
 
 #: V_r of the paper: variance of each measured quaternion component
 V_QUATERNION = 1e-4
@@ -123,8 +131,9 @@ def _work():
 
 
 @numba.njit(cache=True)
-def _step(z_in, ok, x, P, status, W, V, h, p0, work):
-    """One EKF cycle for one sensor; status = [initialised, have_prev]; returns whether x is an estimate."""
+def _step(z_in, ok, x, P, status, W, V, h, p0, work, tau):
+    """One EKF cycle for one sensor over h s (W per nominal step tau); status = [initialised, have_prev];
+    returns whether x is an estimate."""
     z, dq, F, Phi, term, tmp, Pp, S, L, nu, U, xp = work
     if not ok:
         status[1] = 0
@@ -156,7 +165,7 @@ def _step(z_in, ok, x, P, status, W, V, h, p0, work):
         xp[7 + i] = x[7 + i]
     congruence(Phi, P, N, tmp, Pp)
     for a in range(N):
-        Pp[a, a] += W[a]
+        Pp[a, a] += W[a] * (h / tau)
     if not quaternion_update(z, xp, Pp, V, N, x, P, S, L, nu, U):
         status[0] = 0
         return False
@@ -164,44 +173,57 @@ def _step(z_in, ok, x, P, status, W, V, h, p0, work):
 
 
 @numba.njit(cache=True, parallel=True)
-def _run(qs, ok, x, P, status, W, V, h, p0, out_x, out_ok):
+def _run(qs, ok, use, restart, t, x, P, status, W, V, tau, p0, out_x, out_ok, out_t):
+    """Every sensor through its frames: out_x the state at the latest usable sample, out_t that sample's time,
+    out_ok where it is an estimate (and the frame valid)."""
     for s in numba.prange(qs.shape[1]):
         work = _work()
+        ready = False
+        last = 0.0
         for k in range(qs.shape[0]):
-            good = _step(qs[k, s], ok[k, s], x[s], P[s], status[s], W, V, h, p0, work)
-            out_ok[k, s] = good and ok[k, s]
+            if restart[k, s]:
+                status[s, 0] = 0
+                ready = False
+            if use[k, s]:
+                h = t[k] - last if status[s, 0] == 1 else tau
+                ready = _step(qs[k, s], True, x[s], P[s], status[s], W, V, h, p0, work, tau)
+                last = t[k]
+            out_ok[k, s] = ready and ok[k, s]
             out_x[k, s] = x[s]
+            out_t[k, s] = last
 
 
 @numba.njit(cache=True)
 def _extrapolate(x, usable, t, out):
-    """Orientations t s after each state (…, 10) flattened to (n, 10); NaN where not usable."""
+    """Orientations t[i] s after each state (…, 10) flattened to (n, 10); NaN where not usable."""
     dq = np.empty(4)
     for i in range(x.shape[0]):
         if usable[i]:
-            advance(x[i, :4], x[i, 4:7], x[i, 7:], t, out[i], dq)
+            advance(x[i, :4], x[i, 4:7], x[i, 7:], t[i], out[i], dq)
         else:
             out[i, :] = np.nan
 
 
-def extrapolate(x: np.ndarray, usable: np.ndarray, t: float) -> np.ndarray:
-    """The orientation ``t`` s after each state x (..., 10), by the filter's kinematics."""
+def extrapolate(x: np.ndarray, usable: np.ndarray, t) -> np.ndarray:
+    """The orientation ``t`` s (a number, or one per state) after each state x (..., 10), by the filter's kinematics."""
     flat = np.ascontiguousarray(x.reshape(-1, N))
+    span = np.ascontiguousarray(np.broadcast_to(np.asarray(t, float), x.shape[:-1]).reshape(-1))
     out = np.empty((len(flat), 4))
-    _extrapolate(flat, np.ascontiguousarray(usable.reshape(-1)), float(t), out)
+    _extrapolate(flat, np.ascontiguousarray(usable.reshape(-1)), span, out)
     return out.reshape(*x.shape[:-1], 4)
 
 
 @dataclass
-class NasaEKF(FixedRatePredictor):
-    """NASA's 10-state quaternion EKF; ``W`` (10,) its diagonal process noise per step, ``V`` the
-    measurement variance of each quaternion component, ``p0`` the initial ω and α variances."""
+class NasaEKF(Predictor):
+    """NASA's 10-state quaternion EKF; ``W`` (10,) its diagonal process noise per nominal step 1 / rate_hz, ``V``
+    the measurement variance of each quaternion component, ``p0`` the initial ω and α variances."""
 
     rate_hz: float = 120.0
     W: tuple = DEFAULT_W
     V: float = V_QUATERNION
     p0: tuple = (1.0, 1.0, 1.0, 10.0, 10.0, 10.0)
     name: str = "nasa-ekf"
+    max_gap_s: float = MAX_GAP_S
     _config: tuple = field(init=False, repr=False)
 
     def __post_init__(self):
@@ -211,44 +233,72 @@ class NasaEKF(FixedRatePredictor):
             raise PredictorError(f"W needs {N} non-negative variances (q ×4, ω ×3, α ×3), got {self.W}")
         if not (np.isfinite(self.V) and self.V > 0) or p0.shape != (6,) or np.any(p0 <= 0):
             raise PredictorError("V must be a positive variance and p0 six positive variances (ω ×3, α ×3)")
+        if not (np.isfinite(self.max_gap_s) and self.max_gap_s > 0):
+            raise PredictorError(f"max_gap_s must be a positive number of seconds, got {self.max_gap_s}")
         self._config = (W, np.full(4, float(self.V)), 1.0 / self.rate_hz, p0)
 
-    def filter(self, q, valid=None):
-        """(checked q (F, S, 4), states [q̂, ω̂, α̂] (F, S, 10), usable (F, S))."""
+    def filter(self, q, valid=None, time=None):
+        """(checked q (F, S, 4), states [q̂, ω̂, α̂] (F, S, 10) at each frame's latest usable sample, usable (F, S),
+        that sample's time (F, S) s)."""
         qs, ok, _ = check_stream(q, valid)
         F, S = ok.shape
-        out_x, out_ok = np.zeros((F, S, N)), np.zeros((F, S), bool)
-        _run(qs, ok, np.zeros((S, N)), np.zeros((S, N, N)), np.zeros((S, 2), np.int64), *self._config, out_x, out_ok)
-        return qs, out_x, out_ok
+        t = check_time(time, F, self.rate_hz)
+        use = ok & ~repeats(qs, ok)
+        out_x, out_ok, out_t = np.zeros((F, S, N)), np.zeros((F, S), bool), np.zeros((F, S))
+        _run(qs, ok, use, restarts(t, ok, self.max_gap_s), t, np.zeros((S, N)), np.zeros((S, N, N)),
+             np.zeros((S, 2), np.int64), *self._config, out_x, out_ok, out_t)
+        return qs, out_x, out_ok, t[:, None] - out_t
 
-    def rates(self, q, valid=None, time=None):  # a fixed-rate design: the nominal rate
-        _, x, usable = self.filter(q, valid)
+    def rates(self, q, valid=None, time=None):
+        _, x, usable, _ = self.filter(q, valid, time)
         out = np.where(usable[..., None], x[..., 4:7], np.nan)
         return as_given(out, np.ndim(q) == 2)
 
-    def _predict_uniform(self, q, horizons, valid=None):
+    def predict(self, q, horizons, valid=None, time=None):
         h = check_horizons(horizons)
-        _, x, usable = self.filter(q, valid)
-        out = np.stack([extrapolate(x, usable, d) for d in h])
+        _, x, usable, age = self.filter(q, valid, time)
+        out = np.stack([extrapolate(x, usable, d + age) for d in h])
         return as_given(out, np.ndim(q) == 2)
 
-    def _stream_uniform(self, n_sensors: int = 1) -> NasaStream:
+    def stream(self, n_sensors: int = 1) -> NasaStream:
         return NasaStream(self, n_sensors)
 
 
 class NasaStream(Stream):
+    """The live NASA EKF: a cycle per usable sample over its actual step; repeats dropped, gaps restart."""
+
     def __init__(self, predictor: NasaEKF, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.x, self.P = np.zeros((n_sensors, N)), np.zeros((n_sensors, N, N))
         self.status = np.zeros((n_sensors, 2), np.int64)
         self.work = _work()
         self.ready = np.zeros(n_sensors, bool)
+        self.ok = np.zeros(n_sensors, bool)
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
+        self.base_t = np.zeros(n_sensors)  # each sensor's latest usable sample's time
+        self.previous = np.full((n_sensors, 4), np.nan)
+        self.restarts = 0
 
-    def update(self, q, valid=None):
+    def update(self, q, valid=None, time=None):
         qs, ok = self._check_frame(q, valid)
-        for s in range(self.n_sensors):
-            self.ready[s] = _step(qs[s], ok[s], self.x[s], self.P[s], self.status[s], *self.predictor._config,
-                                  self.work) and ok[s]
+        self.clock.tick(time)
+        now = self.clock.now
+        W, V, tau, p0 = self.predictor._config
+        for s in np.flatnonzero(ok):
+            if np.isfinite(self.clock.last_valid[s]) and now - self.clock.last_valid[s] > self.predictor.max_gap_s:
+                self.status[s, 0] = 0
+                self.ready[s] = False
+                self.restarts += 1
+            if np.all(qs[s] == self.previous[s]):
+                continue  # a repeat: predicted from the sample it repeats
+            h = now - self.base_t[s] if self.status[s, 0] == 1 else tau
+            self.ready[s] = _step(qs[s], True, self.x[s], self.P[s], self.status[s], W, V, h, p0, self.work, tau)
+            self.base_t[s] = now
+        self.previous = np.where(ok[:, None], qs, self.previous)
+        self.clock.last_valid = np.where(ok, now, self.clock.last_valid)
+        self.ok = ok
+        self.last = qs
 
     def predict(self, horizon):
-        return extrapolate(self.x, self.ready, float(check_horizons(horizon)[0]))
+        d = float(check_horizons(horizon)[0])
+        return extrapolate(self.x, self.ready & self.ok, d + (self.clock.now or 0.0) - self.base_t)

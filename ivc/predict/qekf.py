@@ -19,7 +19,7 @@ from ivc.predict.base import (
     Predictor,
     PredictorError,
     Stream,
-    _Clock,
+    StreamClock,
     as_given,
     check_horizons,
     check_rate,
@@ -232,7 +232,7 @@ class QStream(Stream):
         self.x, self.P = np.zeros((n_sensors, 7)), np.zeros((n_sensors, 7, 7))
         self.status = np.zeros((n_sensors, 2), np.int64)
         self.clock_state = np.zeros((n_sensors, 8))
-        self.clock = _Clock(predictor.rate_hz, n_sensors)
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
         self.work = _work()
         self.ready = np.zeros(n_sensors, bool)
 

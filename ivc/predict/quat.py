@@ -124,3 +124,20 @@ def predict_orientation(q, wx, wy, wz, ax, ay, az, delta, tau, out, tmp, dq):
         for i in range(4):
             out[i] = tmp[i]
     normalise(out)
+
+
+@numba.njit(inline="always")
+def slerp(q0, q1, u, out):
+    """out = slerp from q0 (u = 0) to q1 (u = 1) along the shorter arc: exp(u log(q1 ⊗ q0*)) ⊗ q0."""
+    d = np.empty(4)
+    qmul_conj(q1, q0, d)
+    if d[0] < 0.0:
+        for i in range(4):
+            d[i] = -d[i]
+    v = np.sqrt(d[1] ** 2 + d[2] ** 2 + d[3] ** 2)
+    half = np.arctan2(v, d[0]) * u
+    scale = np.sin(half) / v if v > 1e-300 else u
+    d[0] = np.cos(half)
+    for i in range(1, 4):
+        d[i] *= scale
+    qmul(d, q0, out)
