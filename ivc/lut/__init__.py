@@ -12,7 +12,7 @@ from ivc.lut.fit_poly import PolyFit
 from ivc.lut.fit_sources import SourceModel, SourcesFit
 from ivc.lut.fitter import FITTERS, Fitter, fit_table, make_fitter, register
 from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
-from ivc.lut.joint import JointMap, JointOptions, fit_joint, solve_wand
+from ivc.lut.joint import JointMap, JointOptions, fit_joint, solve_wand, solve_wand_table
 from ivc.lut.refine import MapFit, fit_map, refine_map
 from ivc.lut.samples import FieldSamples
 from ivc.lut.table import LookupTable, LutError, read, write
@@ -20,4 +20,5 @@ from ivc.lut.table import LookupTable, LutError, read, write
 __all__ = ["DEFAULT_SPACING", "FITTERS", "METHODS", "BlockedKFold", "FieldSamples", "FitOptions", "Fitter", "Grid",
            "GridField", "HarmonicFit", "HarmonicModel", "JointMap", "JointOptions", "LookupTable", "LutError",
            "MapFit", "PolyFit", "SourceModel", "SourcesFit", "cross_validate", "fit_joint", "fit_lut", "fit_map",
-           "fit_table", "held_out_score", "make_fitter", "read", "refine_map", "register", "solve_wand", "write"]
+           "fit_table", "held_out_score", "make_fitter", "read", "refine_map", "register", "solve_wand",
+           "solve_wand_table", "write"]
