@@ -14,7 +14,7 @@ import numpy as np
 
 from ivc.dipole.kernels import _rotation_polar_factor, closed_form_one, field_matrix
 from ivc.linalg import cholesky, cholesky_solve
-from ivc.lut.kernels import grid_point, grid_value
+from ivc.lut.kernels import grid_point, grid_point_separable, grid_value
 
 FIXED_POINT_STEPS = 2
 
@@ -49,6 +49,36 @@ def _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, 
                     s += r[k]
                 dM[i, j, k] = 3.0 * s * inv5 - 15.0 * r[i] * r[j] * r[k] * inv7
     mapped = grid_point(padded, valid_cells, origin, spacing, shape, r, cubic, g, dg, wx, wy, wz, dx, dy, dz)
+    for i in range(3):
+        for j in range(3):
+            M[i, j] += g[3 * i + j]
+            for k in range(3):
+                dM[i, j, k] += dg[3 * i + j, k]
+    return mapped
+
+
+@numba.njit
+def _model_in(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz,
+              scratch):
+    """:func:`_model` with the separable look-up (its partial sums in ``scratch`` (3, C))."""
+    x, y, z = r[0], r[1], r[2]
+    field_matrix(x, y, z, M)
+    rho2 = x * x + y * y + z * z
+    inv5 = 1.0 / (rho2 * rho2 * np.sqrt(rho2))
+    inv7 = inv5 / rho2
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                s = 0.0
+                if i == k:
+                    s += r[j]
+                if j == k:
+                    s += r[i]
+                if i == j:
+                    s += r[k]
+                dM[i, j, k] = 3.0 * s * inv5 - 15.0 * r[i] * r[j] * r[k] * inv7
+    mapped = grid_point_separable(padded, valid_cells, origin, spacing, shape, r, cubic, g, dg, wx, wy, wz, dx, dy,
+                                  dz, scratch)
     for i in range(3):
         for j in range(3):
             M[i, j] += g[3 * i + j]
@@ -172,7 +202,7 @@ def accept_step(r, rt, T, Tt, e, et, J, Jt):
 
 
 @numba.njit
-def workspace():
+def workspace(channels):
     """The scratch arrays of one frame's correction, allocated once and reused over many frames
     (per-frame allocation was a measurable share of the batched correction)."""
     return (np.empty((3, 3)), np.empty((3, 3, 3)), np.empty(9), np.empty((9, 3)),  # M, dM, g, dg
@@ -181,7 +211,8 @@ def workspace():
             np.empty(3), np.empty((3, 3)), np.empty((3, 3)),  # v, Sc, Ma
             np.empty(9), np.empty((9, 6)), np.empty(9), np.empty((9, 6)),  # e, J, et, Jt
             np.empty((6, 6)), np.empty(6), np.empty(6), np.empty(3), np.empty((3, 3)),  # H grad step rt Tt
-            np.empty(3), np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty((4, 3)))  # correct_best's
+            np.empty(3), np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty((4, 3)),  # correct_best's
+            np.empty((3, channels)))  # the look-up's partial sums
 
 
 @numba.njit
@@ -192,7 +223,7 @@ def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape
     Returns (converged, iterations, relative residual rms(M − T S)/rms(S), mapped).
     """
     return correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                          tolerance, r, T, workspace())
+                          tolerance, r, T, workspace(padded.shape[3]))
 
 
 @numba.njit
@@ -202,6 +233,7 @@ def correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, sh
     M, dM, g, dg, wx, wy, wz, dx, dy, dz = ws[0], ws[1], ws[2], ws[3], ws[4], ws[5], ws[6], ws[7], ws[8], ws[9]
     work_a, work_b, B, F, K, v, Sc, Ma = ws[10], ws[11], ws[12], ws[13], ws[14], ws[15], ws[16], ws[17]
     e, J, et, Jt, H, grad, step, rt, Tt = ws[18], ws[19], ws[20], ws[21], ws[22], ws[23], ws[24], ws[25], ws[26]
+    scratch = ws[32]
     if np.isfinite(seed[0]) and np.isfinite(seed[1]) and np.isfinite(seed[2]):
         for a in range(3):
             r[a] = seed[a]
@@ -213,7 +245,8 @@ def correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, sh
                 for j in range(3):
                     Sc[i, j] = S[i, j] - (T[0, i] * g[j] + T[1, i] * g[3 + j] + T[2, i] * g[6 + j])
             _closed_form(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
-    mapped = _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
+    mapped = _model_in(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz,
+                       scratch)
     for i in range(3):  # the model at the accepted position, and whether it is mapped: no re-evaluation at the end
         for j in range(3):
             Ma[i, j] = M[i, j]
@@ -238,8 +271,8 @@ def correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, sh
         for a in range(3):
             rt[a] = r[a] + step[a]
         _rotate_increment(T, step[3:], Tt)
-        trial_mapped = _model(rt, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx,
-                              dy, dz)
+        trial_mapped = _model_in(rt, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz,
+                                 dx, dy, dz, scratch)
         _residual(S, M, dM, Tt, et, Jt)
         trial = _cost(et)
         small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance
@@ -317,7 +350,7 @@ def correct_best(S, seed, hemisphere, padded, valid_cells, origin, spacing, shap
     among the converged solutions wins.
     """
     return correct_best_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                           tolerance, retry_residual, r, T, workspace())
+                           tolerance, retry_residual, r, T, workspace(padded.shape[3]))
 
 
 @numba.njit
@@ -373,7 +406,7 @@ def correct_kernel(S, seeds, hemisphere, padded, valid_cells, origin, spacing, s
                    mapped):  # pragma: no cover - compiled
     blocks = (S.shape[0] + BLOCK - 1) // BLOCK
     for block in numba.prange(blocks):
-        ws = workspace()
+        ws = workspace(padded.shape[3])
         for n in range(BLOCK * block, min(BLOCK * block + BLOCK, S.shape[0])):
             converged[n], iterations[n], residual[n], mapped[n] = correct_best_in(
                 S[n], seeds[n], hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
@@ -386,7 +419,7 @@ def correct_serial(S, seeds, hemisphere, padded, valid_cells, origin, spacing, s
                    tolerance, retry_residual, r_out, T_out, q_out, converged, iterations, residual,
                    mapped):  # pragma: no cover - compiled
     """The same as correct_kernel on the calling thread: no thread start-up, for a few frames at a time."""
-    ws = workspace()
+    ws = workspace(padded.shape[3])
     for n in range(S.shape[0]):
         converged[n], iterations[n], residual[n], mapped[n] = correct_best_in(
             S[n], seeds[n], hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
