@@ -14,7 +14,7 @@ import numpy as np
 
 from ivc.dipole.kernels import _rotation_polar_factor, closed_form_one, field_matrix
 from ivc.linalg import cholesky, cholesky_solve
-from ivc.lut.kernels import grid_point, grid_point_separable, grid_value
+from ivc.lut.kernels import grid_contains, grid_point, grid_point_separable, grid_value
 
 FIXED_POINT_STEPS = 2
 
@@ -271,6 +271,23 @@ def correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, sh
         for a in range(3):
             rt[a] = r[a] + step[a]
         _rotate_increment(T, step[3:], Tt)
+        if np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance:
+            # a step below the tolerance (0.1 µm) is taken without the look-up that would confirm it:
+            # the model there is the current one moved along its Jacobian (an error of |step|², far
+            # below the noise), and whether the point is mapped comes from the grid's cell flags.
+            for a in range(9):
+                e[a] = J[a, 0] * step[0] + J[a, 1] * step[1] + J[a, 2] * step[2]  # −Tᵀ ∂M/∂r · δr
+            for i in range(3):
+                for j in range(3):
+                    Ma[i, j] -= T[i, 0] * e[j] + T[i, 1] * e[3 + j] + T[i, 2] * e[6 + j]
+            for a in range(3):
+                r[a] = rt[a]
+            for i in range(3):
+                for j in range(3):
+                    T[i, j] = Tt[i, j]
+            mapped = grid_contains(valid_cells, origin, spacing, shape, r)
+            converged = True
+            break
         trial_mapped = _model_in(rt, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz,
                                  dx, dy, dz, scratch)
         _residual(S, M, dM, Tt, et, Jt)

@@ -158,6 +158,15 @@ def grid_point_separable(padded, valid_cells, origin, spacing, shape, p, cubic, 
 
 
 @numba.njit
+def grid_contains(valid_cells, origin, spacing, shape, p):
+    """Whether p (3,) is in a valid cell: what :func:`grid_point` returns, without the interpolation."""
+    i, _, in_x = cell_of(p[0], origin[0], spacing, shape[0])
+    j, _, in_y = cell_of(p[1], origin[1], spacing, shape[1])
+    k, _, in_z = cell_of(p[2], origin[2], spacing, shape[2])
+    return in_x and in_y and in_z and valid_cells[i, j, k]
+
+
+@numba.njit
 def grid_value(padded, valid_cells, origin, spacing, shape, p, cubic, value, wx, wy, wz, dx, dy, dz):
     """:func:`grid_point` without the gradient (a quarter of its arithmetic): value (C,) at p, and
     whether p is in a valid cell. The same weights and summation order, so the same value."""
