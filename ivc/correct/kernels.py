@@ -12,7 +12,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.dipole.kernels import _rotation_polar_factor, closed_form_one, field_matrix
+from ivc.dipole.kernels import _rotation_polar_factor, closed_form_one, field_matrix, principal_eigenvector
 from ivc.linalg import cholesky, cholesky_solve
 from ivc.lut.kernels import grid_contains, grid_point, grid_point_separable, grid_value
 
@@ -27,6 +27,22 @@ FIXED_POINT_STEPS = 2
 def _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K):
     """ivc.dipole's closed-form pose of one frame, compiled once here rather than inlined at each use."""
     closed_form_one(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
+
+
+@numba.njit
+def _closed_form_position(S, hemisphere, r, work_a, work_b, v, B):
+    """The position of ivc.dipole's closed-form pose (the same operations), without its orientation."""
+    for i in range(3):
+        for j in range(3):
+            B[i, j] = S[0, i] * S[0, j] + S[1, i] * S[1, j] + S[2, i] * S[2, j]
+    tr = B[0, 0] + B[1, 1] + B[2, 2]
+    principal_eigenvector(B, work_a, work_b, v)
+    sign = 1.0
+    if v[0] * hemisphere[0] + v[1] * hemisphere[1] + v[2] * hemisphere[2] < 0.0:
+        sign = -1.0
+    rng = sign * (6.0 / tr) ** (1.0 / 6.0)  # docs/math.md §3
+    for a in range(3):
+        r[a] = rng * v[a]
 
 
 @numba.njit
@@ -239,12 +255,15 @@ def correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, sh
             r[a] = seed[a]
     else:
         _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
-        for _ in range(FIXED_POINT_STEPS):  # docs/math.md §9: subtract Tᵀ g(r), re-solve the dipole pose
+        for step_number in range(FIXED_POINT_STEPS):  # docs/math.md §9: subtract Tᵀ g(r), re-solve the dipole pose
             grid_value(padded, valid_cells, origin, spacing, shape, r, cubic, g, wx, wy, wz, dx, dy, dz)
             for i in range(3):
                 for j in range(3):
                     Sc[i, j] = S[i, j] - (T[0, i] * g[j] + T[1, i] * g[3 + j] + T[2, i] * g[6 + j])
-            _closed_form(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
+            if step_number < FIXED_POINT_STEPS - 1:
+                _closed_form(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
+            else:  # the last step's orientation would be replaced below: its position is all that is used
+                _closed_form_position(Sc, hemisphere, r, work_a, work_b, v, B)
     mapped = _model_in(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz,
                        scratch)
     for i in range(3):  # the model at the accepted position, and whether it is mapped: no re-evaluation at the end
