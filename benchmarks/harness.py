@@ -36,7 +36,9 @@ class Figure:
         if self.baseline_value != self.baseline_value or self.baseline_value == 0:
             return float("nan")
         r = self.value / self.baseline_value
-        return r if self.higher_is_better else 1.0 / r
+        if self.higher_is_better:
+            return r
+        return 1.0 / r if r != 0 else float("inf")
 
     def line(self) -> str:
         status = {True: "PASS", False: "FAIL", None: ""}[self.passed]

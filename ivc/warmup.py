@@ -4,8 +4,8 @@ Every kernel is compiled lazily, on its first call, and written to numba's on-di
 (``cache=True``), so only the first run after an install (or an upgrade) pays for it. This
 module runs each kernel a command uses once on a tiny synthetic problem, through the same
 public functions (hence the same argument types) as the commands, so that the cache is
-filled before a user waits on it: ``correct`` (batched and streaming correction, poses
-rebuilt as signals, the pose-only inversion, ``ivc correct`` and ``--live``), ``fit`` (the cube solve, the harmonic
+filled before a user waits on it: ``correct`` (batched and streaming correction, of signals
+and of reported poses, ``ivc correct`` and ``--live``), ``fit`` (the cube solve, the harmonic
 basis, the rigid-wand refinement, table evaluation: ``ivc fit``, ``ivc demo``).
 
 The cache lives beside the sources (``__pycache__``) when the package directory is
@@ -55,10 +55,10 @@ def _correct() -> None:
     corrector.batch(S[:4])  # fewer: the serial one
     corrector.batch_poses(r[:4], q[:4])
     corrector.update(S[:2])  # the streaming path (ivc correct --live)
-    poses = PoseCorrector(_table(), "+x")  # reported poses only: a pose CSV, TRANSFORM streams
+    poses = PoseCorrector(_table(), "+x")  # reported poses alone (ivc correct on poses, TRANSFORM with --live)
     poses.batch(r, q)
     poses.batch(r[:4], q[:4])
-    poses.update(r[:2], np.tile(np.eye(3), (2, 1, 1)))
+    poses.warm_up(r[0])
 
 
 def _fit() -> None:

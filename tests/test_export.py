@@ -11,8 +11,9 @@ from click.testing import CliRunner
 
 from ivc import dipole, rotations
 from ivc.cli import cli
+from ivc.correct.pose_domain import PoseCorrector
 from ivc.dipole.pose import closed_form_pose
-from ivc.export import FORMATS, VRUI_MARGIN, ExportError, csv_sidecar, distortion, export
+from ivc.export import FORMATS, SLICER_TO_PARENT_CLASS, VRUI_MARGIN, ExportError, csv_sidecar, distortion, export
 from ivc.lut import Grid, LookupTable
 from ivc.lut import write as write_lut
 from ivc.lut.table import COMPONENTS
@@ -244,28 +245,147 @@ def _vrui_apply(base, cell, offset, rotvec, valid, p):
     return o + rotations.to_matrix(rotations.from_rotvec(r)) @ p
 
 
-def test_vrui_grid_read_as_vrui_does_corrects_at_the_vertices(table, tmp_path):
+@pytest.fixture(scope="module")
+def reported_grid(table):
+    """The correction on the default grid over the reported region (what slicer-itk, itk and vrui hold)."""
+    return distortion.reported_correction(table)
+
+
+def _reported_check_poses(table, rng, n=300):
+    """True poses inside the mapped volume, what the tracker reports for them, and which ivc trusts."""
+    g = table.grid
+    r = g.origin + g.spacing * (1 + rng.uniform(0, np.array(g.shape) - 3, (n, 3)))
+    r = r[table.field().evaluate(r)[2]]
+    T = rotations.to_matrix(rotations.random(len(r), rng))
+    v, C, _ = distortion.reported(table.field(), r, table.hemisphere)
+    Q = C @ T
+    out = PoseCorrector(table).batch(v, rotations.from_matrix(Q))
+    return r, T, v, Q, out
+
+
+def test_reported_region_covers_the_reported_positions(table, reported_grid, rng):
+    """The grid spans where the tracker reports the mapped volume, and every defined node is the pose-only
+    correction of a pose reported there."""
+    c = reported_grid
+    r, T, v, Q, out = _reported_check_poses(table, rng)
+    trusted = out.flags == 0
+    assert trusted.mean() > 0.95
+    assert c.grid.contains(v).all()
+    nodes = c.source[c.valid]
+    check = PoseCorrector(table).batch(nodes, np.tile([1.0, 0.0, 0.0, 0.0], (len(nodes), 1)))
+    assert np.array_equal(check.position, c.target[c.valid])
+    assert np.allclose(rotations.to_matrix(check.quaternion), c.turn[c.valid], atol=1e-12)
+    position, turn, mapped = distortion.reported(table.field(), c.target[c.valid], table.hemisphere)
+    assert np.abs(position - nodes).max() < 1e-9 and mapped.all()
+    assert np.allclose(turn @ c.turn[c.valid], np.eye(3), atol=1e-9)
+
+
+def test_itk_transform_read_by_simpleitk_moves_reported_positions_to_the_corrected_ones(table, rng, tmp_path):
+    """SimpleITK's TransformPoint of a reported position (LPS, mm) gives ivc's pose-only correction of it."""
+    sitk = pytest.importorskip("SimpleITK")
+    path = export(table, "itk", tmp_path / "t_itk.h5", spacing=0.01)
+    transform = sitk.ReadTransform(str(path))
+    assert transform.GetName() == "DisplacementFieldTransform"
+    lps = np.array([-1.0, -1.0, 1.0])
+    r, T, v, Q, out = _reported_check_poses(table, rng)
+    ok = out.flags == 0
+    moved = np.array([transform.TransformPoint(tuple(p)) for p in v[ok] * lps * MM]) * lps / MM
+    gap = np.linalg.norm(moved - out.position[ok], axis=1) * MM
+    assert np.median(gap) < 0.01 and gap.max() < 0.1  # trilinear between 10 mm nodes of a smooth field
+    assert np.linalg.norm(out.position[ok] - r[ok], axis=1).max() < 1e-8  # and ivc's correction is the truth
+    # at the nodes, exactly the correction
+    c = distortion.reported_correction(table, spacing=0.01)
+    nodes = c.source[c.valid][::37]
+    at = np.array([transform.TransformPoint(tuple(p)) for p in nodes * lps * MM]) * lps / MM
+    assert np.abs(at - c.target[c.valid][::37]).max() < 1e-12
+    # undefined nodes hold the map's extension past the mapped volume (or their nearest node's), never zero
+    with h5py.File(path, "r") as h5:
+        valid = np.transpose(h5["/ivc/valid"][()], (2, 1, 0)).astype(bool)
+        assert "extension of the map" in h5["ivc"].attrs["undefined_nodes"]
+    assert np.array_equal(valid, c.valid) and not valid.all()
+    filled = c.filled_displacement()
+    assert np.all(np.isfinite(filled))
+    extended = ~c.valid & np.all(np.isfinite(c.extension), axis=-1)
+    assert extended.any()
+    assert np.allclose(filled[extended], (c.extension - c.source)[extended], atol=1e-15)
+    for idx in map(tuple, np.argwhere(~c.valid)[::11]):
+        shift = np.array(transform.TransformPoint(tuple(c.source[idx] * lps * MM))) * lps / MM - c.source[idx]
+        assert np.allclose(shift, filled[idx], atol=1e-12) and np.linalg.norm(shift) > 0
+    # outside the grid, ITK moves nothing
+    far = tuple((c.grid.origin - 0.1) * lps * MM)
+    assert transform.TransformPoint(far) == pytest.approx(far)
+
+
+def test_slicer_itk_is_the_itk_field_under_the_class_slicer_reads_as_to_parent(table, tmp_path):
+    """3D Slicer reads InverseDisplacementFieldTransform as a to-parent grid transform (applied to points as
+    stored, no inversion); plain ITK does not know that class, which is why itk is written too."""
+    sitk = pytest.importorskip("SimpleITK")
+    slicer = export(table, "slicer-itk", tmp_path / "t_slicer.h5")
+    plain = export(table, "itk", tmp_path / "t_itk.h5")
+    with h5py.File(slicer, "r") as a, h5py.File(plain, "r") as b:
+        assert a["TransformGroup/0/TransformType"][0].decode() == SLICER_TO_PARENT_CLASS
+        assert b["TransformGroup/0/TransformType"][0].decode() == "DisplacementFieldTransform_double_3_3"
+        for name in ("TransformParameters", "TransformFixedParameters"):
+            assert np.array_equal(a["TransformGroup/0/" + name][()], b["TransformGroup/0/" + name][()])
+        assert np.array_equal(a["/ivc/valid"][()], b["/ivc/valid"][()])
+        assert "to-parent" in a["ivc"].attrs["direction"]
+    with pytest.raises(RuntimeError, match="InverseDisplacementFieldTransform"):
+        sitk.ReadTransform(str(slicer))
+
+
+def test_itk_exports_need_simpleitk_and_say_so(table, tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "SimpleITK", None)  # import SimpleITK now raises ImportError
+    for fmt in ("slicer-itk", "itk"):
+        with pytest.raises(ExportError, match=r"pip install 'ivc\[slicer\]'"):
+            export(table, fmt, tmp_path / f"{fmt}.h5")
+        assert not (tmp_path / f"{fmt}.h5").exists()
+    with pytest.raises(ExportError, match="spacing applies to"):
+        export(table, "vti", tmp_path / "t.vti", spacing=0.01)
+
+
+def test_vrui_grid_read_as_vrui_does_corrects_at_the_vertices(table, reported_grid, tmp_path):
     base, cell, offset, rotvec, valid = _read_vrui(export(table, "vrui", tmp_path / "t.grid", unit="m").read_text())
-    c = distortion.correction(table)
+    c = reported_grid
     m = VRUI_MARGIN
     inner = (slice(m, -m),) * 3
     assert not valid[0].any() and not valid[-1].any() and not valid[:, 0].any() and not valid[:, :, -1].any()
     assert np.array_equal(valid[inner], c.valid)
     offset, rotvec, valid = offset[inner], rotvec[inner], valid[inner]
     base = base + m * cell
-    assert np.allclose(base, table.grid.origin) and np.allclose(cell, table.grid.spacing)
+    assert np.allclose(base, c.grid.origin) and np.allclose(cell, c.grid.spacing)
     # Vrui applies (offset, R) on the left: p' = offset + R p, T' = R T
     R = rotations.to_matrix(rotations.from_rotvec(rotvec[valid]))
-    vertices = table.grid.nodes()[valid]
+    vertices = c.grid.nodes()[valid]
     corrected = offset[valid] + np.einsum("nij,nj->ni", R, vertices)
     assert np.abs(corrected - c.target[valid]).max() < 1e-8
     assert np.allclose(R, c.turn[valid], atol=1e-8)
 
 
-def test_vrui_leaves_poses_outside_the_grid_alone(table, tmp_path):
+def test_vrui_grid_covers_the_reported_poses_and_corrects_them(table, rng, tmp_path):
+    """Vrui's own lookup at the reported check poses lands on ivc's corrections (its grid is in reported
+    coordinates and spans where they are reported)."""
+    base, cell, offset, rotvec, valid = _read_vrui(export(table, "vrui", tmp_path / "t.grid", unit="mm",
+                                                          spacing=0.01).read_text())
+    r, T, v, Q, out = _reported_check_poses(table, rng, 150)
+    ok = out.flags == 0
+    size = np.array(valid.shape)
+    gap, covered = [], 0
+    for p, target in zip(v[ok] * MM, out.position[ok] * MM, strict=True):
+        index = np.clip(np.floor((p - base) / cell).astype(int), 0, size - 2)
+        corners = [tuple(index + np.array(k)) for k in np.ndindex(2, 2, 2)]
+        if all(valid[k] for k in corners):
+            covered += 1
+            gap.append(np.linalg.norm(_vrui_apply(base, cell, offset, rotvec, valid, p) - target))
+    assert covered >= 0.95 * ok.sum()
+    assert np.median(gap) < 0.02 and np.max(gap) < 0.2  # mm: trilinear between 10 mm vertices
+
+
+def test_vrui_leaves_poses_outside_the_grid_alone(table, reported_grid, tmp_path):
     grid_file = export(table, "vrui", tmp_path / "t.grid", unit="mm")
     base, cell, offset, rotvec, valid = _read_vrui(grid_file.read_text())
-    g = table.grid
+    g = reported_grid.grid
     centre = (g.origin + g.spacing * (np.array(g.shape) - 1) / 2) * MM
     below = centre - [0, 0, 180.0 + g.spacing * MM * (g.shape[2] - 1) / 2]  # 180 mm below the grid
     assert np.array_equal(_vrui_apply(base, cell, offset, rotvec, valid, below), below)
@@ -284,7 +404,14 @@ def test_cli_export_every_format_and_refuse_to_overwrite(table, tmp_path):
         result = runner.invoke(cli, ["export", str(lut_path), "--format", fmt, *(["--unit", "in"] if fmt == "vrui"
                                                                                  else [])])
         assert result.exit_code == 0, result.output
-        assert (tmp_path / f"map{ext}").stat().st_size > 0
+        name = {"slicer-itk": "map_slicer.h5", "itk": "map_itk.h5"}.get(fmt, f"map{ext}")
+        assert (tmp_path / name).stat().st_size > 0 and name in result.output
+    spaced = runner.invoke(cli, ["export", str(lut_path), "--format", "itk", "--spacing", "20", "-o",
+                                 str(tmp_path / "fine.h5")])
+    assert spaced.exit_code == 0, spaced.output
+    refused = runner.invoke(cli, ["export", str(lut_path), "--format", "csv", "--spacing", "20", "-o",
+                                  str(tmp_path / "x.csv")])
+    assert refused.exit_code != 0 and "--spacing applies to" in refused.output
     again = runner.invoke(cli, ["export", str(lut_path), "--format", "csv"])
     assert again.exit_code != 0 and "exists" in again.output
     same = runner.invoke(cli, ["export", str(lut_path), "--format", "hdf5", "-o", str(lut_path), "--force"])

@@ -13,7 +13,7 @@ from ivc import rotations
 from ivc import session as session_io
 from ivc.cli import cli
 from ivc.collect import PlusError, read_csv, read_plus, replay, write_plus
-from ivc.correct import Corrector
+from ivc.correct import PoseCorrector
 from ivc.lut import write as write_lut
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "plus"
@@ -78,7 +78,9 @@ def test_correct_writes_the_sequence_back_with_ivc_transforms_added(exact_table,
     before, after = independent_parse(path), independent_parse(out)
     assert {k: v for k, v in after.items() if "Ivc" not in k[1]} == before  # nothing of the original changed
     original = read_plus(path)
-    expected = Corrector(exact_table).batch_poses(original.step.position, original.step.quaternion)
+    # reported poses only: corrected through the pose path, not from signals rebuilt from them
+    expected = PoseCorrector(exact_table).batch(original.step.position, original.step.quaternion,
+                                                original.step.valid_mask)
     again = read_plus(out)
     assert again.step.sensor_ids == original.step.sensor_ids  # the new transforms are to another frame
     assert again.other_transforms == ["ToolToTrackerIvcTransform"]

@@ -15,14 +15,17 @@ from ivc import session as session_io
 from ivc.cli.main import cli
 from ivc.collect.replay import write_csv
 from ivc.correct import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE, Corrector
-from ivc.correct.evaluate import evaluate, rigid_alignment
+from ivc.correct.evaluate import check_errors, evaluate, rigid_alignment, summarise
 from ivc.correct.pose_domain import PoseCorrector
 from ivc.dipole.tracker_solver import distortion
 from ivc.errors import InputError
+from ivc.fixtures.pose_report import pose_fixture_report
+from ivc.fixtures.report import fixture_report
 from ivc.live import LiveCorrector
 from ivc.live.igtl import Framer
 from ivc.lut import FitOptions, HarmonicFit
 from ivc.pose.reported import invert_distortion
+from ivc.report.compute import POSE_ONLY, check_view, gather
 from ivc.session import Session
 from tests.helpers import CENTRE, ball, quadratic_field
 
@@ -76,8 +79,35 @@ def test_streaming_matches_batch(exact_table, rng):
     corrector = PoseCorrector(exact_table)
     batch = corrector.batch(v, rotations.from_matrix(Q))
     streamed = [corrector.update(v[k : k + 4], Q[k : k + 4], sensors="abcd") for k in range(0, 400, 4)]
-    np.testing.assert_allclose(np.concatenate([s.position for s in streamed]), batch.position, atol=1e-9)
+    np.testing.assert_allclose(np.concatenate([s.position for s in streamed]), batch.position, atol=1e-10)
+    q = np.concatenate([s.quaternion for s in streamed])
+    assert rotations.angle_between(q, batch.quaternion).max() < 1e-9
     assert all(np.all(s.flags == 0) for s in streamed)
+
+
+def test_compiled_stream_frame_is_the_batch_computation_from_the_same_start(exact_table, rng):
+    """A frame whose sensors continue their tracks goes through one compiled call; given the same warm starts
+    the batch's path gives the same numbers, bit for bit, and the same new warm starts."""
+    _, _, v, Q = reported(rng, 40)
+    Q[9] = np.nan  # an invalid sample mid-stream: flagged, and its sensor's track restarts
+    stream = PoseCorrector(exact_table)
+    stream.update(v[:4], Q[:4], sensors="abcd")  # starts every track (through the batch's path)
+    for k in range(4, 40, 4):
+        offsets = stream.warm_starts("abcd")
+        expected = stream.correct_from(v[k : k + 4], Q[k : k + 4], offsets)
+        out = stream.update(v[k : k + 4], Q[k : k + 4], sensors="abcd")
+        for name in ("position", "quaternion", "flags", "residual", "iterations"):
+            np.testing.assert_array_equal(getattr(out, name), getattr(expected, name), err_msg=name)
+        ok = out.flags == 0
+        after = stream.warm_starts("abcd")
+        assert np.array_equal(np.isfinite(after).all(axis=1), ok)
+        np.testing.assert_array_equal(after[ok], (out.position - v[k : k + 4])[ok])
+    assert stream.update(v[8:12], Q[8:12], sensors="abcd").flags[1] == INVALID_INPUT
+    stream.reset()
+    stream.warm_up(v[0])  # runs the compiled steps, touches no sensor's warm start
+    assert np.isnan(stream.warm_starts("abcd")).all()
+    with pytest.raises(InputError, match="sensor names"):
+        stream.update(v[:4], Q[:4], sensors="abc")
 
 
 @pytest.mark.slow
@@ -158,6 +188,46 @@ def test_cli_end_to_end_on_a_pose_only_session_and_csv(pose_only_table, tmp_path
 
 
 @pytest.mark.slow
+def test_fixtures_of_a_pose_only_session_go_through_the_pose_path(small_session, tmp_path):
+    """`ivc fixtures` on reported poses alone: the cube's field through the tracker model, sensor 0 inverted;
+    rebuilding signals from the poses instead (what it did before) gets sensor 0 wrong by millimetres."""
+    _, session = small_session
+    poses = without_signals(session)
+    report = pose_fixture_report(poses)
+    assert report["input"] == "reported poses" and report["sweep"]["residual_relative"] is None
+    assert report["cube"]["vertex_position_rms_mm"] < 0.1
+    assert report["sweep"]["converged_fraction"] > 0.99 and report["sweep"]["inversion_miss_um"]["max"] < 1.0
+    pose_error = report["truth"]["sensor0_position_mm"]["p50"]
+    rebuilt = fixture_report(poses)["truth"]["sensor0_position_mm"]["p50"]  # signals rebuilt from the poses
+    assert pose_error < 0.3 and rebuilt > 5 * pose_error
+    path = tmp_path / "poses.h5"
+    session_io.write(poses, path)
+    runner = CliRunner()
+    result = runner.invoke(cli, ["fixtures", str(path)])
+    assert result.exit_code == 0, result.output
+    assert "from reported poses" in result.output and "reproduced to" in result.output
+    refused = runner.invoke(cli, ["fixtures", str(path), "--method", "two-stage"])
+    assert refused.exit_code == 2 and "reported poses only" in refused.output
+
+
+@pytest.mark.slow
+def test_report_corrects_pose_only_check_poses_through_the_pose_path(pose_only_table):
+    """The report's accuracy section corrects reported poses as `ivc correct` does, with the tracker solver the
+    table was fitted for (a signal Corrector handed over would lose it)."""
+    poses, table = pose_only_table
+    view, why = check_view(table, poses, None, "check", None, "the session")
+    assert why is None
+    expected = summarise(check_errors(PoseCorrector(table), poses))
+    assert summarise(view.errors)["ivc"] == expected["ivc"] and expected["corrected"] > 0
+    data = gather(poses, table)
+    assert data.model is None and data.sweep is None and data.mapping_missing == (POSE_ONLY,)
+    assert summarise(data.check.errors)["ivc"] == expected["ivc"]
+    least_squares = replace(table, fit={**table.fit, "tracker_solver": "least-squares"})
+    view, _ = check_view(least_squares, poses, None, "check", None, "the session")
+    other = summarise(check_errors(PoseCorrector(least_squares), poses))
+    assert summarise(view.errors)["ivc"] == other["ivc"] != expected["ivc"]
+
+
 def test_live_transform_input_is_corrected_and_published_as_trusted_tdata(exact_table, rng):
     r, T, v, Q = reported(rng, 8 * 3)
     m = np.zeros((8, 3, 4, 4))

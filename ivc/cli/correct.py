@@ -203,7 +203,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         if tracker_file is not None:
             raise click.UsageError("--tracker-model applies to signal matrices; a PLUS sequence holds poses only")
         _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpolation, max_residual, predictor,
-                      delta, tune, tuning, tune_from)
+                      delta, tune, tuning, tune_from, tracker)
         return
     if session_io.is_recording_csv(input_path):
         if not session_io.is_recording_csv(output_path):
@@ -261,8 +261,11 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
 
 
 def _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpolation, max_residual, predictor, delta,
-                  tune, tuning, tune_from) -> None:
-    """A PLUS sequence in; the same sequence with ``<Tool>To<Tracker>Ivc`` transforms added out (or a CSV, mm)."""
+                  tune, tuning, tune_from, tracker=None) -> None:
+    """A PLUS sequence in; the same sequence with ``<Tool>To<Tracker>Ivc`` transforms added out (or a CSV, mm).
+
+    A sequence holds reported poses only, so they are corrected through the pose path (the inverse of the
+    tracker's pose-domain distortion), not from signals rebuilt from them."""
     same_format = output_path.suffix.lower() == input_path.suffix.lower()
     if not (same_format or session_io.is_recording_csv(output_path)):
         raise click.UsageError(f"a PLUS sequence is corrected into a sequence of the same format (-o "
@@ -270,8 +273,7 @@ def _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpol
     sequence = read_plus(input_path)
     step = sequence.step
     _warn(rate_warning(step))
-    corrector = Corrector(table, hemisphere or table.hemisphere, interpolation, max_residual)
-    out = corrector.batch(step.signal_matrices(), step.valid_mask)
+    out = _correct_step(table, step, hemisphere or table.hemisphere, interpolation, max_residual, tracker)
     fixed = corrected_step(step, out, lut_file)
     fixed.valid = out.flags == 0
     if predictor:
@@ -282,7 +284,7 @@ def _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpol
         else:
             write_plus(sequence, tmp, {PLUS_CORRECTED: (fixed.position, fixed.quaternion, out.flags)})
     click.echo(_summary(input_path.name, out))
-    _warn(correction_advice(out, max_residual))
+    _warn(correction_advice(out, max_residual, step.signal is None))
     if sequence.other_transforms:
         _warn(f"not corrected (not to the {sequence.tracker} frame): {', '.join(sequence.other_transforms)}")
     click.echo(f"wrote {output_path}")

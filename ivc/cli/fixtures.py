@@ -11,9 +11,12 @@ from ivc import session as session_io
 from ivc.cli.options import POSITIVE
 from ivc.cli.progress import ON_TERMINAL
 from ivc.cli.tracker import tracker_option, with_tracker
+from ivc.dipole.tracker_solver import SOLVERS
 from ivc.fixtures import VERTEX_CHOICES
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import Gates
+from ivc.fixtures.pose_mapping import has_signals
+from ivc.fixtures.pose_report import pose_fixture_report
 from ivc.fixtures.report import fixture_report
 from ivc.pose import METHODS
 
@@ -32,8 +35,18 @@ def render(report: dict) -> str:
         f"fitted perfect cube edge {cube['fitted_edge_mm']:.2f} mm",
         "  sensor   residual x      y      z    |r| mm   frames   G at vertex (% primary) +- s.e.",
     ]
+    pose_only = report.get("input") == "reported poses"
+    if pose_only:
+        lines[0] = (f"Interpolation cube (vertices: {cube['vertices']}; from reported poses, {cube['interpolant']}, "
+                    f"{report['tracker_solver']} tracker); fitted perfect cube edge {cube['fitted_edge_mm']:.2f} mm")
+        lines[1] = ("  sensor   pose residual x y z (mm)    |r| mm   orient. mrad   frames   G at vertex (% primary)")
     for n in range(8):
         rx, ry, rz = cube["residuals_mm"][n]
+        if pose_only:
+            lines.append(f"  {n:>6} {rx:>10.3f} {ry:>6.3f} {rz:>6.3f} {cube['residual_norm_mm'][n]:>10.3f} "
+                         f"{cube['orientation_residual_mrad'][n]:>12.3f} {cube['frames_averaged'][n]:>8}   "
+                         f"{cube['vertex_field_percent_of_primary'][n]:>8.2f}")
+            continue
         lines.append(f"  {n:>6} {rx:>10.3f} {ry:>6.3f} {rz:>6.3f} {cube['residual_norm_mm'][n]:>8.3f} "
                      f"{cube['frames_averaged'][n]:>8}   {cube['vertex_field_percent_of_primary'][n]:>8.2f} "
                      f"+- {cube['vertex_field_standard_error_percent'][n]:.4f}")
@@ -49,6 +62,10 @@ def render(report: dict) -> str:
     if residual:
         lines.append(f"  rms(Λ)/rms(S): median {residual['p50']:.2e}, 99% {residual['p99']:.2e}, "
                      f"max {residual['max']:.2e}")
+    miss = sweep.get("inversion_miss_um")
+    if miss:
+        lines.append(f"  sensor 0's reported position reproduced to: median {miss['p50']:.2e} um, "
+                     f"max {miss['max']:.2e} um")
     lines.append(f"Samples: {samples['kept']} of {samples['total']} kept"
                  + "".join(f"; {count} dropped: {reason}" for reason, count in samples["dropped"].items() if count))
     truth = report.get("truth")
@@ -85,15 +102,32 @@ def render(report: dict) -> str:
 @click.option("--compare-cubes", type=click.IntRange(0), default=0,
               help="Also compare the cube vertex choices on this many frames.")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+@click.option("--tracker", "tracker_solver", type=click.Choice(SOLVERS),
+              default="closed-form", show_default=True,
+              help="For a session of reported poses only: the tracker's own pose solver (docs/lut.md).")
 @tracker_option
 def fixtures(session_file, vertices, interpolant, method, max_residual, max_error_mm, compare_cubes, as_json,
-             tracker_file):
-    """Calibrate the cube and wand of SESSION_FILE, solve the sweep, and report what a map would be built from."""
+             tracker_solver, tracker_file):
+    """Calibrate the cube and wand of SESSION_FILE, solve the sweep, and report what a map would be built from.
+
+    A session of reported poses only (no signals) goes through the pose path: the cube's field fitted
+    through the tracker model, sensor 0 traced back into the cube by inverting it (docs/fixtures.md)."""
     data = with_tracker(session_io.read(session_file), tracker_file)
     frames = data.steps["wand_sweep"].n_frames if "wand_sweep" in data.steps else 0
     gates = Gates(max_residual=max_residual, max_error=max_error_mm / 1000)
+    pose_only = not has_signals(data)
+    if pose_only:
+        ignored = [name for name, value, default in (("--interpolant", interpolant, "harmonic"),
+                                                     ("--method", method, "joint"),
+                                                     ("--compare-cubes", compare_cubes, 0))
+                   if value != default]
+        if ignored:
+            raise click.UsageError(f"{', '.join(ignored)} apply to signals; {session_file} holds reported poses only")
     with tqdm(total=frames, desc="solving the sweep", unit="frame", leave=False,
               disable=True if as_json else ON_TERMINAL) as bar:
-        report = fixture_report(data, vertices, method, gates, compare_cubes, progress=bar.update,
-                                interpolant=interpolant)
+        if pose_only:
+            report = pose_fixture_report(data, vertices, tracker_solver, progress=bar.update)
+        else:
+            report = fixture_report(data, vertices, method, gates, compare_cubes, progress=bar.update,
+                                    interpolant=interpolant)
     click.echo(json.dumps(report, indent=2) if as_json else render(report))

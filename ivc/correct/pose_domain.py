@@ -35,7 +35,7 @@ from scipy.spatial import cKDTree
 
 from ivc import compiled, rotations
 from ivc.correct import pose_kernels as _pose_kernels
-from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE, Correction
+from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, Correction
 from ivc.dipole.pose import hemisphere_vector
 from ivc.dipole.tracker_solver import check_solver, distortion
 from ivc.errors import InputError
@@ -163,7 +163,11 @@ class PoseCorrector:
         self.max_residual = float(max_residual)
         self.max_iterations = int(max_iterations)
         self.tolerance = float(tolerance)
-        self._previous: dict = {}
+        # per sensor (row ``_slot[key]``): the previous good correction offset r − v, and whether it is current
+        self._slot: dict = {}
+        self._slot_cache: dict = {}
+        self._offset = np.zeros((16, 3))
+        self._tracked = np.zeros(16, dtype=bool)
         self._seeds: SeedMap | None = None
         self.check_ambiguity = bool(check_ambiguity)
 
@@ -221,14 +225,26 @@ class PoseCorrector:
                 # start's solution is not taken either (measured: it is most often the wrong branch)
                 ambiguous[idx] |= good1 & good2 & (np.linalg.norm(r[idx] - r2, axis=1) > AMBIGUITY)
                 iterations[idx] += it2
-        with np.errstate(invalid="ignore"):
-            T = np.swapaxes(C, -1, -2) @ Q
-            q = rotations.from_matrix(T)
-        flags = (np.where(mapped, 0, OUTSIDE) | np.where(converged, 0, NOT_CONVERGED)
-                 | np.where((miss <= self.max_residual) & ~ambiguous, 0, HIGH_RESIDUAL)).astype(np.uint8)
+        q, flags = np.empty((n, 4)), np.empty(n, dtype=np.uint8)
+        contiguous = np.ascontiguousarray
+        compose = compiled.choose(_pose_kernels.compose_kernel, n)
+        compose(contiguous(C, dtype=float), contiguous(Q, dtype=float),
+                contiguous(mapped, dtype=bool), contiguous(converged, dtype=bool),
+                contiguous(miss, dtype=float), self.max_residual, q, flags)
+        flags[ambiguous] |= HIGH_RESIDUAL
         flags[~finite] = INVALID_INPUT
-        r[~finite], q[~finite], miss[~finite] = np.nan, np.nan, np.nan
+        r[~finite], q[~finite], miss[~finite], iterations[~finite] = np.nan, np.nan, np.nan, 0
         return Correction(r, q, flags, miss, iterations)
+
+    def invert_from_probes(self, position: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Invert ``φ`` at reported positions (n, 3) m from each one's nearest probe of :attr:`seeds` rather than
+        from the position itself: (true positions (n, 3) m, whether each reproduces its reported position to
+        ``max_residual``, whether it is in the mapped volume). No ambiguity test: a start of last resort, for
+        grids an export fills (ivc.export.distortion), never for trusting a measurement."""
+        v = np.ascontiguousarray(np.asarray(position, float).reshape(-1, 3))
+        start, H, _, _ = self.seeds.starts(v)
+        r, _, miss, converged, _, mapped = self._invert(v, start, H, serial=False)
+        return r, converged & (miss <= self.max_residual), mapped
 
     def batch(self, position: np.ndarray, quaternion: np.ndarray, valid: np.ndarray | None = None) -> Correction:
         """Correct reported poses: positions (..., 3) m and quaternions (..., 4) [w, x, y, z], each sample on
@@ -251,19 +267,85 @@ class PoseCorrector:
     def update(self, position: np.ndarray, rotation: np.ndarray, sensors: list | tuple | None = None) -> Correction:
         """Correct the latest frame of a stream: positions (N, 3) m and rotation matrices (N, 3, 3), one per
         sensor. Each sensor starts from its reported position moved by its own previous good correction
-        (keyed by ``sensors``, default 0..N−1), or from the reported position."""
-        v = np.ascontiguousarray(np.asarray(position, float).reshape(-1, 3))
-        Q = np.asarray(rotation, float).reshape(-1, 3, 3)
-        keys = range(len(v)) if sensors is None else sensors
-        offsets = np.array([self._previous.get(k, (np.nan, np.nan, np.nan)) for k in keys], float).reshape(-1, 3)
+        (keyed by ``sensors``, default 0..N−1), or from the reported position.
+
+        For the closed-form solver, a frame whose sensors all continue a track (or any frame without the
+        ambiguity test) is corrected by one compiled call (:func:`ivc.correct.pose_kernels.stream_kernel`),
+        the same steps as :meth:`batch` from another start; other frames go through the batch's path.
+        """
+        v = np.ascontiguousarray(np.asarray(position, dtype=float).reshape(-1, 3))
+        Q = np.ascontiguousarray(np.asarray(rotation, dtype=float).reshape(-1, 3, 3))
+        if len(Q) != len(v):
+            raise InputError(f"a frame needs one rotation per position, got {len(v)} positions and {len(Q)} rotations")
+        slots = self._slots(sensors, len(v))
+        if self.solver == "closed-form" and (not self.check_ambiguity or self._tracked[slots].all()):
+            n = len(v)
+            r, q, flags = np.empty((n, 3)), np.empty((n, 4)), np.empty(n, dtype=np.uint8)
+            miss, iterations = np.empty(n), np.empty(n, dtype=np.int64)
+            f = self.field
+            stream = compiled.choose(_pose_kernels.stream_kernel, n)
+            stream(v, Q, slots, self._offset, self._tracked, self._h, *f.kernel_grid, self.max_iterations,
+                   self.tolerance, self.max_residual, r, q, flags, miss, iterations)
+            return Correction(r, q, flags, miss, iterations)
+        tracked = self._tracked[slots]
+        offsets = np.where(tracked[:, None], self._offset[slots], np.nan)
         out = self._run(v, Q, offsets, serial=True)
-        for n, key in enumerate(keys):
+        for n, slot in enumerate(slots):  # in order, as the compiled path: a sensor named twice keeps its last
+            self._tracked[slot] = out.flags[n] == 0
             if out.flags[n] == 0:
-                self._previous[key] = out.position[n] - v[n]
-            else:
-                self._previous.pop(key, None)
+                self._offset[slot] = out.position[n] - v[n]
         return out
+
+    def warm_starts(self, sensors: list | tuple | str) -> np.ndarray:
+        """Each named sensor's current warm start for :meth:`update`: its previous good correction offset
+        ``r − v`` (n, 3) m, NaN where it has none (a new sensor, after a flagged sample or :meth:`reset`)."""
+        slots = self._slots(sensors, len(tuple(sensors)))
+        return np.where(self._tracked[slots][:, None], self._offset[slots], np.nan)
+
+    def correct_from(self, position: np.ndarray, rotation: np.ndarray, offsets: np.ndarray) -> Correction:
+        """The batch's path for reported positions (n, 3) m and rotations (n, 3, 3), each sample started at
+        ``position + offsets`` ((n, 3) m; a NaN row: at the position, with the ambiguity test), without touching
+        any sensor's warm start: what :meth:`update` computes for a frame, in the batch's steps."""
+        v = np.ascontiguousarray(np.asarray(position, dtype=float).reshape(-1, 3))
+        Q = np.asarray(rotation, dtype=float).reshape(-1, 3, 3)
+        offsets = np.asarray(offsets, dtype=float).reshape(-1, 3)
+        if not len(v) == len(Q) == len(offsets):
+            raise InputError(f"{len(v)} positions, {len(Q)} rotations and {len(offsets)} offsets: give one each")
+        return self._run(v, Q, offsets, serial=True)
+
+    def warm_up(self, position: np.ndarray) -> None:
+        """Run the compiled steps of :meth:`batch` and :meth:`update` once, at a reported position (3,) m, so
+        that a stream's first frames do not wait for them; no sensor's warm start is touched."""
+        v = np.asarray(position, dtype=float).reshape(1, 3)
+        Q = np.eye(3)[None]
+        self.correct_from(v, Q, np.zeros((1, 3)))
+        if self.solver == "closed-form":
+            out = [np.empty((1, 3)), np.empty((1, 4)), np.empty(1, dtype=np.uint8), np.empty(1),
+                   np.empty(1, dtype=np.int64)]
+            _pose_kernels.stream_kernel(np.ascontiguousarray(v), Q, np.zeros(1, dtype=np.int64), np.zeros((1, 3)),
+                                        np.ones(1, dtype=bool), self._h, *self.field.kernel_grid,
+                                        self.max_iterations, self.tolerance, self.max_residual, *out)
+
+    def _slots(self, sensors, n: int) -> np.ndarray:
+        """Rows of the warm-start arrays (``_offset``, ``_tracked``) of the frame's sensors, added on first use."""
+        keys = tuple(range(n)) if sensors is None else tuple(sensors)
+        slots = self._slot_cache.get(keys)
+        if slots is not None:
+            return slots
+        if len(keys) != n:
+            raise InputError(f"{len(keys)} sensor names for a frame of {n} samples")
+        for key in keys:
+            if key not in self._slot:
+                self._slot[key] = len(self._slot)
+        if len(self._slot) > len(self._tracked):
+            grow = max(len(self._slot), 2 * len(self._tracked))
+            self._offset = np.vstack([self._offset, np.zeros((grow - len(self._offset), 3))])
+            self._tracked = np.concatenate([self._tracked, np.zeros(grow - len(self._tracked), dtype=bool)])
+        slots = np.array([self._slot[k] for k in keys], dtype=np.int64)
+        if len(self._slot_cache) < 1024:
+            self._slot_cache[keys] = slots
+        return slots
 
     def reset(self) -> None:
         """Forget every sensor's warm start (after a gap in the stream)."""
-        self._previous.clear()
+        self._tracked[:] = False

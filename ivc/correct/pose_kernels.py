@@ -7,6 +7,12 @@ inverse-Jacobian estimate ``H`` (:class:`ivc.correct.pose_domain.SeedMap` gives 
 update of ``H``; stop when ``|v − φ(r)| ≤ tolerance``. The steps need the position only; ``C``
 is computed once, at the solution. The reference
 (NumPy, any solver) is :func:`ivc.pose.reported.invert_distortion`.
+
+:func:`compose_kernel` turns the solutions into corrected attitudes (``T = Cᵀ Q``, canonical
+quaternions) and flags, for the batch; :func:`stream_kernel` does a live frame's whole
+correction, warm starts, inversion, attitude, flags and the sensors' new warm starts, in one
+call, with the same steps in the same order, so a frame streamed and the same samples batched
+differ only by where each inversion started.
 """
 
 from __future__ import annotations
@@ -14,8 +20,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.dipole.kernels import _principal_eigenvector, closed_form_one, field_matrix
-from ivc.lut.kernels import _cell, _weights
+from ivc.correct.kernels import quaternion_of
+from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
+from ivc.dipole.kernels import closed_form_one, field_matrix, principal_eigenvector
+from ivc.lut.kernels import axis_weights, cell_of
 
 # The helpers below are plain compiled functions, not numba-inlined: inlined three and four times over into
 # one function they made its first compile take over a minute. ``error_model="numpy"`` keeps the arithmetic
@@ -29,12 +37,12 @@ BACKTRACKS = 12
 @numba.njit(error_model="numpy")
 def _grid_value(padded, valid_cells, origin, spacing, shape, p, cubic, value, wx, wy, wz, dx, dy, dz):
     """Value (C,) of the table at p (no gradient); returns whether p is in a valid cell."""
-    i, tx, in_x = _cell(p[0], origin[0], spacing, shape[0])
-    j, ty, in_y = _cell(p[1], origin[1], spacing, shape[1])
-    k, tz, in_z = _cell(p[2], origin[2], spacing, shape[2])
-    _weights(tx, cubic, wx, dx)
-    _weights(ty, cubic, wy, dy)
-    _weights(tz, cubic, wz, dz)
+    i, tx, in_x = cell_of(p[0], origin[0], spacing, shape[0])
+    j, ty, in_y = cell_of(p[1], origin[1], spacing, shape[1])
+    k, tz, in_z = cell_of(p[2], origin[2], spacing, shape[2])
+    axis_weights(tx, cubic, wx, dx)
+    axis_weights(ty, cubic, wy, dy)
+    axis_weights(tz, cubic, wz, dz)
     C = padded.shape[3]
     for c in range(C):
         value[c] = 0.0
@@ -78,7 +86,7 @@ def _position(F, h, B, wa, wb, ev, phi):
         for j in range(3):
             B[i, j] = F[0, i] * F[0, j] + F[1, i] * F[1, j] + F[2, i] * F[2, j]
     tr = B[0, 0] + B[1, 1] + B[2, 2]
-    _principal_eigenvector(B, wa, wb, ev)
+    principal_eigenvector(B, wa, wb, ev)
     sign = 1.0
     if ev[0] * h[0] + ev[1] * h[1] + ev[2] * h[2] < 0.0:
         sign = -1.0
@@ -184,3 +192,79 @@ def invert_serial(v, start, H, h, padded, valid_cells, origin, spacing, shape, c
     for n in range(v.shape[0]):
         invert_one(v[n], start[n], H[n], h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
                    tolerance, r[n], C[n], miss, converged, iterations, mapped, n)
+
+
+_OUTSIDE, _NOT_CONVERGED, _HIGH_RESIDUAL, _INVALID_INPUT = OUTSIDE, NOT_CONVERGED, HIGH_RESIDUAL, INVALID_INPUT
+
+
+@numba.njit(inline="always")
+def _compose_one(C, Q, mapped, converged, miss, max_residual, q):
+    """q (4,) = canonical quaternion of Cᵀ Q (NaN where C or Q is not finite); returns the sample's flags."""
+    T = np.empty((3, 3))
+    finite = True
+    for i in range(3):
+        for j in range(3):
+            T[i, j] = C[0, i] * Q[0, j] + C[1, i] * Q[1, j] + C[2, i] * Q[2, j]
+            finite = finite and np.isfinite(T[i, j])
+    if finite:
+        quaternion_of(T, q)
+    else:
+        for a in range(4):
+            q[a] = np.nan
+    flags = 0
+    if not mapped:
+        flags |= _OUTSIDE
+    if not converged:
+        flags |= _NOT_CONVERGED
+    if not (miss <= max_residual):
+        flags |= _HIGH_RESIDUAL
+    return flags
+
+
+@numba.njit(cache=True, nogil=True)
+def compose_kernel(C, Q, mapped, converged, miss, max_residual, q, flags):  # pragma: no cover - compiled
+    """Attitudes q (n, 4) and flags (n,) uint8 of n inverted samples (C (n, 3, 3), reported Q (n, 3, 3))."""
+    for n in range(C.shape[0]):
+        flags[n] = _compose_one(C[n], Q[n], mapped[n], converged[n], miss[n], max_residual, q[n])
+
+
+@numba.njit(cache=True, nogil=True)
+def stream_kernel(v, Q, slots, offset, tracked, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
+                  tolerance, max_residual, r, q, flags, miss, iterations):  # pragma: no cover - compiled
+    """One live frame: sample n of sensor ``slots[n]`` starts at ``v[n] + offset[slot]`` where ``tracked[slot]``
+    (else at v[n]), is inverted (H = I, as the batch), composed and flagged; a trusted sample sets its sensor's
+    offset ``r − v`` and tracked, any other clears tracked. Non-finite input: NaN, INVALID_INPUT."""
+    start = np.empty(3)
+    H = np.empty((3, 3))
+    C = np.empty((3, 3))
+    m = np.empty(1)
+    c = np.empty(1, dtype=np.bool_)
+    it = np.empty(1, dtype=np.int64)
+    mp = np.empty(1, dtype=np.bool_)
+    for n in range(v.shape[0]):
+        slot = slots[n]
+        finite = True
+        for a in range(3):
+            finite = finite and np.isfinite(v[n, a])
+            for b in range(3):
+                finite = finite and np.isfinite(Q[n, a, b])
+        if not finite:
+            for a in range(3):
+                r[n, a] = np.nan
+            for a in range(4):
+                q[n, a] = np.nan
+            flags[n], miss[n], iterations[n] = _INVALID_INPUT, np.nan, 0
+            tracked[slot] = False
+            continue
+        for a in range(3):
+            start[a] = v[n, a] + offset[slot, a] if tracked[slot] else v[n, a]
+            for b in range(3):
+                H[a, b] = 1.0 if a == b else 0.0
+        invert_one(v[n], start, H, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
+                   r[n], C, m, c, it, mp, 0)
+        flags[n] = _compose_one(C, Q[n], mp[0], c[0], m[0], max_residual, q[n])
+        miss[n], iterations[n] = m[0], it[0]
+        tracked[slot] = flags[n] == 0
+        if flags[n] == 0:
+            for a in range(3):
+                offset[slot, a] = r[n, a] - v[n, a]

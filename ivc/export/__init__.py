@@ -3,6 +3,17 @@
 ``export(table, fmt, path)`` writes one format atomically; :data:`FORMATS` names them all.
 """
 
-from ivc.export.formats import FORMATS, UNITS, VRUI_MARGIN, ExportError, csv_sidecar, export, resolve_unit
+from ivc.export.formats import (
+    FORMATS,
+    REPORTED_GRID_FORMATS,
+    SLICER_TO_PARENT_CLASS,
+    UNITS,
+    VRUI_MARGIN,
+    ExportError,
+    csv_sidecar,
+    export,
+    resolve_unit,
+)
 
-__all__ = ["FORMATS", "UNITS", "VRUI_MARGIN", "ExportError", "csv_sidecar", "export", "resolve_unit"]
+__all__ = ["FORMATS", "REPORTED_GRID_FORMATS", "SLICER_TO_PARENT_CLASS", "UNITS", "VRUI_MARGIN", "ExportError",
+           "csv_sidecar", "export", "resolve_unit"]

@@ -54,7 +54,8 @@ MAX_RANGE_M = 100.0
 #: largest |RᵀR − I| of a TRANSFORM's rotation (float32 matrices are orthonormal to ~1e-6)
 MAX_ORTHONORMALITY_ERROR = 1e-2
 #: the compiled kernels of the live path (streaming correction of signals and poses, the pose path's seed map)
-LIVE_KERNELS = (_correct_kernels.correct_serial, _pose_kernels.invert_serial, _lut_kernels.grid_kernel,
+LIVE_KERNELS = (_correct_kernels.correct_serial, _pose_kernels.invert_serial, _pose_kernels.stream_kernel,
+                _pose_kernels.compose_kernel, _lut_kernels.grid_kernel,
                 _dipole_kernels.closed_form_pose_kernel, _dipole_kernels.field_kernel, _dipole_kernels.signal_kernel)
 
 
@@ -195,8 +196,7 @@ class LiveCorrector:
         with compiled.compiling():
             corrector.update(dipole.signal(centre[None], np.eye(3)[None]), sensors=["warm-up"])
             corrector.reset()
-            pose_corrector.update(centre[None], np.eye(3)[None], sensors=["warm-up"])
-            pose_corrector.reset()
+            pose_corrector.warm_up(centre)
 
     def _compile(self, start: float) -> None:
         """The background compilation: the same warm-up on copies of the correctors (their stream state is

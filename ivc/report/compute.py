@@ -15,11 +15,13 @@ import numpy as np
 
 from ivc import dipole
 from ivc.correct.evaluate import CheckErrors, check_errors, summarise
+from ivc.correct.pose_domain import PoseCorrector
 from ivc.correct.solver import Corrector
 from ivc.errors import InputError
 from ivc.fixtures.cube import CUBE_BITS, NOMINAL_EDGE, declared_pose, placed_vertices
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import FixtureModel, Gates, SweepMapping, map_sweep
+from ivc.fixtures.pose_mapping import has_signals
 from ivc.fixtures.report import SweepErrors, sweep_errors
 from ivc.lut.build import FitOptions
 from ivc.lut.grid import GridField
@@ -194,7 +196,9 @@ def check_view(table: LookupTable, session: Session, check: Session | None, step
     # the table's frame is the session's declared cube frame: judge the check poses in it
     found = declared_frame_map(session) if "cube_survey" in session.truth else None
     frame_map = None if found is None else found[:2]
-    corrector = Corrector(table, check.hemisphere)
+    # signals through the signal path; reported poses alone through the pose path, with the table's tracker solver
+    corrector = (Corrector(table, check.hemisphere) if check.steps[step].signal is not None
+                 else PoseCorrector(table, check.hemisphere))
     errors = check_errors(corrector, check, step, frame_map,
                           progress("correcting the check poses", check.steps[step].n_frames))
     distance = None if cube_centre is None else np.linalg.norm(errors.true_position - cube_centre, axis=-1)
@@ -215,18 +219,26 @@ def lacks_sentence(lacks: tuple[str, ...]) -> str:
     return f"the session has {listed}"
 
 
+#: what a session of reported poses only lacks for the cube, sweep and coverage sections
+POSE_ONLY = "no signals (reported poses only: `ivc fixtures` reports its cube and sweep through the pose path)"
+
+
 def gather(session: Session, table: LookupTable, check: Session | None = None, step: str = "check",
            thin: int = THIN_SAMPLES, max_frames: int | None = None, check_source: str = "the session",
            progress: Progress = no_progress) -> ReportData:
     """Everything the report draws. ``check``: a separate check recording (default: ``session``'s own).
 
     A session without the mapping steps (a check recording, say) gives the table's field and the
-    check poses only; ``mapping_missing`` says what it lacks.
+    check poses only; ``mapping_missing`` says what it lacks. So does a session of reported poses only
+    (:data:`POSE_ONLY`): its check poses are corrected through the pose path, and its cube and sweep are
+    not solved again from signals rebuilt from the poses.
     """
     if thin < 1:
         raise InputError(f"thin = {thin}: the thin-cell threshold is a number of samples, at least 1")
     field = table.field()
     lacks = tuple(lack.short for lack in session.lacks_for_fit())
+    if not lacks and not has_signals(session):
+        lacks = (POSE_ONLY,)  # the cube, sweep and coverage sections are the signal path's: not rebuilt from poses
     if lacks:
         model = sweep = counts = None
         vertices = declared_cube(session)
