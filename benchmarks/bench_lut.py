@@ -7,8 +7,9 @@ frame every sample and correction lives in. ``ivc fit`` <= 60 s on the 100,000-f
 ``ivc fit`` with its default options (refinement on) <= 30 s, as accurate as before issue 25
 (``BEFORE``: its CV score and check-pose percentiles, measured on this session with the code of
 that time, may not grow by more than 2 %); correction >= 250,000 sensor-frames/s batched;
-streaming median latency <= 50 µs. What limits the correction is printed beside it: the rate
-with every frame warm-started at its answer (no seed search, one or two iterations) and the
+streaming median latency <= 50 µs. What limits the correction is printed beside it (docs/lut.md,
+"Correction", breaks it down further): the rate
+with every frame warm-started at its answer (no seed search, about one iteration) and the
 mean number of iterations.
 
 Baselines in the same run: the uncorrected dipole solution (Table 24's other column), the

@@ -12,9 +12,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.dipole.kernels import _rotation_polar_factor, closed_form_one, field_matrix
+from ivc.dipole.kernels import _rotation_polar_factor, closed_form_one, field_matrix, principal_eigenvector
 from ivc.linalg import cholesky, cholesky_solve
-from ivc.lut.kernels import grid_point
+from ivc.lut.kernels import grid_contains, grid_point, grid_point_separable, grid_value
 
 FIXED_POINT_STEPS = 2
 
@@ -27,6 +27,22 @@ FIXED_POINT_STEPS = 2
 def _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K):
     """ivc.dipole's closed-form pose of one frame, compiled once here rather than inlined at each use."""
     closed_form_one(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
+
+
+@numba.njit
+def _closed_form_position(S, hemisphere, r, work_a, work_b, v, B):
+    """The position of ivc.dipole's closed-form pose (the same operations), without its orientation."""
+    for i in range(3):
+        for j in range(3):
+            B[i, j] = S[0, i] * S[0, j] + S[1, i] * S[1, j] + S[2, i] * S[2, j]
+    tr = B[0, 0] + B[1, 1] + B[2, 2]
+    principal_eigenvector(B, work_a, work_b, v)
+    sign = 1.0
+    if v[0] * hemisphere[0] + v[1] * hemisphere[1] + v[2] * hemisphere[2] < 0.0:
+        sign = -1.0
+    rng = sign * (6.0 / tr) ** (1.0 / 6.0)  # docs/math.md §3
+    for a in range(3):
+        r[a] = rng * v[a]
 
 
 @numba.njit
@@ -49,6 +65,36 @@ def _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, 
                     s += r[k]
                 dM[i, j, k] = 3.0 * s * inv5 - 15.0 * r[i] * r[j] * r[k] * inv7
     mapped = grid_point(padded, valid_cells, origin, spacing, shape, r, cubic, g, dg, wx, wy, wz, dx, dy, dz)
+    for i in range(3):
+        for j in range(3):
+            M[i, j] += g[3 * i + j]
+            for k in range(3):
+                dM[i, j, k] += dg[3 * i + j, k]
+    return mapped
+
+
+@numba.njit
+def _model_in(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz,
+              scratch):
+    """:func:`_model` with the separable look-up (its partial sums in ``scratch`` (3, C))."""
+    x, y, z = r[0], r[1], r[2]
+    field_matrix(x, y, z, M)
+    rho2 = x * x + y * y + z * z
+    inv5 = 1.0 / (rho2 * rho2 * np.sqrt(rho2))
+    inv7 = inv5 / rho2
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                s = 0.0
+                if i == k:
+                    s += r[j]
+                if j == k:
+                    s += r[i]
+                if i == j:
+                    s += r[k]
+                dM[i, j, k] = 3.0 * s * inv5 - 15.0 * r[i] * r[j] * r[k] * inv7
+    mapped = grid_point_separable(padded, valid_cells, origin, spacing, shape, r, cubic, g, dg, wx, wy, wz, dx, dy,
+                                  dz, scratch)
     for i in range(3):
         for j in range(3):
             M[i, j] += g[3 * i + j]
@@ -172,48 +218,63 @@ def accept_step(r, rt, T, Tt, e, et, J, Jt):
 
 
 @numba.njit
+def workspace(channels):
+    """The scratch arrays of one frame's correction, allocated once and reused over many frames
+    (per-frame allocation was a measurable share of the batched correction)."""
+    return (np.empty((3, 3)), np.empty((3, 3, 3)), np.empty(9), np.empty((9, 3)),  # M, dM, g, dg
+            np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4),  # wx wy wz dx dy dz
+            np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),  # a b B F K
+            np.empty(3), np.empty((3, 3)), np.empty((3, 3)),  # v, Sc, Ma
+            np.empty(9), np.empty((9, 6)), np.empty(9), np.empty((9, 6)),  # e, J, et, Jt
+            np.empty((6, 6)), np.empty(6), np.empty(6), np.empty(3), np.empty((3, 3)),  # H grad step rt Tt
+            np.empty(3), np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty((4, 3)),  # correct_best's
+            np.empty((3, channels)))  # the look-up's partial sums
+
+
+@numba.njit
 def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
                 r, T):
     """Correct one frame: S (3, 3), seed (3,) (NaN: no warm start) -> r (3,), T (3, 3) written in place.
 
     Returns (converged, iterations, relative residual rms(M − T S)/rms(S), mapped).
     """
-    M = np.empty((3, 3))
-    dM = np.empty((3, 3, 3))
-    g = np.empty(9)
-    dg = np.empty((9, 3))
-    wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
-    work_a, work_b, B, F, K = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
-    v = np.empty(3)
-    Sc = np.empty((3, 3))
+    return correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
+                          tolerance, r, T, workspace(padded.shape[3]))
+
+
+@numba.njit
+def correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
+                   tolerance, r, T, ws):
+    """:func:`correct_one` with its scratch arrays from ``ws`` (:func:`workspace`)."""
+    M, dM, g, dg, wx, wy, wz, dx, dy, dz = ws[0], ws[1], ws[2], ws[3], ws[4], ws[5], ws[6], ws[7], ws[8], ws[9]
+    work_a, work_b, B, F, K, v, Sc, Ma = ws[10], ws[11], ws[12], ws[13], ws[14], ws[15], ws[16], ws[17]
+    e, J, et, Jt, H, grad, step, rt, Tt = ws[18], ws[19], ws[20], ws[21], ws[22], ws[23], ws[24], ws[25], ws[26]
+    scratch = ws[32]
     if np.isfinite(seed[0]) and np.isfinite(seed[1]) and np.isfinite(seed[2]):
         for a in range(3):
             r[a] = seed[a]
     else:
         _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
-        for _ in range(FIXED_POINT_STEPS):  # docs/math.md §9: subtract Tᵀ g(r), re-solve the dipole pose
-            grid_point(padded, valid_cells, origin, spacing, shape, r, cubic, g, dg, wx, wy, wz, dx, dy, dz)
+        for step_number in range(FIXED_POINT_STEPS):  # docs/math.md §9: subtract Tᵀ g(r), re-solve the dipole pose
+            grid_value(padded, valid_cells, origin, spacing, shape, r, cubic, g, wx, wy, wz, dx, dy, dz)
             for i in range(3):
                 for j in range(3):
                     Sc[i, j] = S[i, j] - (T[0, i] * g[j] + T[1, i] * g[3 + j] + T[2, i] * g[6 + j])
-            _closed_form(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
-    mapped = _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
-    Ma = M.copy()  # the model at the accepted position, and whether it is mapped: no re-evaluation at the end
+            if step_number < FIXED_POINT_STEPS - 1:
+                _closed_form(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
+            else:  # the last step's orientation would be replaced below: its position is all that is used
+                _closed_form_position(Sc, hemisphere, r, work_a, work_b, v, B)
+    mapped = _model_in(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz,
+                       scratch)
+    for i in range(3):  # the model at the accepted position, and whether it is mapped: no re-evaluation at the end
+        for j in range(3):
+            Ma[i, j] = M[i, j]
     for i in range(3):
         for j in range(3):
             K[i, j] = M[i, 0] * S[j, 0] + M[i, 1] * S[j, 1] + M[i, 2] * S[j, 2]
     _rotation_polar_factor(K, work_a, work_b, T)
-    e = np.empty(9)
-    J = np.empty((9, 6))
     _residual(S, M, dM, T, e, J)
     cost = _cost(e)
-    et = np.empty(9)
-    Jt = np.empty((9, 6))
-    H = np.empty((6, 6))
-    grad = np.empty(6)
-    step = np.empty(6)
-    rt = np.empty(3)
-    Tt = np.empty((3, 3))
     damping = 1e-3
     converged = False
     iterations = 0
@@ -229,8 +290,25 @@ def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape
         for a in range(3):
             rt[a] = r[a] + step[a]
         _rotate_increment(T, step[3:], Tt)
-        trial_mapped = _model(rt, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx,
-                              dy, dz)
+        if np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance:
+            # a step below the tolerance (0.1 µm) is taken without the look-up that would confirm it:
+            # the model there is the current one moved along its Jacobian (an error of |step|², far
+            # below the noise), and whether the point is mapped comes from the grid's cell flags.
+            for a in range(9):
+                e[a] = J[a, 0] * step[0] + J[a, 1] * step[1] + J[a, 2] * step[2]  # −Tᵀ ∂M/∂r · δr
+            for i in range(3):
+                for j in range(3):
+                    Ma[i, j] -= T[i, 0] * e[j] + T[i, 1] * e[3 + j] + T[i, 2] * e[6 + j]
+            for a in range(3):
+                r[a] = rt[a]
+            for i in range(3):
+                for j in range(3):
+                    T[i, j] = Tt[i, j]
+            mapped = grid_contains(valid_cells, origin, spacing, shape, r)
+            converged = True
+            break
+        trial_mapped = _model_in(rt, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz,
+                                 dx, dy, dz, scratch)
         _residual(S, M, dM, Tt, et, Jt)
         trial = _cost(et)
         small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance
@@ -307,16 +385,22 @@ def correct_best(S, seed, hemisphere, padded, valid_cells, origin, spacing, shap
     start from the cold fixed-point seed and from those reflections, and the lowest residual
     among the converged solutions wins.
     """
-    c, it, res, m = correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic,
-                                max_iterations, tolerance, r, T)
+    return correct_best_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
+                           tolerance, retry_residual, r, T, workspace(padded.shape[3]))
+
+
+@numba.njit
+def correct_best_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
+                    tolerance, retry_residual, r, T, ws):
+    """:func:`correct_best` with its scratch arrays from ``ws`` (:func:`workspace`)."""
+    c, it, res, m = correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic,
+                                   max_iterations, tolerance, r, T, ws)
     if c and res <= retry_residual:
         return c, it, res, m
-    best_r = r.copy()
-    best_T = T.copy()
+    best_r, best_T, trial_r, trial_T, candidates = ws[27], ws[28], ws[29], ws[30], ws[31]
+    best_r[:] = r
+    best_T[:, :] = T
     best = (c, it, res, m)
-    trial_r = np.empty(3)
-    trial_T = np.empty((3, 3))
-    candidates = np.empty((4, 3))
     for a in range(3):
         candidates[0, a] = np.nan
     axis = 0
@@ -336,8 +420,8 @@ def correct_best(S, seed, hemisphere, padded, valid_cells, origin, spacing, shap
         if k > 0 and not (np.isfinite(candidates[k, 0]) and np.isfinite(candidates[k, 1])
                           and np.isfinite(candidates[k, 2])):
             continue
-        c2, it2, res2, m2 = correct_one(S, candidates[k], hemisphere, padded, valid_cells, origin, spacing, shape,
-                                        cubic, max_iterations, tolerance, trial_r, trial_T)
+        c2, it2, res2, m2 = correct_one_in(S, candidates[k], hemisphere, padded, valid_cells, origin, spacing, shape,
+                                           cubic, max_iterations, tolerance, trial_r, trial_T, ws)
         it += it2
         if (c2 and not best[0]) or (c2 == best[0] and res2 < best[2]):
             best = (c2, it, res2, m2)
@@ -348,15 +432,22 @@ def correct_best(S, seed, hemisphere, padded, valid_cells, origin, spacing, shap
     return best[0], it, best[2], best[3]
 
 
+#: frames per block of the parallel kernel: one workspace per block
+BLOCK = 256
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def correct_kernel(S, seeds, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
                    tolerance, retry_residual, r_out, T_out, q_out, converged, iterations, residual,
                    mapped):  # pragma: no cover - compiled
-    for n in numba.prange(S.shape[0]):
-        converged[n], iterations[n], residual[n], mapped[n] = correct_best(
-            S[n], seeds[n], hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
-            retry_residual, r_out[n], T_out[n])
-        quaternion_of(T_out[n], q_out[n])
+    blocks = (S.shape[0] + BLOCK - 1) // BLOCK
+    for block in numba.prange(blocks):
+        ws = workspace(padded.shape[3])
+        for n in range(BLOCK * block, min(BLOCK * block + BLOCK, S.shape[0])):
+            converged[n], iterations[n], residual[n], mapped[n] = correct_best_in(
+                S[n], seeds[n], hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
+                tolerance, retry_residual, r_out[n], T_out[n], ws)
+            quaternion_of(T_out[n], q_out[n])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -364,8 +455,9 @@ def correct_serial(S, seeds, hemisphere, padded, valid_cells, origin, spacing, s
                    tolerance, retry_residual, r_out, T_out, q_out, converged, iterations, residual,
                    mapped):  # pragma: no cover - compiled
     """The same as correct_kernel on the calling thread: no thread start-up, for a few frames at a time."""
+    ws = workspace(padded.shape[3])
     for n in range(S.shape[0]):
-        converged[n], iterations[n], residual[n], mapped[n] = correct_best(
+        converged[n], iterations[n], residual[n], mapped[n] = correct_best_in(
             S[n], seeds[n], hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
-            retry_residual, r_out[n], T_out[n])
+            retry_residual, r_out[n], T_out[n], ws)
         quaternion_of(T_out[n], q_out[n])

@@ -74,22 +74,26 @@ def grid_point(padded, valid_cells, origin, spacing, shape, p, cubic, value, gra
         gradient[c, 0] = 0.0
         gradient[c, 1] = 0.0
         gradient[c, 2] = 0.0
-    for a in range(4):
+    # the linear stencil's outer nodes carry zero weight and zero derivative: only nodes 1..2 are read
+    lo, hi = (0, 4) if cubic else (1, 3)
+    for a in range(lo, hi):
         if wx[a] == 0.0 and dx[a] == 0.0:
             continue
-        for b in range(4):
+        for b in range(lo, hi):
             if wy[b] == 0.0 and dy[b] == 0.0:
                 continue
-            for d in range(4):
+            wab = wx[a] * wy[b]
+            gxab = dx[a] * wy[b]
+            gyab = wx[a] * dy[b]
+            for d in range(lo, hi):
                 if wz[d] == 0.0 and dz[d] == 0.0:
                     continue
-                w = wx[a] * wy[b] * wz[d]
-                gx = dx[a] * wy[b] * wz[d]
-                gy = wx[a] * dy[b] * wz[d]
-                gz = wx[a] * wy[b] * dz[d]
-                node = padded[i + a, j + b, k + d]
+                w = wab * wz[d]
+                gx = gxab * wz[d]
+                gy = gyab * wz[d]
+                gz = wab * dz[d]
                 for c in range(C):
-                    v = node[c]
+                    v = padded[i + a, j + b, k + d, c]
                     value[c] += w * v
                     gradient[c, 0] += gx * v
                     gradient[c, 1] += gy * v
@@ -98,6 +102,97 @@ def grid_point(padded, valid_cells, origin, spacing, shape, p, cubic, value, gra
         gradient[c, 0] /= spacing
         gradient[c, 1] /= spacing
         gradient[c, 2] /= spacing
+    return in_x and in_y and in_z and valid_cells[i, j, k]
+
+
+@numba.njit
+def grid_point_separable(padded, valid_cells, origin, spacing, shape, p, cubic, value, gradient, wx, wy, wz, dx, dy,
+                         dz, scratch):
+    """:func:`grid_point` contracted one axis at a time (z, then y, then x) with the partial sums in
+    ``scratch`` (3, C): 1,728 multiply-adds for the cubic stencil of 9 channels instead of 2,304, and
+    the innermost sums held in registers rather than re-stored at every node. Equal to
+    :func:`grid_point` up to rounding (the summation order differs)."""
+    i, tx, in_x = cell_of(p[0], origin[0], spacing, shape[0])
+    j, ty, in_y = cell_of(p[1], origin[1], spacing, shape[1])
+    k, tz, in_z = cell_of(p[2], origin[2], spacing, shape[2])
+    axis_weights(tx, cubic, wx, dx)
+    axis_weights(ty, cubic, wy, dy)
+    axis_weights(tz, cubic, wz, dz)
+    C = padded.shape[3]
+    for c in range(C):
+        value[c] = 0.0
+        gradient[c, 0] = 0.0
+        gradient[c, 1] = 0.0
+        gradient[c, 2] = 0.0
+    lo, hi = (0, 4) if cubic else (1, 3)
+    for a in range(lo, hi):
+        for c in range(C):
+            scratch[0, c] = 0.0
+            scratch[1, c] = 0.0
+            scratch[2, c] = 0.0
+        for b in range(lo, hi):
+            wyb = wy[b]
+            dyb = dy[b]
+            for c in range(C):
+                sv = 0.0
+                sd = 0.0
+                for d in range(lo, hi):
+                    v = padded[i + a, j + b, k + d, c]
+                    sv += wz[d] * v
+                    sd += dz[d] * v
+                scratch[0, c] += wyb * sv
+                scratch[1, c] += dyb * sv
+                scratch[2, c] += wyb * sd
+        wxa = wx[a]
+        dxa = dx[a]
+        for c in range(C):
+            value[c] += wxa * scratch[0, c]
+            gradient[c, 0] += dxa * scratch[0, c]
+            gradient[c, 1] += wxa * scratch[1, c]
+            gradient[c, 2] += wxa * scratch[2, c]
+    for c in range(C):
+        gradient[c, 0] /= spacing
+        gradient[c, 1] /= spacing
+        gradient[c, 2] /= spacing
+    return in_x and in_y and in_z and valid_cells[i, j, k]
+
+
+@numba.njit
+def grid_contains(valid_cells, origin, spacing, shape, p):
+    """Whether p (3,) is in a valid cell: what :func:`grid_point` returns, without the interpolation."""
+    i, _, in_x = cell_of(p[0], origin[0], spacing, shape[0])
+    j, _, in_y = cell_of(p[1], origin[1], spacing, shape[1])
+    k, _, in_z = cell_of(p[2], origin[2], spacing, shape[2])
+    return in_x and in_y and in_z and valid_cells[i, j, k]
+
+
+@numba.njit
+def grid_value(padded, valid_cells, origin, spacing, shape, p, cubic, value, wx, wy, wz, dx, dy, dz):
+    """:func:`grid_point` without the gradient (a quarter of its arithmetic): value (C,) at p, and
+    whether p is in a valid cell. The same weights and summation order, so the same value."""
+    i, tx, in_x = cell_of(p[0], origin[0], spacing, shape[0])
+    j, ty, in_y = cell_of(p[1], origin[1], spacing, shape[1])
+    k, tz, in_z = cell_of(p[2], origin[2], spacing, shape[2])
+    axis_weights(tx, cubic, wx, dx)
+    axis_weights(ty, cubic, wy, dy)
+    axis_weights(tz, cubic, wz, dz)
+    C = padded.shape[3]
+    for c in range(C):
+        value[c] = 0.0
+    lo, hi = (0, 4) if cubic else (1, 3)
+    for a in range(lo, hi):
+        if wx[a] == 0.0 and dx[a] == 0.0:
+            continue
+        for b in range(lo, hi):
+            if wy[b] == 0.0 and dy[b] == 0.0:
+                continue
+            wab = wx[a] * wy[b]
+            for d in range(lo, hi):
+                if wz[d] == 0.0 and dz[d] == 0.0:
+                    continue
+                w = wab * wz[d]
+                for c in range(C):
+                    value[c] += w * padded[i + a, j + b, k + d, c]
     return in_x and in_y and in_z and valid_cells[i, j, k]
 
 
