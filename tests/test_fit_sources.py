@@ -72,7 +72,7 @@ def test_fitter_interface_and_refusals(rng):
 def test_normal_equations_solve_as_damped_least_squares_and_are_reused(rng):
     """The Cholesky solve of the scaled normal equations equals an independent damped least squares (lstsq on
     the design stacked over the damping rows), and solving stored normal equations equals a fresh fit."""
-    from ivc.lut.fit_sources import _rows, _solve, normal_equations, solve_normal_equations
+    from ivc.lut.fit_sources import damped_solve, design_rows, normal_equations, solve_normal_equations
 
     n = 1500
     points = LOW + (HIGH - LOW) * rng.random((n, 3))
@@ -80,14 +80,15 @@ def test_normal_equations_solve_as_damped_least_squares_and_are_reused(rng):
     sources = shell(LOW, HIGH, 0.05, 0.25)
     K = 3 * len(sources)
     root = np.sqrt(samples.weights())
-    X = (_rows(points, sources) * root[:, None, None]).reshape(-1, K)
+    X = (design_rows(points, sources) * root[:, None, None]).reshape(-1, K)
     Y = (samples.fields * root[:, None, None]).reshape(-1, 3)
     gram = X.T @ X
     damping = 1e-6
     D = np.sqrt(np.diag(gram))
     stacked = np.concatenate([X, np.sqrt(damping) * np.diag(D)])
     expected = np.linalg.lstsq(stacked, np.concatenate([Y, np.zeros((K, 3))]), rcond=None)[0]
-    np.testing.assert_allclose(_solve(gram, X.T @ Y, damping), expected, rtol=1e-6, atol=1e-9 * np.abs(expected).max())
+    np.testing.assert_allclose(damped_solve(gram, X.T @ Y, damping), expected, rtol=1e-6,
+                               atol=1e-9 * np.abs(expected).max())
     normal = normal_equations(samples, sources, block_frames=50)
     np.testing.assert_allclose(normal.gram.sum(axis=0), gram, rtol=1e-10, atol=1e-12 * np.abs(gram).max())
     model, report = solve_normal_equations(normal)

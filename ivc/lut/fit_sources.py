@@ -114,14 +114,14 @@ def _rows_kernel(points, sources, out):  # pragma: no cover - compiled
                     out[n, i, 3 * k + a] = value * inv3
 
 
-def _rows(points: np.ndarray, sources: np.ndarray) -> np.ndarray:
+def design_rows(points: np.ndarray, sources: np.ndarray) -> np.ndarray:
     """Design rows (n, 3, 3K): row (sample, component i), column (source k, moment axis a) = f_D(r − p_k)[i, a]."""
     out = np.empty((len(points), 3, 3 * len(sources)))
     _rows_kernel(np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(sources, dtype=float), out)
     return out
 
 
-def _solve(gram: np.ndarray, rhs: np.ndarray, damping: float) -> np.ndarray:
+def damped_solve(gram: np.ndarray, rhs: np.ndarray, damping: float) -> np.ndarray:
     """``(D⁻¹ gram D⁻¹ + damping I)⁻¹`` applied in the unit-diagonal scaling ``D = sqrt(diag(gram))``."""
     scale = np.sqrt(np.maximum(np.diag(gram), 1e-300))
     scaled = gram / np.outer(scale, scale)
@@ -191,7 +191,7 @@ def normal_equations(samples: FieldSamples, sources: np.ndarray | None = None, f
         for start in range(0, len(members), CHUNK):
             part = members[start : start + CHUNK]
             root = np.sqrt(weight[part])
-            X = (_rows(samples.positions[part], sources) * root[:, None, None]).reshape(-1, K)
+            X = (design_rows(samples.positions[part], sources) * root[:, None, None]).reshape(-1, K)
             Y = (samples.fields[part] * root[:, None, None]).reshape(-1, 3)
             gram[f] += dsyrk(1.0, X.T, trans=0)  # the upper triangle (the lower stays zero)
             rhs[f] += X.T @ Y
@@ -214,11 +214,11 @@ def solve_normal_equations(normal: NormalEquations, dampings=DAMPINGS) -> tuple[
         for f in range(len(gram)):
             if count[f] == 0:
                 continue
-            c = _solve(total_gram - gram[f], total_rhs - rhs[f], damping)
+            c = damped_solve(total_gram - gram[f], total_rhs - rhs[f], damping)
             sse += yy[f] - 2 * np.sum(c * rhs[f]) + np.sum(c * (gram[f] @ c))
         scores[damping] = float(np.sqrt(max(sse, 0.0) / count.sum()))
     chosen = min(scores, key=scores.get) if scores else float(dampings[0])
-    coefficients = _solve(total_gram, total_rhs, chosen)  # (3K, 3): row (k, a), column j
+    coefficients = damped_solve(total_gram, total_rhs, chosen)  # (3K, 3): row (k, a), column j
     sources = normal.sources
     model = SourceModel(sources, coefficients.reshape(len(sources), 3, 3))
     report = {"sources": len(sources), "damping": chosen,
