@@ -23,7 +23,7 @@ import numpy as np
 from ivc.correct.kernels import quaternion_of
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
 from ivc.dipole.kernels import closed_form_one, field_matrix, principal_eigenvector
-from ivc.lut.kernels import axis_weights, cell_of
+from ivc.lut.kernels import grid_value
 
 # The helpers below are plain compiled functions, not numba-inlined: inlined three and four times over into
 # one function they made its first compile take over a minute. ``error_model="numpy"`` keeps the arithmetic
@@ -35,40 +35,12 @@ BACKTRACKS = 12
 
 
 @numba.njit(error_model="numpy")
-def _grid_value(padded, valid_cells, origin, spacing, shape, p, cubic, value, wx, wy, wz, dx, dy, dz):
-    """Value (C,) of the table at p (no gradient); returns whether p is in a valid cell."""
-    i, tx, in_x = cell_of(p[0], origin[0], spacing, shape[0])
-    j, ty, in_y = cell_of(p[1], origin[1], spacing, shape[1])
-    k, tz, in_z = cell_of(p[2], origin[2], spacing, shape[2])
-    axis_weights(tx, cubic, wx, dx)
-    axis_weights(ty, cubic, wy, dy)
-    axis_weights(tz, cubic, wz, dz)
-    C = padded.shape[3]
-    for c in range(C):
-        value[c] = 0.0
-    for a in range(4):
-        if wx[a] == 0.0:
-            continue
-        for b in range(4):
-            if wy[b] == 0.0:
-                continue
-            for d in range(4):
-                if wz[d] == 0.0:
-                    continue
-                w = wx[a] * wy[b] * wz[d]
-                node = padded[i + a, j + b, k + d]
-                for c in range(C):
-                    value[c] += w * node[c]
-    return in_x and in_y and in_z and valid_cells[i, j, k]
-
-
-@numba.njit(error_model="numpy")
 def _field_at(r, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, wz, dx, dy, dz, F):
     """F = f_D(r) + g(r) (3, 3); returns (usable, mapped)."""
     rho2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
     if not (rho2 > 1e-12) or not np.isfinite(rho2):
         return False, False
-    mapped = _grid_value(padded, valid_cells, origin, spacing, shape, r, cubic, g, wx, wy, wz, dx, dy, dz)
+    mapped = grid_value(padded, valid_cells, origin, spacing, shape, r, cubic, g, wx, wy, wz, dx, dy, dz)
     field_matrix(r[0], r[1], r[2], F)
     tr = 0.0
     for i in range(3):
