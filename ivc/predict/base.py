@@ -172,6 +172,15 @@ class StreamClock:
         self.now = t
         return dt
 
+    def advance(self, time: float | None, ok: NDArray[np.bool_], max_gap_s: float) -> NDArray[np.bool_]:
+        """Tick to the frame at ``time`` and return the sensors (S,) whose valid sample ends a gap longer
+        than ``max_gap_s`` since their last valid one (they restart); ``last_valid`` moves to now for the
+        sensors valid in this frame (``ok``)."""
+        self.tick(time)
+        gap = ok & (self.now - self.last_valid > max_gap_s) & np.isfinite(self.last_valid)
+        self.last_valid = np.where(ok, self.now, self.last_valid)
+        return gap
+
 
 class FixedRatePredictor(Predictor):
     """A predictor designed for one sample rate (its gains or transition matrices are fixed at ``rate_hz``).
@@ -219,15 +228,11 @@ class FixedRateStream(Stream):
 
     def update(self, q, valid=None, time=None):
         qs, ok = self._check_frame(q, valid)
-        self.clock.tick(time)
-        now = self.clock.now
-        if np.any(ok & (now - self.clock.last_valid > self.predictor.max_gap_s)
-                  & np.isfinite(self.clock.last_valid)):
+        if np.any(self.clock.advance(time, ok, self.predictor.max_gap_s)):
             self.inner = self.predictor._stream_uniform(self.n_sensors)
             self.restarts += 1
         same = ok & np.all(qs == self.previous, axis=1)
         self.previous = np.where(ok[:, None], qs, self.previous)
-        self.clock.last_valid = np.where(ok, now, self.clock.last_valid)
         self.inner.update(qs, ok & ~same)
         self.last = self.inner.last
 

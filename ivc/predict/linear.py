@@ -277,15 +277,13 @@ class PolynomialStream(Stream):
 
     def update(self, q, valid=None, time=None):
         qs, ok = self._check_frame(q, valid)
-        self.clock.tick(time)
+        gap = self.clock.advance(time, ok, self.predictor.max_gap_s)
         now = self.clock.now
-        gap = ok & (now - self.clock.last_valid > self.predictor.max_gap_s) & np.isfinite(self.clock.last_valid)
         if gap.any():
             self.restarts += int(gap.sum())
             self.count[gap] = 0
         new = ok & ~np.all(qs == self.previous, axis=1)
         self.previous = np.where(ok[:, None], qs, self.previous)
-        self.clock.last_valid = np.where(ok, now, self.clock.last_valid)
         _poly_update(qs, new, now, self.theta, self.times, self.count, self.base, self.coef, self.predictor.order)
         self.ok = ok & (self.count >= self.window)
         self.last = qs
@@ -360,13 +358,11 @@ class StepLinearStream(Stream):
             self.last = self.inner.last
             return
         qs, ok = self._check_frame(q, valid)
-        self.clock.tick(time)
+        gap = self.clock.advance(time, ok, self.predictor.max_gap_s)
         now = self.clock.now
-        gap = ok & (now - self.clock.last_valid > self.predictor.max_gap_s) & np.isfinite(self.clock.last_valid)
         self._restarts += int(gap.sum())
         new = ok & ~np.all(qs == self.previous, axis=1)
         self.previous = np.where(ok[:, None], qs, self.previous)
-        self.clock.last_valid = np.where(ok, now, self.clock.last_valid)
         _steps_frame(qs, ok, new, gap, now, *self.cfg, *self.state)
         self.ok, self.last = ok, qs
 

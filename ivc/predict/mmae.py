@@ -468,13 +468,11 @@ class MMAEStepStream(Stream):
             self.last = self.inner.last
             return
         qs, ok = self._check_frame(q, valid)
-        self.clock.tick(time)
+        gap = self.clock.advance(time, ok, self.predictor.max_gap_s)
         now = self.clock.now
-        gap = ok & (now - self.clock.last_valid > self.predictor.max_gap_s) & np.isfinite(self.clock.last_valid)
         self._restarts += int(gap.sum())
         new = ok & ~np.all(qs == self.previous, axis=1)
         self.previous = np.where(ok[:, None], qs, self.previous)
-        self.clock.last_valid = np.where(ok, now, self.clock.last_valid)
         T = rotations.to_matrix(np.where(ok[:, None], qs, rotations.IDENTITY))
         vectors = np.ascontiguousarray(np.stack([T[:, :, 0], T[:, :, 2]], axis=1))
         p = self.predictor

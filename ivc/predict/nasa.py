@@ -281,11 +281,11 @@ class NasaStream(Stream):
 
     def update(self, q, valid=None, time=None):
         qs, ok = self._check_frame(q, valid)
-        self.clock.tick(time)
+        gap = self.clock.advance(time, ok, self.predictor.max_gap_s)
         now = self.clock.now
         W, V, tau, p0 = self.predictor._config
         for s in np.flatnonzero(ok):
-            if np.isfinite(self.clock.last_valid[s]) and now - self.clock.last_valid[s] > self.predictor.max_gap_s:
+            if gap[s]:
                 self.status[s, 0] = 0
                 self.ready[s] = False
                 self.restarts += 1
@@ -295,7 +295,6 @@ class NasaStream(Stream):
             self.ready[s] = _step(qs[s], True, self.x[s], self.P[s], self.status[s], W, V, h, p0, self.work, tau)
             self.base_t[s] = now
         self.previous = np.where(ok[:, None], qs, self.previous)
-        self.clock.last_valid = np.where(ok, now, self.clock.last_valid)
         self.ok = ok
         self.last = qs
 
