@@ -6,7 +6,8 @@ pose ``(r_0, T_0)`` moves every sensor, ``r_n = r_0 + T_0 b_n``, ``T_n = T_0 R_n
 ``e_n = S_n − T_nᵀ (f_D + g)(r_n)`` weighted by ``1 / rms(S_n)`` for the sensors ``use`` marks,
 zero for the others. Unlike the refinement's kernel (:mod:`ivc.lut.refine_kernels`) no sensor
 is tied to the cube: every used sensor counts, wherever the table places it. Only ``JᵀJ``,
-``Jᵀe`` and the cost are kept per frame.
+``Jᵀe`` and the cost are kept per frame; each sensor's share of them is
+:func:`ivc.lut.rigid_kernels.add_sensor`, the refinement's too.
 """
 
 from __future__ import annotations
@@ -15,16 +16,14 @@ import numba
 import numpy as np
 
 from ivc.correct.kernels import _model, _residual, _rotate_increment, _solve6, damped_matrix
+from ivc.lut.rigid_kernels import add_sensor, clear, symmetrise
 
 
 @numba.njit(inline="always")
 def _normal(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape, cubic, r0, T0, H, grad, work):
     """Cost Σ|e|², H = JᵀJ (6, 6) and grad = −Jᵀe (6,) of the rigid wand at (r0, T0)."""
     M, dM, g, dg, wx, wy, wz, dx, dy, dz, p, Tn, e, J, Jc, lever = work
-    for a in range(6):
-        grad[a] = 0.0
-        for c in range(6):
-            H[a, c] = 0.0
+    clear(H, grad)
     cost = 0.0
     for n in range(S.shape[0]):
         if not use[n]:
@@ -35,34 +34,8 @@ def _normal(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape, cu
                 Tn[i, j] = T0[i, 0] * R[n, 0, j] + T0[i, 1] * R[n, 1, j] + T0[i, 2] * R[n, 2, j]
         _model(p, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
         _residual(S[n], M, dM, Tn, e, J)
-        w = 1.0 / scale[n]
-        bx, by, bz = b[n, 0], b[n, 1], b[n, 2]
-        for i in range(3):  # ∂r_n/∂ω = −T_0 [b_n]×
-            lever[i, 0] = -(T0[i, 1] * bz - T0[i, 2] * by)
-            lever[i, 1] = -(-T0[i, 0] * bz + T0[i, 2] * bx)
-            lever[i, 2] = -(T0[i, 0] * by - T0[i, 1] * bx)
-        for k in range(9):
-            for a in range(3):
-                Jc[k, a] = w * J[k, a]
-                s = 0.0
-                for c in range(3):
-                    s += J[k, c] * lever[c, a] + J[k, 3 + c] * R[n, a, c]  # ω_n = R_nᵀ ω
-                Jc[k, 3 + a] = w * s
-            e[k] *= w
-            cost += e[k] * e[k]
-        for a in range(6):
-            s = 0.0
-            for k in range(9):
-                s -= Jc[k, a] * e[k]
-            grad[a] += s
-            for c in range(a + 1):
-                s = 0.0
-                for k in range(9):
-                    s += Jc[k, a] * Jc[k, c]
-                H[a, c] += s
-    for a in range(6):
-        for c in range(a):
-            H[c, a] = H[a, c]
+        cost += add_sensor(e, J, 1.0 / scale[n], b[n], R[n], T0, H, grad, Jc, lever)
+    symmetrise(H)
     return cost
 
 

@@ -4,7 +4,8 @@ The same problem and Levenberg-Marquardt rules as :func:`ivc.lut.refine.solve_ri
 cube's harmonic field for sensor 0: per frame, sensor 0's pose ``(r_0, T_0)`` moves every
 sensor, ``r_n = r_0 + T_0 b_n``, ``T_n = T_0 R_n``; residuals ``e_n = S_n − T_nᵀ M_n(r_n)``
 weighted by ``1 / rms(S_n)``, zero for an invalid sensor or (n ≥ 1) one outside the map;
-``M_0 = f_D + g_cube``, ``M_n = f_D + g_map``. Only ``JᵀJ``, ``Jᵀe`` and the cost are kept.
+``M_0 = f_D + g_cube``, ``M_n = f_D + g_map``. Only ``JᵀJ``, ``Jᵀe`` and the cost are kept; each
+sensor's share of them is :func:`ivc.lut.rigid_kernels.add_sensor`, the joint solve's too.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import numpy as np
 
 from ivc.correct.kernels import _model, _residual, _rotate_increment, _solve6, damped_matrix
 from ivc.fixtures.kernels import cube_model
+from ivc.lut.rigid_kernels import add_sensor, clear, symmetrise
 
 
 @numba.njit(inline="always")
@@ -21,10 +23,7 @@ def _normal(S, valid, scale, b, R, centre, cube_scale, coefficients, padded, val
             cubic, r0, T0, H, grad, work):
     """Cost Σ|e|², H = JᵀJ (6, 6) and grad = −Jᵀe (6,) of the rigid wand at (r0, T0)."""
     M, dM, G, H3, g, dg, wx, wy, wz, dx, dy, dz, p, Tn, e, J, Jc, lever = work
-    for a in range(6):
-        grad[a] = 0.0
-        for c in range(6):
-            H[a, c] = 0.0
+    clear(H, grad)
     cost = 0.0
     for n in range(S.shape[0]):
         if not valid[n]:
@@ -39,35 +38,8 @@ def _normal(S, valid, scale, b, R, centre, cube_scale, coefficients, padded, val
                         dz):
             continue  # a sensor where the map says nothing does not pull the wand
         _residual(S[n], M, dM, Tn, e, J)
-        w = 1.0 / scale[n]
-        # ∂r_n/∂ω = −T_0 [b_n]×, and ω_n = R_nᵀ ω
-        bx, by, bz = b[n, 0], b[n, 1], b[n, 2]
-        for i in range(3):
-            lever[i, 0] = -(T0[i, 1] * bz - T0[i, 2] * by)
-            lever[i, 1] = -(-T0[i, 0] * bz + T0[i, 2] * bx)
-            lever[i, 2] = -(T0[i, 0] * by - T0[i, 1] * bx)
-        for k in range(9):
-            for a in range(3):
-                Jc[k, a] = w * J[k, a]
-                s = 0.0
-                for c in range(3):
-                    s += J[k, c] * lever[c, a] + J[k, 3 + c] * R[n, a, c]
-                Jc[k, 3 + a] = w * s
-            e[k] *= w
-            cost += e[k] * e[k]
-        for a in range(6):
-            s = 0.0
-            for k in range(9):
-                s -= Jc[k, a] * e[k]
-            grad[a] += s
-            for c in range(a + 1):
-                s = 0.0
-                for k in range(9):
-                    s += Jc[k, a] * Jc[k, c]
-                H[a, c] += s
-    for a in range(6):
-        for c in range(a):
-            H[c, a] = H[a, c]
+        cost += add_sensor(e, J, 1.0 / scale[n], b[n], R[n], T0, H, grad, Jc, lever)
+    symmetrise(H)
     return cost
 
 
