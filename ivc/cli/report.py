@@ -59,5 +59,9 @@ def report(session_file, lut_file, check_file, directory, step, thin, max_frames
         by_reason.setdefault(reason, []).append(name)
     for reason, figure_names in by_reason.items():
         click.echo(f"not drawn: {', '.join(figure_names)}: {reason}", err=True)
+    box = result.numbers.get("box")
+    if box is not None:
+        click.echo(f"working volume: {100 * box['fraction']:.1f} % of the declared {box['box_litres']:.0f} litres "
+                   f"mapped ({box['mapped_litres']:.1f} litres)")
     figures = sum(1 for f in result.files if f.suffix == ".png")
     click.echo(f"wrote {result.html} ({figures} figures embedded) and report.json in {Path(directory)}")

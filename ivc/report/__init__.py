@@ -178,8 +178,9 @@ def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings
             rows.append(("distance from the cube centre", c["distance_from_cube_mm"], "mm"))
         accuracy = (f"<p>IVC judged against {html.escape(c['frame'])}{placement}. Flagged: {flagged}.</p>"
                     + html.percentile_table(rows))
-    if "volume" in numbers:
-        sections.append(("volume", "Whole working volume (extension sweeps)", _volume(numbers["volume"])))
+    if "volume" in numbers or "box" in numbers:
+        sections.append(("volume", "Whole working volume (extension sweeps)",
+                         _box(numbers.get("box")) + (_volume(numbers["volume"]) if "volume" in numbers else "")))
     sections.append(("accuracy", "Accuracy on the check poses", accuracy + fig("error_histograms")
                      + fig("error_vs_distance")))
     field_numbers = numbers["secondary_field"]["percent_of_measured_at_valid_nodes"]
@@ -190,6 +191,18 @@ def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings
     sections.append(("cube", "Interpolation cube", _cube(cube) + fig("cube_residuals")))
     title = f"ivc report: {Path(names['lut']).name}" if "lut" in names else "ivc report"
     return html.page(title, meta, warnings, sections)
+
+
+def _box(box: dict | None) -> str:
+    """The declared working volume's coverage: the share mapped, and per face the share of its 5 cm layer."""
+    if box is None:
+        return "<p>The session declares no working volume (working_volume_center, working_volume_size).</p>"
+    centre = ", ".join(f"{1000 * v:.0f}" for v in box["center_m"])
+    size = " x ".join(f"{1000 * v:.0f}" for v in box["size_m"])
+    faces = [[name, f"{100 * share:.1f}"] for name, share in box["faces"].items()]
+    return (f"<p>Declared working volume: {size} mm centred at ({centre}) mm, {box['box_litres']:.0f} litres; "
+            f"<b>{100 * box['fraction']:.1f} %</b> of it mapped ({box['mapped_litres']:.1f} litres).</p>"
+            + html.table(["face", "mapped share of the 5 cm layer inside it (%)"], faces))
 
 
 def _volume(volume: dict) -> str:

@@ -24,10 +24,11 @@ from ivc.fixtures.mapping import FixtureModel, Gates, SweepMapping, map_sweep
 from ivc.fixtures.pose_mapping import has_signals
 from ivc.fixtures.report import SweepErrors, sweep_errors
 from ivc.lut.build import FitOptions
+from ivc.lut.coverage import box_coverage
 from ivc.lut.grid import GridField
 from ivc.lut.support import MIN_SUPPORT
 from ivc.lut.table import LookupTable
-from ivc.session import Session
+from ivc.session import Session, working_volume
 from ivc.truth import declared_frame_map, percentiles
 
 #: horizontal slices drawn at most
@@ -102,6 +103,7 @@ class ReportData:
     cell_counts: np.ndarray | None  # (nx-1, ny-1, nz-1) kept wand samples per grid cell
     mapped_cells: np.ndarray  # (nx-1, ny-1, nz-1) cells whose eight nodes are valid
     mapping_missing: tuple[str, ...] = ()
+    box: dict | None = None  # the declared working volume's coverage (ivc.lut.coverage.box_coverage), if declared
 
     @property
     def cube_centre(self) -> np.ndarray | None:
@@ -252,8 +254,10 @@ def gather(session: Session, table: LookupTable, check: Session | None = None, s
         counts = cell_counts(table, sweep.mapping.positions[sweep.mapping.keep])
     centre = None if vertices is None else vertices.mean(axis=0)
     view, missing = check_view(table, session, check, step, centre, check_source, progress)
+    volume = working_volume(session.attrs)
+    box = None if volume is None else box_coverage(field, *volume)
     return ReportData(table, model, slices(table, field, counts, centre), sweep, view, missing, thin, vertices,
-                      counts, field.valid_cells, lacks)
+                      counts, field.valid_cells, lacks, box)
 
 
 def figures_missing(data: ReportData) -> dict[str, str]:
@@ -308,6 +312,10 @@ def summary(data: ReportData) -> dict:
         out["volume"] = {key: table.fit[key] for key in ("rounds", "extension_sweeps", "never_touched_mapped_region",
                                                         "mapped_litres", "error_by_distance", "stopped")
                          if key in table.fit}
+    if data.box is not None:  # the session declares the working volume: how much of it the table maps
+        out["box"] = {**data.box, "fraction": round(data.box["fraction"], 4),
+                      "mapped_litres": round(data.box["mapped_litres"], 2),
+                      "faces": {name: round(share, 4) for name, share in data.box["faces"].items()}}
     lacks = {"missing": list(data.mapping_missing)}
     if model is None:
         out["cube"] = dict(lacks)

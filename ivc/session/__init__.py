@@ -9,6 +9,7 @@ from ivc.session.model import (
     FORMAT_VERSION,
     STEP_DESCRIPTIONS,
     STEPS,
+    WORKING_VOLUME_ATTRS,
     Lack,
     Session,
     SessionError,
@@ -20,6 +21,7 @@ from ivc.session.model import (
     is_extension_step,
     is_known_step,
     step_order,
+    working_volume,
 )
 
 __all__ = [
@@ -31,6 +33,7 @@ __all__ = [
     "Lack",
     "STEPS",
     "STEP_DESCRIPTIONS",
+    "WORKING_VOLUME_ATTRS",
     "Session",
     "SessionError",
     "Step",
@@ -42,6 +45,7 @@ __all__ = [
     "is_extension_step",
     "is_known_step",
     "step_order",
+    "working_volume",
     "atomic_path",
     "is_recording_csv",
     "read",

@@ -56,6 +56,29 @@ def extension_steps(names) -> list[str]:
     return sorted((n for n in names if is_extension_step(n)), key=lambda n: int(n[len(EXTENSION_PREFIX):]))
 
 
+#: the session's root attributes that declare the working volume to be mapped: an axis-aligned box,
+#: its centre (3,) and size (3,) in metres, source frame (docs/session-format.md)
+WORKING_VOLUME_ATTRS = ("working_volume_center", "working_volume_size")
+
+
+def working_volume(attrs: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """The declared working volume ``(center (3,), size (3,))`` m of a session's root ``attrs``, or None
+    when it declares none. Raises SessionError when only one of the two is given or either is malformed."""
+    present = [key for key in WORKING_VOLUME_ATTRS if key in attrs]
+    if not present:
+        return None
+    if len(present) == 1:
+        missing = next(key for key in WORKING_VOLUME_ATTRS if key not in attrs)
+        raise SessionError(f"/ attribute {present[0]} is given without {missing}: declare the working volume's "
+                           "centre and size (m, source frame) together")
+    center, size = (np.asarray(attrs[key], dtype=float).reshape(-1) for key in WORKING_VOLUME_ATTRS)
+    if center.shape != (3,) or size.shape != (3,) or not (np.all(np.isfinite(center)) and np.all(size > 0)):
+        raise SessionError(f"/ attributes {', '.join(WORKING_VOLUME_ATTRS)} must be three finite numbers and three "
+                           f"positive sizes (m), got {attrs[WORKING_VOLUME_ATTRS[0]]!r} and "
+                           f"{attrs[WORKING_VOLUME_ATTRS[1]]!r}")
+    return center, size
+
+
 def is_known_step(name: str) -> bool:
     """A step name of the format: one of STEPS or an extension sweep."""
     return name in STEPS or is_extension_step(name)

@@ -121,7 +121,8 @@ class Simulator:
         elif name == "wand_sweep":
             positions, quaternions = self.wand.sensor_poses(*rig.sweep_motion(scene, frames, rng))
         elif extension:
-            positions, quaternions = self.wand.sensor_poses(*rig.extension_motion(scene, frames, rng))
+            positions, quaternions = self.wand.sensor_poses(*rig.extension_motion(scene, frames, rng,
+                                                                               int(name.rsplit("_", 1)[1])))
         else:
             positions, quaternions = rig.check_poses(scene, frames, rng)
         distorted = name in ("cube_survey", "wand_sweep", "check") or extension
@@ -151,7 +152,8 @@ class Simulator:
         ``steps``: a subset of the protocol (default: :attr:`steps`, the five steps and the
         scene's extension sweeps). ``on_step(name, step, session)`` is called after each step is added (for
         progress or checks). The session records the scene's hemisphere and ``attrs``
-        ``scene`` and ``seed``; every step has its truth. A step equals the same step
+        ``scene`` and ``seed`` (and the scene's working volume, ``working_volume_center`` and
+        ``working_volume_size``, when it has one); every step has its truth. A step equals the same step
         simulated alone with :meth:`step`.
         """
         frames = dict(frames or {})
@@ -160,7 +162,11 @@ class Simulator:
         if unknown:
             raise InputError(f"unknown step {', '.join(map(repr, unknown))}; the steps are {', '.join(STEPS)} and "
                              "extension_sweep_N")
-        session = Session(hemisphere=self.scene.hemisphere, attrs={"scene": self.scene.name, "seed": self.seed})
+        attrs = {"scene": self.scene.name, "seed": self.seed}
+        if self.scene.volume is not None:  # the box the user wants mapped (docs/session-format.md)
+            attrs.update(working_volume_center=np.asarray(self.scene.volume.center, float),
+                         working_volume_size=np.asarray(self.scene.volume.size, float))
+        session = Session(hemisphere=self.scene.hemisphere, attrs=attrs)
         for name in sorted(set(steps), key=step_order):
             step, truth = self.step(name, frames.get(name))
             session.steps[name], session.truth[name] = step, truth

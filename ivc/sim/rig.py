@@ -137,26 +137,119 @@ def sweep_motion(scene: Scene, frames: int, rng: np.random.Generator) -> tuple[n
 HAND_MARGIN = 0.03
 
 
-def extension_motion(scene: Scene, frames: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Wand body poses of one extension sweep: a person walks the wand, held at its far end (the last
-    sensor), through the working volume in passes, its tip (sensor 0) pointing back towards the cube.
+#: in the "passes" pattern the hand's outermost passes run this far inside the volume's faces (m): the
+#: map's cells must reach the faces, and the metal is several centimetres beyond them
+PASS_MARGIN = 0.005
+#: the nested boxes the hand walks in the "passes" pattern: fractions of the way from the cube to the volume
+SHELLS = (0.5, 0.75, 1.0)
+#: in the "passes" pattern the hand keeps at least this far from the cube's centre (m): nearer, the wand
+#: would point through the cube, and the cube sweep has mapped that region already
+HAND_MIN_RADIUS = 0.25
 
-    The hand follows a Lissajous path over the volume shrunk by :data:`HAND_MARGIN` (incommensurate
-    frequencies and random phases per sweep, so successive passes cross the box at new places) at
-    about ``scene.extension.speed`` m/s. The tip points at the cube's centre plus a smooth wander
-    (within ``wobble_deg`` of the cube's direction seen from 0.3 m), so some sensors stay near the
-    region mapped from the cube while the hand is far out; the wand rolls slowly about its axis.
-    The body origin is sensor 0 and body x runs from the tip to the hand (``ivc.sim.rig`` frames).
+
+def _rectangle(centre: np.ndarray, a: float, b: float, z: float) -> np.ndarray:
+    """The corners (5, 3) of one loop round the horizontal rectangle of half-sides (a, b), closed."""
+    corners = np.array([[-a, -b], [a, -b], [a, b], [-a, b], [-a, -b]])
+    return np.column_stack([centre[0] + corners[:, 0], centre[1] + corners[:, 1], np.full(5, z)])
+
+
+def shell_passes(low: np.ndarray, high: np.ndarray, pitch: float) -> np.ndarray:
+    """Waypoints (P, 3) of passes over the whole surface of the box ``[low, high]``, at most ``pitch`` m
+    apart, in one continuous walk that never crosses the box's inside: loops growing from the middle of
+    the bottom face to its edge, a helix up the four side faces, loops shrinking to the middle of the top."""
+    centre, half = (low + high) / 2, (high - low) / 2
+    rings = max(int(np.ceil(max(half[0], half[1]) / pitch - 1e-9)), 1)
+    grow = [_rectangle(centre, half[0] * k / rings, half[1] * k / rings, low[2]) for k in range(rings + 1)]
+    turns = max(int(np.ceil((high[2] - low[2]) / pitch - 1e-9)), 1)
+    helix = np.concatenate([_rectangle(centre, half[0], half[1], 0.0)[:-1]] * turns + [[[0, 0, 0.0]]])
+    helix[-1, :2] = helix[0, :2]
+    perimeter = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(helix[:, :2], axis=0), axis=1))])
+    helix[:, 2] = low[2] + (high[2] - low[2]) * perimeter / perimeter[-1]
+    shrink = [_rectangle(centre, half[0] * k / rings, half[1] * k / rings, high[2]) for k in range(rings, -1, -1)]
+    return np.concatenate([*grow, helix, *shrink])
+
+
+def _polyline_length(points: np.ndarray) -> float:
+    return float(np.sum(np.linalg.norm(np.diff(points, axis=0), axis=1)))
+
+
+def pass_pattern(scene: Scene, pitch: float) -> np.ndarray:
+    """Waypoints (P, 3) of the "passes" pattern: :func:`shell_passes` over nested boxes, from the cube's
+    centre towards the volume shrunk by :data:`PASS_MARGIN` at the fractions :data:`SHELLS`, inner first;
+    every other box walked backwards, so that each ends where the next begins (the middle of a top or a
+    bottom face) and the hand never crosses the cube."""
+    volume, centre = scene.volume, np.asarray(scene.cube.center, float)
+    low, high = volume.lower + PASS_MARGIN, volume.upper - PASS_MARGIN
+    shells = [shell_passes(centre + f * (low - centre), centre + f * (high - centre), pitch) for f in SHELLS]
+    return np.concatenate([walk[::-1] if k % 2 else walk for k, walk in enumerate(shells)])
+
+
+def pass_pitch(scene: Scene) -> float:
+    """The passes' pitch (m) at which the whole pattern is as long as the scene's sweeps can walk at its
+    speed (``sweeps · frames / rate · speed``); the path length is area / pitch plus the turns."""
+    spec = scene.extension
+    target = spec.speed * max(spec.sweeps, 1) * spec.frames / scene.sweep_rate_hz
+    p1, p2 = 0.05, 0.1
+    l1, l2 = _polyline_length(pass_pattern(scene, p1)), _polyline_length(pass_pattern(scene, p2))
+    area = (l1 - l2) / (1 / p1 - 1 / p2)
+    rest = l1 - area / p1
+    return float(np.clip(area / max(target - rest, 1e-9), 0.01, 0.3))
+
+
+def _hand_on_passes(scene: Scene, frames: int, sweep: int) -> np.ndarray:
+    """The hand (F, 3) of extension sweep ``sweep`` (1-based) in the "passes" pattern: the sweeps walk
+    successive equal shares of one pattern (sweep N + 1 walks the first share again), at constant speed."""
+    spec, volume = scene.extension, scene.volume
+    waypoints = pass_pattern(scene, pass_pitch(scene))
+    length = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(waypoints, axis=0), axis=1))])
+    count = max(spec.sweeps, 1)
+    share = (sweep - 1) % count
+    s = (share + (np.arange(frames) + 0.5) / frames) / count * length[-1]
+    hand = np.stack([np.interp(s, length, waypoints[:, a]) for a in range(3)], axis=1)
+    centre = np.asarray(scene.cube.center, float)
+    offset = hand - centre
+    radius = np.linalg.norm(offset, axis=1, keepdims=True)
+    hand = centre + offset / np.maximum(radius, 1e-9) * np.maximum(radius, HAND_MIN_RADIUS)
+    return np.clip(hand, volume.lower + PASS_MARGIN, volume.upper - PASS_MARGIN)
+
+
+def _hand_on_lissajous(scene: Scene, times: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    volume, spec = scene.volume, scene.extension
+    amplitude = np.maximum(volume.size / 2 - HAND_MARGIN, 0.01)
+    ratios = np.array([1.0, 0.79, 0.61]) * rng.uniform(0.9, 1.1, 3)
+    frequency = spec.speed / (2 * np.pi * amplitude) * ratios / np.sqrt(np.sum(ratios**2) / 2)
+    phase = rng.uniform(0, 2 * np.pi, 3)
+    return volume.center + amplitude * np.sin(2 * np.pi * frequency * times[:, None] + phase)
+
+
+def extension_motion(scene: Scene, frames: int, rng: np.random.Generator,
+                     sweep: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Wand body poses of extension sweep ``sweep`` (1-based): a person walks the wand, held at its far end
+    (the last sensor), through the working volume in passes, its tip (sensor 0) pointing back towards the cube.
+
+    The hand's path is ``scene.extension.pattern``, at about ``scene.extension.speed`` m/s, at least
+    :data:`PASS_MARGIN` (passes) or :data:`HAND_MARGIN` (Lissajous) inside the volume's faces:
+
+    - ``"passes"``: passes over the whole surface of nested boxes between the cube and the volume
+      (:func:`pass_pattern`, inner boxes first, so the far end always reaches a little beyond what the
+      tip's end already covers), their pitch set so that the scene's sweeps walk the whole pattern
+      (:func:`pass_pitch`); the sweeps walk successive shares of it. Every corner of the volume is visited.
+    - ``"lissajous"``: a Lissajous path over the volume (incommensurate frequencies and random phases
+      per sweep, so successive passes cross the box at new places).
+
+    The tip points at the cube's centre plus a smooth wander (within ``wobble_deg`` of the cube's
+    direction seen from 0.3 m), so some sensors stay near the region mapped from the cube while the hand
+    is far out; the wand rolls slowly about its axis. The body origin is sensor 0 and body x runs from the
+    tip to the hand (``ivc.sim.rig`` frames).
     """
     volume, spec = scene.volume, scene.extension
     if volume is None:
         raise ValueError("extension sweeps need the scene's working volume")
     times = np.arange(frames) / scene.sweep_rate_hz
-    amplitude = np.maximum(volume.size / 2 - HAND_MARGIN, 0.01)
-    ratios = np.array([1.0, 0.79, 0.61]) * rng.uniform(0.9, 1.1, 3)
-    frequency = spec.speed / (2 * np.pi * amplitude) * ratios / np.sqrt(np.sum(ratios**2) / 2)
-    phase = rng.uniform(0, 2 * np.pi, 3)
-    hand = volume.center + amplitude * np.sin(2 * np.pi * frequency * times[:, None] + phase)
+    if spec.pattern == "lissajous":
+        hand = _hand_on_lissajous(scene, times, rng)
+    else:
+        hand = _hand_on_passes(scene, frames, sweep)
     wobble = np.tan(np.radians(spec.wobble_deg)) * 0.3
     target = scene.cube.center + _smooth_offsets(times, wobble, rng) * np.array([1.0, 1.0, 1.0])
     target = np.clip(target, volume.lower + HAND_MARGIN, volume.upper - HAND_MARGIN)

@@ -132,16 +132,24 @@ class VolumeSpec:
         return float(np.prod(self.size) * 1000)
 
 
+#: the hand's paths of the extension sweeps (:func:`ivc.sim.rig.extension_motion`)
+EXTENSION_PATTERNS = ("passes", "lissajous")
+
+
 @dataclass
 class ExtensionSpec:
     """Extension sweeps (scene key ``[extension]``): ``sweeps`` recordings of ``frames`` frames each, in
     which a person walks the wand, held at its far end, through the working volume in passes at
-    ``speed`` m/s (the hand), the tip pointing back towards the cube within ``wobble_deg``."""
+    ``speed`` m/s (the hand), the tip pointing back towards the cube within ``wobble_deg``.
+    ``pattern``: ``"passes"`` (the hand walks serpentine passes over the faces of nested boxes
+    around the cube, the sweeps sharing one pattern) or ``"lissajous"`` (a free Lissajous path
+    over the volume, each sweep its own)."""
 
     sweeps: int = 0
     frames: int = 20_000
     speed: float = 0.15
     wobble_deg: float = 35.0
+    pattern: str = "passes"
 
 
 @dataclass
@@ -271,7 +279,11 @@ def scene_from_dict(data: dict, name: str = "scene", base: Path | None = None) -
         frames=int(extension_t.get("frames", ExtensionSpec.frames)),
         speed=float(extension_t.get("speed", ExtensionSpec.speed)),
         wobble_deg=float(extension_t.get("wobble_deg", ExtensionSpec.wobble_deg)),
+        pattern=str(extension_t.get("pattern", ExtensionSpec.pattern)),
     )
+    if extension.pattern not in EXTENSION_PATTERNS:
+        raise SceneError(f"{name}.extension.pattern: {extension.pattern!r}; use one of "
+                         f"{', '.join(EXTENSION_PATTERNS)}")
     if extension.sweeps < 0 or extension.frames < 1 or not extension.speed > 0:
         raise SceneError(f"{name}.extension: sweeps >= 0, frames >= 1 and speed > 0 are needed")
     if extension.sweeps and volume is None:
