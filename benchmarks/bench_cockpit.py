@@ -25,9 +25,12 @@ import numpy as np
 from benchmarks.harness import Figure
 from ivc.correct.evaluate import check_errors, summarise
 from ivc.lut import FitOptions, fit_lut
+from ivc.lut.coverage import box_coverage, box_points
+from ivc.lut.grid import Grid, GridField
 from ivc.lut.joint import mapped_litres
+from ivc.lut.support import MIN_SUPPORT, node_support
 from ivc.session import extension_steps
-from ivc.sim import Simulator, load_scene
+from ivc.sim import Simulator, load_scene, rig
 from ivc.sim.noise_floor import finite_difference_jacobian, pose_noise_floor
 from ivc.sim.tracker import noise_sigma
 
@@ -39,9 +42,25 @@ DEFAULT_BEFORE = {"p50": 0.04276, "p95": 0.2509}
 
 def _box_fraction(table, volume) -> float:
     """Fraction of the box's volume inside mapped cells (by a 1 cm lattice of points)."""
-    axes = [np.arange(volume.lower[a] + 0.005, volume.upper[a], 0.01) for a in range(3)]
-    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    return float(table.field().mapped(points).mean())
+    return box_coverage(table.field(), volume.center, volume.size)["fraction"]
+
+
+def _protocol_reach(scene, simulator) -> float:
+    """The box share a map would cover if every sensor of every frame the joint fit uses (each extension
+    sweep decimated to 5,000 frames) were solved and kept, with the cube's ball (0.19 m): what the sweeps'
+    paths allow, whatever the solve does. Only the motion is simulated (no field)."""
+    sweeps = []
+    for n in range(1, scene.extension.sweeps + 1):
+        motion = rig.extension_motion(scene, scene.extension.frames, simulator._rng(f"extension_sweep_{n}"), n)
+        positions = simulator.wand.sensor_poses(*motion)[0]
+        sweeps.append(positions[:: max(1, -(-len(positions) // 5000))].reshape(-1, 3))
+    volume = scene.volume
+    lattice = box_points(volume.center, volume.size)
+    ball = lattice[np.linalg.norm(lattice - scene.cube.center, axis=1) < 0.19]
+    points = np.concatenate([*sweeps, ball])
+    grid = Grid.around(points)
+    field = GridField(grid, np.zeros((*grid.shape, 3, 3)), node_support(grid, points) >= MIN_SUPPORT)
+    return box_coverage(field, volume.center, volume.size)["fraction"]
 
 
 def _fifths(errors, distance, ok):
@@ -87,6 +106,11 @@ def run() -> list[Figure]:
     box_joint, box_single = _box_fraction(table, volume), _box_fraction(single_table, volume)
     figures.append(Figure("cockpit: box mapped", 100 * box_joint, "%", "single sweep", 100 * box_single,
                           ">= 95 %", 100 * box_joint >= 95))
+    lissajous = load_scene("cockpit")
+    lissajous.extension.pattern, lissajous.extension.speed = "lissajous", 0.15  # the sweeps of the rounds before
+    figures.append(Figure("cockpit: protocol reach (box share if every used frame were kept)",
+                          100 * _protocol_reach(scene, simulator), "%", "Lissajous sweeps at 0.15 m/s",
+                          100 * _protocol_reach(lissajous, Simulator(lissajous, seed=0)), "(reference)"))
     valid = errors.valid
     trusted, trusted_single = errors.ok.sum() / valid.sum(), single_errors.ok.sum() / valid.sum()
     figures.append(Figure("cockpit: check poses trusted", 100 * trusted, "%", "single sweep",

@@ -29,7 +29,14 @@ from ivc.correct.solver import Corrector
 from ivc.errors import InputError
 from ivc.fixtures.mapping import FixtureModel, Gates, map_sweep
 from ivc.fixtures.wand import WandCalibration
-from ivc.lut.fit_sources import SourceModel, fit_sources, normal_equations, solve_normal_equations
+from ivc.lut.fit_sources import (
+    SPACING,
+    SourceModel,
+    default_sources,
+    fit_sources,
+    normal_equations,
+    solve_normal_equations,
+)
 from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
 from ivc.lut.refine import skew
 from ivc.lut.samples import FieldSamples, leverage
@@ -38,6 +45,8 @@ from ivc.lut.table import LookupTable
 from ivc.pose import levenberg_marquardt, signal_residual
 from ivc.session import Session, SessionError, extension_steps
 
+#: the joint map's inner shell of equivalent sources lies this far beyond the samples' bounding box (m)
+SOURCE_STANDOFF = 0.09
 #: frame numbers of extension sweep n's samples start at n * FRAME_OFFSET (folds never mix sweeps' blocks)
 FRAME_OFFSET = 10_000_000
 
@@ -181,7 +190,10 @@ class JointOptions:
     frame's relative residual gate.
     ``max_error``: a sample's estimated error gate (m, eq. 101 with the rigid solve's standard errors).
     ``max_frames``: the cube sweep decimated to this many frames; ``max_extension_frames``: each
-    extension sweep decimated to this many. ``min_sensors``: mapped sensors a frame needs to be solved."""
+    extension sweep decimated to this many. ``min_sensors``: mapped sensors a frame needs to be solved.
+    ``source_standoff``, ``source_spacing``: the inner shell of equivalent sources, beyond the samples'
+    bounding box (m): farther out than the table's outermost nodes (up to 1.5 cells beyond the data), so
+    that no node is tabulated next to a source, and about where the metal of a cockpit is."""
 
     spacing: float = DEFAULT_SPACING
     min_support: int = MIN_SUPPORT
@@ -194,11 +206,13 @@ class JointOptions:
     max_frames: int = 25_000
     max_extension_frames: int = 5_000
     min_sensors: int = 2
+    source_standoff: float = SOURCE_STANDOFF
+    source_spacing: float = SPACING
 
     def __post_init__(self):
         if not (np.isfinite(self.stall_growth) and self.stall_growth >= 0):
             raise InputError(f"stall_growth must be a fraction of at least 0, got {self.stall_growth}")
-        for name in ("spacing", "tolerance", "max_residual", "max_error"):
+        for name in ("spacing", "tolerance", "max_residual", "max_error", "source_standoff", "source_spacing"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise InputError(f"{name} must be a positive number, got {value}")
@@ -301,6 +315,10 @@ def distance_profile(samples: FieldSamples, centre: np.ndarray, bins: int = 5) -
     return rows
 
 
+def _sources(samples: FieldSamples, options: JointOptions) -> np.ndarray:
+    return default_sources(samples.positions, options.source_standoff, options.source_spacing)
+
+
 def fit_joint(session: Session, options: JointOptions | None = None, progress=None) -> JointMap:
     """The whole-volume map of a session with extension sweeps (module docstring). ``progress(description,
     total)`` returns an update callback per stage, as :func:`ivc.lut.build.fit_lut`'s."""
@@ -335,7 +353,7 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
         extensions[name] = (part.signal_matrices(), part.valid_mask, number * FRAME_OFFSET, every)
     centre = model.placement.positions.mean(axis=0)
     bar = progress("fitting equivalent sources (cross-validated)", len(anchor))
-    field, fit = fit_sources(anchor, progress=bar)
+    field, fit = fit_sources(anchor, _sources(anchor, options), progress=bar)
     damping = fit["damping"]
     samples = anchor
     grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support)
@@ -352,7 +370,7 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
             solutions[name] = (solution, kept)
         samples = _concatenate(parts)
         bar = progress(f"round {iteration}: refit", len(samples))
-        normal = normal_equations(samples, progress=bar)
+        normal = normal_equations(samples, _sources(samples, options), progress=bar)
         field, _ = solve_normal_equations(normal, (damping,))
         change = _change(field, grid, values, valid)
         before = mapped_litres(grid, valid)
