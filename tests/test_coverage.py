@@ -81,15 +81,17 @@ def test_the_passes_reach_every_corner_of_the_cockpit_box_continuously():
     scene = load_scene("cockpit")
     positions = _sweep_positions(scene)  # (sweeps, F, W, 3)
     volume = scene.volume
-    assert np.all(positions >= volume.lower) and np.all(positions <= volume.upper)
+    reach = -rig.PASS_MARGIN + 0.005  # the outermost passes run just beyond the faces (the wand bent by mm)
+    assert np.all(positions >= volume.lower - reach) and np.all(positions <= volume.upper + reach)
+    assert positions[..., 0].max() > volume.upper[0] and positions[..., 0].min() < volume.lower[0]
     hand = positions[:, :, -1]
     step = np.linalg.norm(np.diff(hand, axis=1), axis=-1) * scene.sweep_rate_hz  # m/s, within a sweep
     assert np.median(step) == pytest.approx(scene.extension.speed, rel=0.1)
     assert step.max() < 3 * scene.extension.speed  # no jumps: a walk a person can make
     corners = volume.center + volume.size / 2 * np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1)
                                                           for z in (-1, 1)])
-    reach = np.linalg.norm(hand.reshape(-1, 1, 3) - corners[None], axis=-1).min(axis=0)
-    assert reach.max() < 0.03, f"the hand comes within {1000 * reach.max():.0f} mm of the farthest corner"
+    nearest = np.linalg.norm(hand.reshape(-1, 1, 3) - corners[None], axis=-1).min(axis=0)
+    assert nearest.max() < 0.03, f"the hand comes within {1000 * nearest.max():.0f} mm of the farthest corner"
     # the tip points back at the cube: sensor 0 nearer the cube than the hand in (nearly) every frame
     distance = np.linalg.norm(positions - scene.cube.center, axis=-1)
     assert np.mean(distance[..., 0] < distance[..., -1]) > 0.95

@@ -9,7 +9,7 @@ from ivc import session as session_io
 from ivc.cli.main import cli
 from ivc.collect.checks import reach_warning
 from ivc.session import STEPS, SessionError, extension_step, extension_steps, is_extension_step
-from ivc.sim import Simulator, load_scene
+from ivc.sim import Simulator, load_scene, rig
 from ivc.sim.scene import scene_from_dict
 
 PLATE = {"shape": "plate", "size": [1.0, 1.0], "position": [0.55, 0, -0.4], "material": "aluminium",
@@ -48,7 +48,8 @@ def test_simulated_extension_sweeps_round_trip_and_stay_in_the_box(tmp_path):
         np.testing.assert_array_equal(back.steps[name].signal, session.steps[name].signal)
         truth = back.truth[name].position
         volume = sim.scene.volume
-        assert np.all(truth >= volume.lower - 1e-9) and np.all(truth <= volume.upper + 1e-9)
+        beyond = max(-rig.PASS_MARGIN, 0.0) + 0.005  # the outermost passes run just beyond the faces
+        assert np.all(truth >= volume.lower - beyond) and np.all(truth <= volume.upper + beyond)
         # held at its far end: the hand (last sensor) further from the cube than the tip, on the whole
         distance = np.linalg.norm(truth - sim.scene.cube.center, axis=-1)
         assert np.median(distance[:, -1]) > np.median(distance[:, 0])

@@ -47,6 +47,9 @@ from ivc.session import Session, SessionError, extension_steps
 
 #: the joint map's inner shell of equivalent sources lies this far beyond the samples' bounding box (m)
 SOURCE_STANDOFF = 0.09
+#: the Tikhonov dampings the joint map's cross-validation chooses from (on the cockpit scene the fit's own
+#: range, 1e-8 … 1e-5, chose its largest in every run)
+DAMPINGS = (1e-7, 1e-6, 1e-5, 1e-4)
 #: frame numbers of extension sweep n's samples start at n * FRAME_OFFSET (folds never mix sweeps' blocks)
 FRAME_OFFSET = 10_000_000
 
@@ -193,7 +196,9 @@ class JointOptions:
     extension sweep decimated to this many. ``min_sensors``: mapped sensors a frame needs to be solved.
     ``source_standoff``, ``source_spacing``: the inner shell of equivalent sources, beyond the samples'
     bounding box (m): farther out than the table's outermost nodes (up to 1.5 cells beyond the data), so
-    that no node is tabulated next to a source, and about where the metal of a cockpit is."""
+    that no node is tabulated next to a source, and about where the metal of a cockpit is. ``dampings``: the
+    Tikhonov dampings the cross-validation of the first and the final fit chooses from (the rounds between
+    keep the first fit's)."""
 
     spacing: float = DEFAULT_SPACING
     min_support: int = MIN_SUPPORT
@@ -208,8 +213,12 @@ class JointOptions:
     min_sensors: int = 2
     source_standoff: float = SOURCE_STANDOFF
     source_spacing: float = SPACING
+    dampings: tuple = DAMPINGS
 
     def __post_init__(self):
+        self.dampings = tuple(float(d) for d in self.dampings)
+        if not self.dampings or not all(np.isfinite(d) and d > 0 for d in self.dampings):
+            raise InputError(f"dampings must be positive numbers, got {self.dampings!r}")
         if not (np.isfinite(self.stall_growth) and self.stall_growth >= 0):
             raise InputError(f"stall_growth must be a fraction of at least 0, got {self.stall_growth}")
         for name in ("spacing", "tolerance", "max_residual", "max_error", "source_standoff", "source_spacing"):
@@ -353,7 +362,7 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
         extensions[name] = (part.signal_matrices(), part.valid_mask, number * FRAME_OFFSET, every)
     centre = model.placement.positions.mean(axis=0)
     bar = progress("fitting equivalent sources (cross-validated)", len(anchor))
-    field, fit = fit_sources(anchor, _sources(anchor, options), progress=bar)
+    field, fit = fit_sources(anchor, _sources(anchor, options), options.dampings, progress=bar)
     damping = fit["damping"]
     samples = anchor
     grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support)
@@ -386,7 +395,8 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
             stopped = f"the mapped volume grew by less than {100 * options.stall_growth:g} % (it has stopped growing)"
             break
     stopped = stopped or f"max_iterations {options.max_iterations} reached"
-    field, fit = solve_normal_equations(normal)  # the last round's samples: its normal equations, cross-validated
+    # the last round's samples: its normal equations, cross-validated
+    field, fit = solve_normal_equations(normal, options.dampings)
     grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support)
     never = [name for name in names if all(step["frames_solved"].get(name, 0) == 0 for step in history)]
     report = {"method": "equivalent sources, joint", **fit, "rounds": history, "stopped": stopped,

@@ -137,9 +137,10 @@ def sweep_motion(scene: Scene, frames: int, rng: np.random.Generator) -> tuple[n
 HAND_MARGIN = 0.03
 
 
-#: in the "passes" pattern the hand's outermost passes run this far inside the volume's faces (m): the
-#: map's cells must reach the faces, and the metal is several centimetres beyond them
-PASS_MARGIN = 0.005
+#: in the "passes" pattern the hand's outermost passes run this far inside the volume's faces (m; negative:
+#: beyond them): the map's cells must reach the faces with data on both sides, and the metal of a cockpit is
+#: several centimetres beyond them
+PASS_MARGIN = -0.02
 #: the nested boxes the hand walks in the "passes" pattern: fractions of the way from the cube to the volume
 SHELLS = (0.5, 0.75, 1.0)
 #: in the "passes" pattern the hand keeps at least this far from the cube's centre (m): nearer, the wand
