@@ -9,7 +9,7 @@ from ivc.errors import InputError
 from ivc.lut.coverage import box_coverage, box_points
 from ivc.lut.grid import Grid, GridField
 from ivc.lut.support import node_support
-from ivc.report import _box
+from ivc.report import box_section
 from ivc.session import SessionError, working_volume
 from ivc.sim import Simulator, load_scene, rig
 from ivc.sim.scene import SceneError, scene_from_dict
@@ -44,8 +44,8 @@ def test_box_coverage_is_the_mapped_share_of_the_box():
     half = box_coverage(_field(valid_from_x=0.55), CENTER, SIZE)
     assert half["fraction"] == pytest.approx(0.5, abs=0.01)
     assert half["faces"]["-x"] == 0.0 and half["faces"]["+x"] == 1.0
-    assert "50.0 %" in _box(half) and "240 litres" in _box(half)
-    assert "declares no working volume" in _box(None)
+    assert "50.0 %" in box_section(half) and "240 litres" in box_section(half)
+    assert "declares no working volume" in box_section(None)
 
 
 def test_the_working_volume_is_declared_by_two_attributes(tmp_path):

@@ -141,4 +141,10 @@ def test_joint_fit_grows_the_map_and_reports_it(tmp_path):
     assert result["ivc"]["position_mm"]["p50"] < 0.2 * result["dipole"]["position_mm"]["p50"]
     report = build_report(session, table, tmp_path / "report")
     assert report.numbers["volume"]["rounds"] == rounds
-    assert "Whole working volume" in (tmp_path / "report" / "report.html").read_text()
+    page = (tmp_path / "report" / "report.html").read_text()
+    assert "Whole working volume" in page
+    # the session declares the scene's box: the report gives the share of it the table maps
+    box = report.numbers["box"]
+    assert box["box_litres"] == pytest.approx(120.0) and 0.3 < box["fraction"] <= 1.0
+    assert box["mapped_litres"] == pytest.approx(box["fraction"] * 120.0, abs=0.01)
+    assert "Declared working volume" in page

@@ -6,6 +6,7 @@ A session with extension sweeps is mapped over its whole working volume by :func
 """
 
 from ivc.lut.build import METHODS, FitOptions, fit_lut
+from ivc.lut.coverage import box_coverage
 from ivc.lut.cross_validation import BlockedKFold, cross_validate, held_out_score
 from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
 from ivc.lut.fit_poly import PolyFit
@@ -19,6 +20,6 @@ from ivc.lut.table import LookupTable, LutError, read, write
 
 __all__ = ["DEFAULT_SPACING", "FITTERS", "METHODS", "BlockedKFold", "FieldSamples", "FitOptions", "Fitter", "Grid",
            "GridField", "HarmonicFit", "HarmonicModel", "JointMap", "JointOptions", "LookupTable", "LutError",
-           "MapFit", "PolyFit", "SourceModel", "SourcesFit", "cross_validate", "fit_joint", "fit_lut", "fit_map",
-           "fit_table", "held_out_score", "make_fitter", "read", "refine_map", "register", "solve_wand",
+           "MapFit", "PolyFit", "SourceModel", "SourcesFit", "box_coverage", "cross_validate", "fit_joint", "fit_lut",
+           "fit_map", "fit_table", "held_out_score", "make_fitter", "read", "refine_map", "register", "solve_wand",
            "solve_wand_table", "write"]

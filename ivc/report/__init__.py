@@ -32,7 +32,7 @@ from ivc.report.compute import (
 from ivc.report.figures import FIGURES
 from ivc.session import Session, atomic_path
 
-__all__ = ["FIGURES", "REPORT_FILES", "Report", "build_report", "gather", "summary"]
+__all__ = ["FIGURES", "REPORT_FILES", "Report", "box_section", "build_report", "gather", "summary"]
 
 REPORT_FILES = ("report.html", "report.json", *(f"{name}.png" for name in FIGURES))
 
@@ -180,7 +180,7 @@ def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings
                     + html.percentile_table(rows))
     if "volume" in numbers or "box" in numbers:
         sections.append(("volume", "Whole working volume (extension sweeps)",
-                         _box(numbers.get("box")) + (_volume(numbers["volume"]) if "volume" in numbers else "")))
+                         box_section(numbers.get("box")) + (_volume(numbers["volume"]) if "volume" in numbers else "")))
     sections.append(("accuracy", "Accuracy on the check poses", accuracy + fig("error_histograms")
                      + fig("error_vs_distance")))
     field_numbers = numbers["secondary_field"]["percent_of_measured_at_valid_nodes"]
@@ -193,7 +193,7 @@ def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings
     return html.page(title, meta, warnings, sections)
 
 
-def _box(box: dict | None) -> str:
+def box_section(box: dict | None) -> str:
     """The declared working volume's coverage: the share mapped, and per face the share of its 5 cm layer."""
     if box is None:
         return "<p>The session declares no working volume (working_volume_center, working_volume_size).</p>"
