@@ -14,6 +14,10 @@ normalised: in effect the best candidate, blended with the nearly as good ones (
 scored, ``none``; a sum of exactly 0 takes all the weight, ties to the earlier candidate). Where a
 candidate has no prediction yet, its turn is 0 (the measured orientation). In batch the weights are
 kept per horizon; the live form scores at ``horizon_s`` and uses those weights at any horizon.
+
+One more member, ``combine`` (on unless ``combination=False``), is not a filter of its own: the
+candidates' turns combined with weights learned online by constrained least squares from the targets
+whose time has arrived (:mod:`ivc.predict.combine`); it is scored and blended like the others.
 """
 
 from __future__ import annotations
@@ -36,6 +40,8 @@ from ivc.predict.base import (
     check_rate,
     check_stream,
 )
+from ivc.predict.combine import MEMORY_S as COMBINATION_MEMORY_S
+from ivc.predict.combine import accumulate, combine, ridge_for, solve_weights
 from ivc.predict.direct import DirectPredictor
 from ivc.predict.dq import SIGMA_CV1, dqekf_ca, dqekf_cv, mmdq2
 from ivc.predict.hold import NoPrediction
@@ -138,13 +144,17 @@ def _select(err, known, dt, memory, power, out):
 
 
 @numba.njit(cache=True)
-def _score(shown, sensors, q, knot_q, knot_t, now, target, max_step, total):
+def _score(shown, base, sensors, q, knot_q, knot_t, now, target, max_step, total, members, A, b):
     """Add the errors (mrad) of one frame's pending predictions shown (S, C, 4) for ``target`` s to total (S, C),
     for the sensors whose sample q (S, 4) at ``now`` just arrived: the reference is slerped between each one's
-    previous usable sample (knot_q, knot_t) and q, as :func:`ivc.predict.recording.future_reference` does."""
+    previous usable sample (knot_q, knot_t) and q, as :func:`ivc.predict.recording.future_reference` does.
+    With ``members`` > 0, the first ``members`` predictions' turns from the frame's measured orientation base
+    (S, 4) and the reference's are added to the combination's sums A (S, m, m), b (S, m)."""
     S, C = total.shape
     ref = np.empty(4)
     d = np.empty(4)
+    turns = np.empty((max(members, 1), 3))
+    goal = np.empty(3)
     for s in range(S):
         if not sensors[s]:
             continue
@@ -160,6 +170,28 @@ def _score(shown, sensors, q, knot_q, knot_t, now, target, max_step, total):
             qmul_conj(shown[s, c], ref, d)
             v = np.sqrt(d[1] ** 2 + d[2] ** 2 + d[3] ** 2)
             total[s, c] += 1e3 * 2.0 * np.arctan2(v, abs(d[0]))
+        if members > 0:
+            for c in range(members):
+                _turn(shown[s, c], base[s], d, turns[c])
+            _turn(ref, base[s], d, goal)
+            accumulate(turns, goal, A[s], b[s])
+
+
+@numba.njit(cache=True)
+def _turn(p, q, d, out):
+    """out (3,) = the rotation vector of p ⊗ q* (scalar part made non-negative), rad; d a (4,) scratch."""
+    qmul_conj(p, q, d)
+    if d[0] < 0.0:
+        for i in range(4):
+            d[i] = -d[i]
+    rate_of(d, 1.0, out)
+
+
+@numba.njit(cache=True)
+def _solve_all(A, b, ridge, out):
+    """out[s] (m,) = :func:`ivc.predict.combine.solve_weights` of each sensor's sums A (S, m, m), b (S, m)."""
+    for s in range(A.shape[0]):
+        solve_weights(A[s], b[s], ridge, out[s])
 
 
 @numba.njit(cache=True)
@@ -204,6 +236,8 @@ class AutoPredictor(Predictor):
     power: float = POWER
     horizon_s: float = 0.05  # the live form's scoring horizon
     max_step_s: float = REFERENCE_MAX_STEP_S
+    combination: bool = True  # the ``combine`` member (module docstring)
+    combination_memory_s: float = COMBINATION_MEMORY_S
     name: str = "auto"
     bank: list = field(init=False, repr=False)
 
@@ -212,16 +246,37 @@ class AutoPredictor(Predictor):
         unknown = [c for c in self.candidates if c not in CANDIDATES]
         if unknown or not self.candidates:
             raise PredictorError(f"auto's candidates are among {', '.join(CANDIDATES)}; got {self.candidates}")
-        if not (self.memory_s > 0 and self.max_step_s > 0 and self.power >= 0):
-            raise PredictorError("memory_s and max_step_s must be positive numbers of seconds, power >= 0")
+        if not (self.memory_s > 0 and self.max_step_s > 0 and self.power >= 0 and self.combination_memory_s > 0):
+            raise PredictorError("memory_s, combination_memory_s and max_step_s must be positive numbers of seconds, "
+                                 "power >= 0")
         check_horizons(self.horizon_s)
         self.bank = [CANDIDATES[c](self.rate_hz) for c in self.candidates]
         for p in self.bank:  # a member that learns from its errors (direct) learns at the horizon auto scores at
             if hasattr(p, "horizon_s") and self.horizon_s > 0:
                 p.horizon_s = float(self.horizon_s)
 
+    @property
+    def members(self) -> tuple[str, ...]:
+        """The names of what is blended, in the order of the weights: the candidates, then ``combine`` if on."""
+        return tuple(self.candidates) + (("combine",) if self.combination else ())
+
+    def _combined(self, shown, qs, ok, t, horizon, references) -> FloatArray:
+        """The ``combine`` member (F, S, 4) at one horizon from the candidates' predictions shown (C, F, S, 4)."""
+        out = np.array(qs)
+        if horizon == 0.0:  # nothing to learn: the measurement
+            return out
+        turns = rotations.to_rotvec(rotations.multiply(shown, rotations.conjugate(qs)[None]))  # (C, F, S, 3)
+        turns[:, ~ok] = 0.0
+        for s, (ref, scored, known) in enumerate(references):
+            goal = np.full((len(t), 3), np.nan)
+            goal[scored] = rotations.to_rotvec(rotations.multiply(ref[scored], rotations.conjugate(qs[scored, s])))
+            mean, _ = combine(turns[:, :, s], goal, known, t, horizon, self.combination_memory_s)
+            out[ok[:, s], s] = rotations.multiply(rotations.from_rotvec(mean[ok[:, s]]), qs[ok[:, s], s])
+        return out
+
     def selections(self, q, horizons, valid=None, time=None) -> tuple[FloatArray, np.ndarray]:
-        """(predictions (H, F, S, 4) as :meth:`predict`, the candidates' weights (H, F, S, C), in candidates' order)."""
+        """(predictions (H, F, S, 4) as :meth:`predict`, the members' weights (H, F, S, M), in :attr:`members`'
+        order)."""
         h = check_horizons(horizons)
         qs, ok, _ = check_stream(q, valid)
         F, S = ok.shape
@@ -233,14 +288,23 @@ class AutoPredictor(Predictor):
             P = p.predict(qs, h, ok, time=t)
             shown.append(np.where(np.all(np.isfinite(P), axis=-1, keepdims=True), P, qs[None]))
         shown = np.stack(shown)  # (C, H, F, S, 4)
-        weights = np.zeros((len(h), F, S, len(self.bank)))
-        for i, d in enumerate(h):
+        references = []  # per horizon, per sensor: (reference, scored, the frame it is known at or -1)
+        for d in h:
+            references.append([])
             for s in range(S):
                 ref, inside, known = future_reference(t, qs[:, s], usable[:, s], d, self.max_step_s, known_at=True)
                 scored = inside & ok[:, s]
-                err = np.full((len(self.bank), F), np.nan)
+                references[-1].append((ref, scored, np.where(scored, known, -1)))
+        if self.combination:
+            mixed = [self._combined(shown[:, i], qs, ok, t, float(d), references[i]) for i, d in enumerate(h)]
+            shown = np.concatenate([shown, np.stack(mixed)[None]])
+        M = shown.shape[0]
+        weights = np.zeros((len(h), F, S, M))
+        for i in range(len(h)):
+            for s, (ref, scored, known) in enumerate(references[i]):
+                err = np.full((M, F), np.nan)
                 err[:, scored] = 1e3 * rotations.angle_between(shown[:, i, scored, s], ref[scored][None])
-                _select(err, np.where(scored, known, -1), dt, self.memory_s, self.power, weights[i, :, s])
+                _select(err, known, dt, self.memory_s, self.power, weights[i, :, s])
         out = blend(shown, np.moveaxis(weights, -1, 0), qs[None])
         out[:, ~ok] = np.nan
         return out, weights
@@ -260,10 +324,18 @@ class AutoStream(Stream):
         super().__init__(predictor, n_sensors)
         self.streams = [p.stream(n_sensors) for p in predictor.bank]
         self.clock = StreamClock(predictor.rate_hz, n_sensors)
-        self.total = np.zeros((n_sensors, len(self.streams)))
-        self.weights = np.zeros((n_sensors, len(self.streams)))
+        C = len(self.streams)
+        self.members = C if predictor.combination else 0  # the candidates the combination learns from
+        M = len(predictor.members)
+        self.total = np.zeros((n_sensors, M))
+        self.weights = np.zeros((n_sensors, M))
         self.weights[:, 0] = 1.0
-        self.pending = deque()  # (target time, shown (S, C, 4), the sensors still to score (S,)), in time order
+        self.A = np.zeros((n_sensors, C, C))  # the combination's sums and weights
+        self.b = np.zeros((n_sensors, C))
+        self.mix = np.full((n_sensors, C), 1.0 / C)
+        self.ridge = ridge_for(predictor.horizon_s)
+        # (target time, shown (S, M, 4), the measured orientation (S, 4), the sensors still to score (S,)), by time
+        self.pending = deque()
         self.previous = np.full((n_sensors, 4), np.nan)  # the latest valid sample (repeat test)
         self.knot_t = np.full(n_sensors, np.nan)  # the latest usable sample: time, orientation
         self.knot_q = np.full((n_sensors, 4), np.nan)
@@ -283,34 +355,52 @@ class AutoStream(Stream):
         p = self.predictor
         if dt > 0:
             self.total *= np.exp(-dt / p.memory_s)
+            if self.members:
+                decay = np.exp(-dt / p.combination_memory_s)
+                self.A *= decay
+                self.b *= decay
         usable = ok & ~np.all(qs == self.previous, axis=1)
         self.previous = np.where(ok[:, None], qs, self.previous)
         if np.any(usable):
-            for target, shown, waiting in self.pending:  # each scored at the sensor's first usable sample after it
+            for target, shown, base, waiting in self.pending:  # each scored at the sensor's first usable sample after
                 if target > now:
                     break
-                _score(shown, waiting & usable, qs, self.knot_q, self.knot_t, now, target, p.max_step_s, self.total)
+                _score(shown, base, waiting & usable, qs, self.knot_q, self.knot_t, now, target, p.max_step_s,
+                       self.total, self.members, self.A, self.b)
                 waiting &= ~usable
-            while self.pending and self.pending[0][0] <= now and not self.pending[0][2].any():
+            while self.pending and self.pending[0][0] <= now and not self.pending[0][3].any():
                 self.pending.popleft()
         self.knot_t = np.where(usable, now, self.knot_t)
         self.knot_q = np.where(usable[:, None], qs, self.knot_q)
         _weigh(self.total, p.power, self.weights)
-        self.ahead = None
-        if np.any(ok):
-            ahead = np.stack([s.predict(p.horizon_s) for s in self.streams])  # (C, S, 4)
-            self.ahead = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, qs[None])
-            self.pending.append((now + p.horizon_s, np.ascontiguousarray(self.ahead.transpose(1, 0, 2)), ok.copy()))
+        if self.members:
+            _solve_all(self.A, self.b, self.ridge, self.mix)
         self.ok = ok
         self.last = qs
+        self.ahead = None
+        if np.any(ok):
+            self.ahead = self._ahead(p.horizon_s)
+            self.pending.append((now + p.horizon_s, np.ascontiguousarray(self.ahead.transpose(1, 0, 2)), qs, ok.copy()))
+
+    def _ahead(self, horizon: float) -> FloatArray:
+        """Every member's prediction (M, S, 4) at ``horizon`` s from the latest frame; the measured orientation
+        where a candidate has none, as in batch."""
+        ahead = np.stack([s.predict(horizon) for s in self.streams])  # (C, S, 4)
+        ahead = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, self.last[None])
+        if not self.members:
+            return ahead
+        mixed = np.array(self.last)
+        if horizon > 0.0:
+            _blend_frame(ahead, self.mix, self.last, self.ok, mixed)
+            mixed = np.where(self.ok[:, None], mixed, self.last)
+        return np.concatenate([ahead, mixed[None]])
 
     def predict(self, horizon):
         d = float(check_horizons(horizon)[0])
         if self.ahead is not None and d == self.predictor.horizon_s:  # the live loop's case: computed by update
             ahead = self.ahead
         else:
-            ahead = np.stack([s.predict(d) for s in self.streams])  # (C, S, 4)
-            ahead = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, self.last[None])  # as batch
+            ahead = self._ahead(d)
         out = np.empty((self.n_sensors, 4))
         _blend_frame(ahead, self.weights, self.last, self.ok, out)
         return out

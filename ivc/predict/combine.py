@@ -1,0 +1,142 @@
+"""Forecast combination: the bank members' turns over the horizon, averaged with weights learned online.
+
+``auto`` selects among its members by their recent errors; this module combines them instead. At frame
+k each member c predicts a turn r_c(k) from the measured orientation q(k) (a rotation vector, rad, world
+frame: log(q̂_c ⊗ q(k)*)); the combination shows Σ_c w_c r_c(k). The weights solve, at every frame,
+
+    min_w  Σ_k e^{−(t − t_k)/τ} |y(k) − Σ_c w_c r_c(k)|²  +  λ |w − 1/C|²    subject to  Σ_c w_c = 1,
+
+y(k) the stream's own turn from q(k) to its orientation at t(k) + h (rad; the scoring's slerped
+reference), over the targets whose time has arrived only: a target enters the sums at the frame its
+reference is first known (the sample after t(k) + h), so the weights at t use samples up to t. The sums
+forget with time constant ``memory_s`` (:data:`MEMORY_S`, 3 s, ``direct``'s memory: a few head
+movements); the ridge λ = h² rad² pulls toward the equal-weight average, what the weights are before
+anything is learned (h² is one target of a 1 rad/s turn over the horizon: a static or slow stream, whose
+turns are far smaller, keeps near the average; a turning one is ruled by its errors). Weights may be
+negative or above 1 (the combination can extrapolate beyond its members), their sum is 1 (a common
+bias of every member is not "learned away" as a gain). Axes share one weight per member, so the
+combination does not depend on the world frame the turns are written in.
+
+The constrained minimum: with M = A + λI and rhs = b + λ/C (A the forgotten Σ r rᵀ summed over axes,
+b the forgotten Σ r·y), w = M⁻¹ rhs + μ M⁻¹ 1, μ = (1 − 1ᵀM⁻¹rhs) / (1ᵀM⁻¹1).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numpy.typing import ArrayLike
+
+from ivc.errors import PredictorError
+from ivc.predict.base import FloatArray
+
+#: time constant (s) of the forgetting of the combination's sums
+MEMORY_S = 3.0
+
+
+def ridge_for(horizon_s: float) -> float:
+    """The ridge λ (rad²) toward equal weights at a horizon (s): one 1 rad/s turn over it, squared."""
+    return float(horizon_s) ** 2
+
+
+@numba.njit(cache=True)
+def solve_weights(A, b, ridge, out):
+    """out (C,) = the constrained ridge solution of the module docstring from the sums A (C, C), b (C,)."""
+    C = b.shape[0]
+    M = A.copy()
+    rhs = np.empty((C, 2))
+    for c in range(C):
+        M[c, c] += ridge
+        rhs[c, 0] = b[c] + ridge / C
+        rhs[c, 1] = 1.0
+    X = np.linalg.solve(M, rhs)
+    s0 = 0.0
+    s1 = 0.0
+    for c in range(C):
+        s0 += X[c, 0]
+        s1 += X[c, 1]
+    mu = (1.0 - s0) / s1
+    for c in range(C):
+        out[c] = X[c, 0] + mu * X[c, 1]
+
+
+@numba.njit(cache=True)
+def accumulate(turns, target, A, b):
+    """Add one target: A (C, C) += Σ_axes r rᵀ and b (C,) += Σ_axes r y, turns (C, 3) and target (3,) in rad."""
+    C = turns.shape[0]
+    for c in range(C):
+        acc = 0.0
+        for i in range(3):
+            acc += turns[c, i] * target[i]
+        b[c] += acc
+        for e in range(C):
+            acc = 0.0
+            for i in range(3):
+                acc += turns[c, i] * turns[e, i]
+            A[c, e] += acc
+
+
+@numba.njit(cache=True)
+def _combine(turns, target, known, dt, memory, ridge, out, weights):
+    """The batch of :func:`combine` for one sensor and horizon (arguments as there, checked)."""
+    C, F = turns.shape[0], turns.shape[1]
+    order = np.argsort(known, kind="mergesort")
+    A = np.zeros((C, C))
+    b = np.zeros(C)
+    e = 0
+    while e < F and known[order[e]] < 0:
+        e += 1
+    for j in range(F):
+        if dt[j] > 0.0:
+            decay = np.exp(-dt[j] / memory)
+            for c in range(C):
+                b[c] *= decay
+                for d in range(C):
+                    A[c, d] *= decay
+        while e < F and known[order[e]] == j:
+            k = order[e]
+            if np.isfinite(target[k, 0]) and np.isfinite(target[k, 1]) and np.isfinite(target[k, 2]):
+                accumulate(turns[:, k], target[k], A, b)
+            e += 1
+        solve_weights(A, b, ridge, weights[j])
+        for i in range(3):
+            acc = 0.0
+            for c in range(C):
+                acc += weights[j, c] * turns[c, j, i]
+            out[j, i] = acc
+
+
+def combine(turns: ArrayLike, target: ArrayLike, known: ArrayLike, time: ArrayLike, horizon_s: float,
+            memory_s: float = MEMORY_S) -> tuple[FloatArray, FloatArray]:
+    """The online combination of one sensor's member turns at one horizon.
+
+    turns (C, F, 3): each member's predicted turn from the measured orientation at each frame (rad, finite);
+    target (F, 3): the stream's own turn from there to its orientation at t + ``horizon_s`` (rad; NaN where it
+    is not scored); known (F,): the frame at which each target is first known (−1: never); time (F,) s.
+    Returns (the combined turns (F, 3) rad, the weights (F, C) in force at each frame).
+    """
+    r = np.ascontiguousarray(turns, dtype=float)
+    y = np.ascontiguousarray(target, dtype=float)
+    kn = np.ascontiguousarray(known, dtype=np.int64)
+    t = np.ascontiguousarray(time, dtype=float)
+    if r.ndim != 3 or r.shape[2] != 3 or r.shape[0] < 1:
+        raise PredictorError(f"combine: turns must be (members, frames, 3), got {r.shape}")
+    C, F = r.shape[:2]
+    if y.shape != (F, 3) or kn.shape != (F,) or t.shape != (F,):
+        raise PredictorError(f"combine: target (F, 3), known (F,) and time (F,) must match {F} frames; got "
+                             f"{y.shape}, {kn.shape}, {t.shape}")
+    if not np.all(np.isfinite(r)):
+        raise PredictorError("combine: the members' turns must be finite (show the measured orientation, turn 0, "
+                             "where a member has no prediction)")
+    if not (np.isfinite(horizon_s) and horizon_s > 0 and np.isfinite(memory_s) and memory_s > 0):
+        raise PredictorError("combine: horizon_s and memory_s must be positive numbers of seconds")
+    if F and (np.any(kn >= F) or np.any(np.diff(t) < 0)):
+        raise PredictorError("combine: known frames must be below the number of frames and times must not decrease")
+    out = np.empty((F, 3))
+    weights = np.empty((F, C))
+    dt = np.diff(t, prepend=t[:1]) if F else t
+    _combine(r, y, kn, dt, float(memory_s), ridge_for(horizon_s), out, weights)
+    return out, weights
+
+
+__all__ = ["MEMORY_S", "accumulate", "combine", "ridge_for", "solve_weights"]
