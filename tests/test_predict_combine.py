@@ -26,32 +26,34 @@ def _members(rng, n=600, C=4):
 
 
 def _reference_weights(t, turns, target, known, j, horizon, memory):
-    """An independent solution at frame j: the equality constraint eliminated (w_C = 1 − Σ others) and the
-    weighted, ridged problem solved by NumPy's least squares over the targets known by frame j."""
+    """An independent solution (3, C) at frame j, axis by axis: the equality constraint eliminated (w_C = 1 − Σ
+    others) and the weighted, ridged problem (λ/3 per axis) solved by NumPy's least squares over the targets known
+    by frame j."""
     C = turns.shape[0]
-    rows, rhs = [], []
-    for k in np.flatnonzero((known >= 0) & (known <= j) & np.all(np.isfinite(target), axis=1)):
-        s = np.sqrt(np.exp(-(t[j] - t[known[k]]) / memory))
-        rows.append(s * (turns[:C - 1, k] - turns[C - 1, k]).T)  # (3, C - 1)
-        rhs.append(s * (target[k] - turns[C - 1, k]))
-    lam = np.sqrt(ridge_for(horizon))
-    ridge = np.vstack([lam * np.eye(C - 1), -lam * np.ones((1, C - 1))])  # rows of sqrt(λ)(w − 1/C)
+    out = np.empty((3, C))
+    lam = np.sqrt(ridge_for(horizon) / 3)
+    ridge = np.vstack([lam * np.eye(C - 1), -lam * np.ones((1, C - 1))])  # rows of sqrt(λ/3)(w − 1/C)
     ridge_rhs = np.concatenate([np.full(C - 1, lam / C), [lam * (1 / C - 1)]])
-    X = np.vstack(rows + [ridge]) if rows else ridge
-    b = np.concatenate(rhs + [ridge_rhs]) if rhs else ridge_rhs
-    free = np.linalg.lstsq(X, b, rcond=None)[0]
-    return np.append(free, 1.0 - free.sum())
+    for a in range(3):
+        rows, rhs = [ridge], [ridge_rhs]
+        for k in np.flatnonzero((known >= 0) & (known <= j) & np.all(np.isfinite(target), axis=1)):
+            s = np.sqrt(np.exp(-(t[j] - t[known[k]]) / memory))
+            rows.append(s * (turns[:C - 1, k, a] - turns[C - 1, k, a])[None])
+            rhs.append([s * (target[k, a] - turns[C - 1, k, a])])
+        free = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
+        out[a] = np.append(free, 1.0 - free.sum())
+    return out
 
 
 def test_combine_equals_an_independent_least_squares(rng):
     t, turns, target, known = _members(rng)
     for horizon, memory in ((0.05, 3.0), (0.1, 0.5)):
         mixed, weights = combine(turns, target, known, t, horizon, memory)
-        assert np.allclose(weights.sum(axis=1), 1.0, atol=1e-12)
+        assert np.allclose(weights.sum(axis=2), 1.0, atol=1e-12)
         for j in (0, 3, 50, 299, 599):
             ref = _reference_weights(t, turns, target, known, j, horizon, memory)
             assert np.allclose(weights[j], ref, rtol=0, atol=1e-9), (j, weights[j], ref)
-            assert np.allclose(mixed[j], weights[j] @ turns[:, j], atol=1e-15)
+            assert np.allclose(mixed[j], np.einsum("ac,ca->a", weights[j], turns[:, j]), atol=1e-15)
     assert np.allclose(combine(turns, np.full_like(target, np.nan), known, t, 0.05)[1], 0.25)  # nothing learned
 
 

@@ -41,7 +41,7 @@ from ivc.predict.base import (
     check_stream,
 )
 from ivc.predict.combine import MEMORY_S as COMBINATION_MEMORY_S
-from ivc.predict.combine import accumulate, combine, ridge_for, solve_weights
+from ivc.predict.combine import accumulate, combine, decay, ridge_for, solve_weights
 from ivc.predict.direct import DirectPredictor
 from ivc.predict.dq import SIGMA_CV1, dqekf_ca, dqekf_cv, mmdq2
 from ivc.predict.hold import NoPrediction
@@ -149,7 +149,7 @@ def _score(shown, base, sensors, q, knot_q, knot_t, now, target, max_step, total
     for the sensors whose sample q (S, 4) at ``now`` just arrived: the reference is slerped between each one's
     previous usable sample (knot_q, knot_t) and q, as :func:`ivc.predict.recording.future_reference` does.
     With ``members`` > 0, the first ``members`` predictions' turns from the frame's measured orientation base
-    (S, 4) and the reference's are added to the combination's sums A (S, m, m), b (S, m)."""
+    (S, 4), in its body frame, and the reference's are added to the combination's sums A (S, 3, m, m), b (S, 3, m)."""
     S, C = total.shape
     ref = np.empty(4)
     d = np.empty(4)
@@ -172,15 +172,20 @@ def _score(shown, base, sensors, q, knot_q, knot_t, now, target, max_step, total
             total[s, c] += 1e3 * 2.0 * np.arctan2(v, abs(d[0]))
         if members > 0:
             for c in range(members):
-                _turn(shown[s, c], base[s], d, turns[c])
-            _turn(ref, base[s], d, goal)
+                _body_turn(base[s], shown[s, c], d, turns[c])
+            _body_turn(base[s], ref, d, goal)
             accumulate(turns, goal, A[s], b[s])
 
 
 @numba.njit(cache=True)
-def _turn(p, q, d, out):
-    """out (3,) = the rotation vector of p ⊗ q* (scalar part made non-negative), rad; d a (4,) scratch."""
-    qmul_conj(p, q, d)
+def _body_turn(q, p, d, out):
+    """out (3,) = the rotation vector of q* ⊗ p (the turn from q to p in q's frame; scalar part made non-negative),
+    rad; d a (4,) scratch."""
+    qc = np.empty(4)
+    qc[0] = q[0]
+    for i in range(1, 4):
+        qc[i] = -q[i]
+    qmul(qc, p, d)
     if d[0] < 0.0:
         for i in range(4):
             d[i] = -d[i]
@@ -189,9 +194,31 @@ def _turn(p, q, d, out):
 
 @numba.njit(cache=True)
 def _solve_all(A, b, ridge, out):
-    """out[s] (m,) = :func:`ivc.predict.combine.solve_weights` of each sensor's sums A (S, m, m), b (S, m)."""
+    """out[s] (3, m) = :func:`ivc.predict.combine.solve_weights` of each sensor's sums A (S, 3, m, m), b (S, 3, m)."""
     for s in range(A.shape[0]):
         solve_weights(A[s], b[s], ridge, out[s])
+
+
+@numba.njit(cache=True)
+def _combine_frame(ahead, weights, last, ok, out):
+    """out (S, 4) = last ⊗ exp(Σ_c w_ac r_ac) per sensor: r_c the body-frame turn from last (S, 4) to ahead (C, S, 4),
+    weights (S, 3, C); the measured orientation where not ok."""
+    C, S = ahead.shape[0], ahead.shape[1]
+    d = np.empty(4)
+    r = np.empty(3)
+    m = np.empty(3)
+    dq = np.empty(4)
+    for s in range(S):
+        if not ok[s]:
+            out[s, :] = last[s]
+            continue
+        m[:] = 0.0
+        for c in range(C):
+            _body_turn(last[s], ahead[c, s], d, r)
+            for a in range(3):
+                m[a] += weights[s, a, c] * r[a]
+        delta_q(m[0], m[1], m[2], 1.0, dq)
+        qmul(last[s], dq, out[s])
 
 
 @numba.njit(cache=True)
@@ -265,13 +292,13 @@ class AutoPredictor(Predictor):
         out = np.array(qs)
         if horizon == 0.0:  # nothing to learn: the measurement
             return out
-        turns = rotations.to_rotvec(rotations.multiply(shown, rotations.conjugate(qs)[None]))  # (C, F, S, 3)
+        turns = rotations.to_rotvec(rotations.multiply(rotations.conjugate(qs)[None], shown))  # (C, F, S, 3), body
         turns[:, ~ok] = 0.0
         for s, (ref, scored, known) in enumerate(references):
             goal = np.full((len(t), 3), np.nan)
-            goal[scored] = rotations.to_rotvec(rotations.multiply(ref[scored], rotations.conjugate(qs[scored, s])))
+            goal[scored] = rotations.to_rotvec(rotations.multiply(rotations.conjugate(qs[scored, s]), ref[scored]))
             mean, _ = combine(turns[:, :, s], goal, known, t, horizon, self.combination_memory_s)
-            out[ok[:, s], s] = rotations.multiply(rotations.from_rotvec(mean[ok[:, s]]), qs[ok[:, s], s])
+            out[ok[:, s], s] = rotations.multiply(qs[ok[:, s], s], rotations.from_rotvec(mean[ok[:, s]]))
         return out
 
     def selections(self, q, horizons, valid=None, time=None) -> tuple[FloatArray, np.ndarray]:
@@ -330,9 +357,9 @@ class AutoStream(Stream):
         self.total = np.zeros((n_sensors, M))
         self.weights = np.zeros((n_sensors, M))
         self.weights[:, 0] = 1.0
-        self.A = np.zeros((n_sensors, C, C))  # the combination's sums and weights
-        self.b = np.zeros((n_sensors, C))
-        self.mix = np.full((n_sensors, C), 1.0 / C)
+        self.A = np.zeros((n_sensors, 3, C, C))  # the combination's sums and weights, per axis
+        self.b = np.zeros((n_sensors, 3, C))
+        self.mix = np.full((n_sensors, 3, C), 1.0 / C)
         self.ridge = ridge_for(predictor.horizon_s)
         # (target time, shown (S, M, 4), the measured orientation (S, 4), the sensors still to score (S,)), by time
         self.pending = deque()
@@ -356,9 +383,7 @@ class AutoStream(Stream):
         if dt > 0:
             self.total *= np.exp(-dt / p.memory_s)
             if self.members:
-                decay = np.exp(-dt / p.combination_memory_s)
-                self.A *= decay
-                self.b *= decay
+                decay(self.A, self.b, np.exp(-dt / p.combination_memory_s))
         usable = ok & ~np.all(qs == self.previous, axis=1)
         self.previous = np.where(ok[:, None], qs, self.previous)
         if np.any(usable):
@@ -385,15 +410,18 @@ class AutoStream(Stream):
     def _ahead(self, horizon: float) -> FloatArray:
         """Every member's prediction (M, S, 4) at ``horizon`` s from the latest frame; the measured orientation
         where a candidate has none, as in batch."""
-        ahead = np.stack([s.predict(horizon) for s in self.streams])  # (C, S, 4)
-        ahead = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, self.last[None])
-        if not self.members:
-            return ahead
-        mixed = np.array(self.last)
-        if horizon > 0.0:
-            _blend_frame(ahead, self.mix, self.last, self.ok, mixed)
-            mixed = np.where(self.ok[:, None], mixed, self.last)
-        return np.concatenate([ahead, mixed[None]])
+        C = len(self.streams)
+        out = np.empty((C + (1 if self.members else 0), self.n_sensors, 4))
+        for c, s in enumerate(self.streams):
+            out[c] = s.predict(horizon)
+        ahead = out[:C]
+        ahead[:] = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, self.last[None])
+        if self.members:
+            if horizon > 0.0:
+                _combine_frame(ahead, self.mix, self.last, self.ok, out[C])
+            else:
+                out[C] = self.last
+        return out
 
     def predict(self, horizon):
         d = float(check_horizons(horizon)[0])
