@@ -1,5 +1,7 @@
 """Forecast combination (``ivc.predict.combine``) and ``auto``'s ``combine`` member."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -125,3 +127,19 @@ def test_auto_without_the_combination_is_the_selection_alone(rng):
         live[k] = stream.predict(0.05)[0]
     assert np.nanmax(rotations.angle_between(live, pred_off[0, :, 0])) < 1e-9
     assert not np.allclose(on.predict(q, [0.05], time=t), pred_off)
+
+
+HEAD = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "head_motion" / "user1_quaternion.txt"
+
+
+@pytest.mark.skipif(not HEAD.exists(), reason="shared/data is not beside the repository")
+def test_the_combination_helps_on_a_real_headset():
+    from ivc.collect import read_recording
+    from ivc.predict.recording import score
+
+    step, _ = read_recording(HEAD)
+    rate = step.sample_rate_hz
+    on, off = score([make("auto", rate), AutoPredictor(rate, combination=False)], step.quaternion[:, 0], step.time,
+                    [0.05])
+    for key in ("median", "p95"):  # measured 7.59 against 7.67 mrad, 33.49 against 33.86
+        assert on.at(0.05)[key] <= 0.995 * off.at(0.05)[key]

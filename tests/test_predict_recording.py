@@ -119,6 +119,6 @@ def test_auto_on_a_real_headset_is_as_good_as_the_best_simple_predictor():
                                                  ("auto", "none", "poly1", "dqekf-cv", "mmdq2")], q, t, [0.05])}
     for key in ("median", "p95"):
         simple = min(scores["poly1"][key], scores["dqekf-cv"][key])
-        assert scores["auto"][key] <= 0.95 * simple  # measured 0.924x (median), 0.900x (p95)
+        assert scores["auto"][key] <= 0.95 * simple  # measured 0.917x (median), 0.898x (p95)
         assert scores["auto"][key] < 0.7 * scores["mmdq2"][key]  # the thesis's fixed default lost to none
     assert scores["auto"]["median"] < 0.55 * scores["none"]["median"]
