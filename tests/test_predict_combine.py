@@ -127,6 +127,10 @@ def test_auto_without_the_combination_is_the_selection_alone(rng):
         live[k] = stream.predict(0.05)[0]
     assert np.nanmax(rotations.angle_between(live, pred_off[0, :, 0])) < 1e-9
     assert not np.allclose(on.predict(q, [0.05], time=t), pred_off)
+    still = AutoPredictor(60.0, horizon_s=0.0).stream(1)  # scoring at 0 s: nothing to learn, equal weights, no NaN
+    for k in range(200):
+        still.update(q[k:k + 1], time=t[k])
+    assert np.allclose(still.mix, 1.0 / len(CANDIDATES)) and np.isfinite(still.predict(0.05)).all()
 
 
 HEAD = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "head_motion" / "user1_quaternion.txt"

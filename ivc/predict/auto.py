@@ -352,7 +352,7 @@ class AutoStream(Stream):
         self.streams = [p.stream(n_sensors) for p in predictor.bank]
         self.clock = StreamClock(predictor.rate_hz, n_sensors)
         C = len(self.streams)
-        self.members = C if predictor.combination else 0  # the candidates the combination learns from
+        self.combined = C if predictor.combination else 0  # how many candidates the combination learns from (0: off)
         M = len(predictor.members)
         self.total = np.zeros((n_sensors, M))
         self.weights = np.zeros((n_sensors, M))
@@ -361,6 +361,8 @@ class AutoStream(Stream):
         self.b = np.zeros((n_sensors, 3, C))
         self.mix = np.full((n_sensors, 3, C), 1.0 / C)
         self.ridge = ridge_for(predictor.horizon_s)
+        # scoring at 0 s leaves the combination nothing to learn: it keeps equal weights
+        self.learning = self.combined if predictor.horizon_s > 0 else 0
         # (target time, shown (S, M, 4), the measured orientation (S, 4), the sensors still to score (S,)), by time
         self.pending = deque()
         self.previous = np.full((n_sensors, 4), np.nan)  # the latest valid sample (repeat test)
@@ -382,7 +384,7 @@ class AutoStream(Stream):
         p = self.predictor
         if dt > 0:
             self.total *= np.exp(-dt / p.memory_s)
-            if self.members:
+            if self.learning:
                 decay(self.A, self.b, np.exp(-dt / p.combination_memory_s))
         usable = ok & ~np.all(qs == self.previous, axis=1)
         self.previous = np.where(ok[:, None], qs, self.previous)
@@ -391,14 +393,14 @@ class AutoStream(Stream):
                 if target > now:
                     break
                 _score(shown, base, waiting & usable, qs, self.knot_q, self.knot_t, now, target, p.max_step_s,
-                       self.total, self.members, self.A, self.b)
+                       self.total, self.learning, self.A, self.b)
                 waiting &= ~usable
             while self.pending and self.pending[0][0] <= now and not self.pending[0][3].any():
                 self.pending.popleft()
         self.knot_t = np.where(usable, now, self.knot_t)
         self.knot_q = np.where(usable[:, None], qs, self.knot_q)
         _weigh(self.total, p.power, self.weights)
-        if self.members:
+        if self.learning:
             _solve_all(self.A, self.b, self.ridge, self.mix)
         self.ok = ok
         self.last = qs
@@ -411,12 +413,12 @@ class AutoStream(Stream):
         """Every member's prediction (M, S, 4) at ``horizon`` s from the latest frame; the measured orientation
         where a candidate has none, as in batch."""
         C = len(self.streams)
-        out = np.empty((C + (1 if self.members else 0), self.n_sensors, 4))
+        out = np.empty((C + (1 if self.combined else 0), self.n_sensors, 4))
         for c, s in enumerate(self.streams):
             out[c] = s.predict(horizon)
         ahead = out[:C]
         ahead[:] = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, self.last[None])
-        if self.members:
+        if self.combined:
             if horizon > 0.0:
                 _combine_frame(ahead, self.mix, self.last, self.ok, out[C])
             else:
