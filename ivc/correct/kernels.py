@@ -1,10 +1,13 @@
 """Compiled per-frame correction: the pose that explains S with the dipole field plus the mapped
 secondary field (docs/math.md §4 and §9), one frame at a time, parallel over frames.
 
-Per frame: a seed (the previous pose of the same sensor, or else a fixed-point start:
-closed-form dipole pose of ``S − Tᵀ g(r)``, repeated), then Levenberg-Marquardt over
-position and a rotation increment ``T ← T exp([ω]×)`` on the 9 residuals
+Per frame: a seed (the previous pose of the same sensor; else the closed-form dipole position
+``v = φ(r)`` moved by the correction map ``r − v`` tabulated at ``v`` (``ivc.correct.seed_map``) where that
+map covers ``v``; else a fixed-point start: closed-form dipole pose of ``S − Tᵀ g(r)``, repeated), then
+Levenberg-Marquardt over position and a rotation increment ``T ← T exp([ω]×)`` on the 9 residuals
 ``e = S − Tᵀ (f_D(r) + g(r))`` with analytic Jacobians.
+
+The table is one argument ``grid``, the tuple of ``ivc.lut.kernels.GRID``; so is the seed map (3 channels).
 """
 
 from __future__ import annotations
@@ -46,7 +49,7 @@ def _closed_form_position(S, hemisphere, r, work_a, work_b, v, B):
 
 
 @numba.njit
-def _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz):
+def pose_model(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz):
     """M = f_D(r) + g(r) (3, 3) and ∂M/∂r (3, 3, 3); returns whether r is in the mapped volume."""
     x, y, z = r[0], r[1], r[2]
     field_matrix(x, y, z, M)
@@ -64,7 +67,7 @@ def _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, 
                 if i == j:
                     s += r[k]
                 dM[i, j, k] = 3.0 * s * inv5 - 15.0 * r[i] * r[j] * r[k] * inv7
-    mapped = grid_point(padded, valid_cells, origin, spacing, shape, r, cubic, g, dg, wx, wy, wz, dx, dy, dz)
+    mapped = grid_point(grid, r, g, dg, wx, wy, wz, dx, dy, dz)
     for i in range(3):
         for j in range(3):
             M[i, j] += g[3 * i + j]
@@ -74,9 +77,8 @@ def _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, 
 
 
 @numba.njit
-def _model_in(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz,
-              scratch):
-    """:func:`_model` with the separable look-up (its partial sums in ``scratch`` (3, C))."""
+def pose_model_separable(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch):
+    """:func:`pose_model` with the separable look-up (its partial sums in ``scratch`` (3, C))."""
     x, y, z = r[0], r[1], r[2]
     field_matrix(x, y, z, M)
     rho2 = x * x + y * y + z * z
@@ -93,8 +95,7 @@ def _model_in(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, d
                 if i == j:
                     s += r[k]
                 dM[i, j, k] = 3.0 * s * inv5 - 15.0 * r[i] * r[j] * r[k] * inv7
-    mapped = grid_point_separable(padded, valid_cells, origin, spacing, shape, r, cubic, g, dg, wx, wy, wz, dx, dy,
-                                  dz, scratch)
+    mapped = grid_point_separable(grid, r, g, dg, wx, wy, wz, dx, dy, dz, scratch)
     for i in range(3):
         for j in range(3):
             M[i, j] += g[3 * i + j]
@@ -232,31 +233,39 @@ def workspace(channels):
 
 
 @numba.njit
-def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
-                r, T):
+def correct_one(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, r, T):
     """Correct one frame: S (3, 3), seed (3,) (NaN: no warm start) -> r (3,), T (3, 3) written in place.
+    ``grid``: the table; ``seed_map``: the correction map (used for a cold start when ``use_map``).
 
     Returns (converged, iterations, relative residual rms(M − T S)/rms(S), mapped).
     """
-    return correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                          tolerance, r, T, workspace(padded.shape[3]))
+    return correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, r, T,
+                          workspace(grid[0].shape[3]))
 
 
 @numba.njit
-def correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                   tolerance, r, T, ws):
+def correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, r, T, ws):
     """:func:`correct_one` with its scratch arrays from ``ws`` (:func:`workspace`)."""
     M, dM, g, dg, wx, wy, wz, dx, dy, dz = ws[0], ws[1], ws[2], ws[3], ws[4], ws[5], ws[6], ws[7], ws[8], ws[9]
     work_a, work_b, B, F, K, v, Sc, Ma = ws[10], ws[11], ws[12], ws[13], ws[14], ws[15], ws[16], ws[17]
     e, J, et, Jt, H, grad, step, rt, Tt = ws[18], ws[19], ws[20], ws[21], ws[22], ws[23], ws[24], ws[25], ws[26]
     scratch = ws[32]
-    if np.isfinite(seed[0]) and np.isfinite(seed[1]) and np.isfinite(seed[2]):
+    seeded = np.isfinite(seed[0]) and np.isfinite(seed[1]) and np.isfinite(seed[2])
+    if seeded:
         for a in range(3):
             r[a] = seed[a]
-    else:
+    elif use_map:
+        # the closed-form position v and the map's r − v at v (one closed form and a 3-channel look-up,
+        # landing about 10 µm from the answer, where the fixed point below costs three closed forms)
+        _closed_form_position(S, hemisphere, r, work_a, work_b, v, B)
+        if grid_value(seed_map, r, g, wx, wy, wz, dx, dy, dz):
+            for a in range(3):
+                r[a] += g[a]
+            seeded = True
+    if not seeded:
         _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
         for step_number in range(FIXED_POINT_STEPS):  # docs/math.md §9: subtract Tᵀ g(r), re-solve the dipole pose
-            grid_value(padded, valid_cells, origin, spacing, shape, r, cubic, g, wx, wy, wz, dx, dy, dz)
+            grid_value(grid, r, g, wx, wy, wz, dx, dy, dz)
             for i in range(3):
                 for j in range(3):
                     Sc[i, j] = S[i, j] - (T[0, i] * g[j] + T[1, i] * g[3 + j] + T[2, i] * g[6 + j])
@@ -264,8 +273,7 @@ def correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, sh
                 _closed_form(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
             else:  # the last step's orientation would be replaced below: its position is all that is used
                 _closed_form_position(Sc, hemisphere, r, work_a, work_b, v, B)
-    mapped = _model_in(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz,
-                       scratch)
+    mapped = pose_model_separable(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch)
     for i in range(3):  # the model at the accepted position, and whether it is mapped: no re-evaluation at the end
         for j in range(3):
             Ma[i, j] = M[i, j]
@@ -304,11 +312,10 @@ def correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, sh
             for i in range(3):
                 for j in range(3):
                     T[i, j] = Tt[i, j]
-            mapped = grid_contains(valid_cells, origin, spacing, shape, r)
+            mapped = grid_contains(grid, r)
             converged = True
             break
-        trial_mapped = _model_in(rt, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz,
-                                 dx, dy, dz, scratch)
+        trial_mapped = pose_model_separable(rt, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch)
         _residual(S, M, dM, Tt, et, Jt)
         trial = _cost(et)
         small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance
@@ -376,25 +383,23 @@ def quaternion_of(T, q):
 
 
 @numba.njit
-def correct_best(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
-                 retry_residual, r, T):
+def correct_best(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r, T):
     """correct_one, retried when the result is poor (not converged, or residual above ``retry_residual``).
 
     Distortion makes the dipole field's near-mirror images (the position reflected across the
     planes through the hemisphere axis) into local minima with small residuals; the retries
-    start from the cold fixed-point seed and from those reflections, and the lowest residual
-    among the converged solutions wins.
+    start from the cold fixed-point seed (never the map's) and from those reflections, and the lowest
+    residual among the converged solutions wins.
     """
-    return correct_best_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                           tolerance, retry_residual, r, T, workspace(padded.shape[3]))
+    return correct_best_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual,
+                           r, T, workspace(grid[0].shape[3]))
 
 
 @numba.njit
-def correct_best_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                    tolerance, retry_residual, r, T, ws):
+def correct_best_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r, T,
+                    ws):
     """:func:`correct_best` with its scratch arrays from ``ws`` (:func:`workspace`)."""
-    c, it, res, m = correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic,
-                                   max_iterations, tolerance, r, T, ws)
+    c, it, res, m = correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, r, T, ws)
     if c and res <= retry_residual:
         return c, it, res, m
     best_r, best_T, trial_r, trial_T, candidates = ws[27], ws[28], ws[29], ws[30], ws[31]
@@ -420,8 +425,8 @@ def correct_best_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, s
         if k > 0 and not (np.isfinite(candidates[k, 0]) and np.isfinite(candidates[k, 1])
                           and np.isfinite(candidates[k, 2])):
             continue
-        c2, it2, res2, m2 = correct_one_in(S, candidates[k], hemisphere, padded, valid_cells, origin, spacing, shape,
-                                           cubic, max_iterations, tolerance, trial_r, trial_T, ws)
+        c2, it2, res2, m2 = correct_one_in(S, candidates[k], hemisphere, grid, seed_map, False, max_iterations,
+                                           tolerance, trial_r, trial_T, ws)
         it += it2
         if (c2 and not best[0]) or (c2 == best[0] and res2 < best[2]):
             best = (c2, it, res2, m2)
@@ -437,27 +442,25 @@ BLOCK = 256
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def correct_kernel(S, seeds, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                   tolerance, retry_residual, r_out, T_out, q_out, converged, iterations, residual,
-                   mapped):  # pragma: no cover - compiled
+def correct_kernel(S, seeds, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r_out,
+                   T_out, q_out, converged, iterations, residual, mapped):  # pragma: no cover - compiled
     blocks = (S.shape[0] + BLOCK - 1) // BLOCK
     for block in numba.prange(blocks):
-        ws = workspace(padded.shape[3])
+        ws = workspace(grid[0].shape[3])
         for n in range(BLOCK * block, min(BLOCK * block + BLOCK, S.shape[0])):
             converged[n], iterations[n], residual[n], mapped[n] = correct_best_in(
-                S[n], seeds[n], hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                tolerance, retry_residual, r_out[n], T_out[n], ws)
+                S[n], seeds[n], hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual,
+                r_out[n], T_out[n], ws)
             quaternion_of(T_out[n], q_out[n])
 
 
 @numba.njit(cache=True, nogil=True)
-def correct_serial(S, seeds, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                   tolerance, retry_residual, r_out, T_out, q_out, converged, iterations, residual,
-                   mapped):  # pragma: no cover - compiled
+def correct_serial(S, seeds, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r_out,
+                   T_out, q_out, converged, iterations, residual, mapped):  # pragma: no cover - compiled
     """The same as correct_kernel on the calling thread: no thread start-up, for a few frames at a time."""
-    ws = workspace(padded.shape[3])
+    ws = workspace(grid[0].shape[3])
     for n in range(S.shape[0]):
         converged[n], iterations[n], residual[n], mapped[n] = correct_best_in(
-            S[n], seeds[n], hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
-            retry_residual, r_out[n], T_out[n], ws)
+            S[n], seeds[n], hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r_out[n],
+            T_out[n], ws)
         quaternion_of(T_out[n], q_out[n])

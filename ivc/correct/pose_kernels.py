@@ -35,12 +35,12 @@ BACKTRACKS = 12
 
 
 @numba.njit(error_model="numpy")
-def _field_at(r, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, wz, dx, dy, dz, F):
+def _field_at(r, grid, g, wx, wy, wz, dx, dy, dz, F):
     """F = f_D(r) + g(r) (3, 3); returns (usable, mapped)."""
     rho2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
     if not (rho2 > 1e-12) or not np.isfinite(rho2):
         return False, False
-    mapped = grid_value(padded, valid_cells, origin, spacing, shape, r, cubic, g, wx, wy, wz, dx, dy, dz)
+    mapped = grid_value(grid, r, g, wx, wy, wz, dx, dy, dz)
     field_matrix(r[0], r[1], r[2], F)
     tr = 0.0
     for i in range(3):
@@ -68,11 +68,11 @@ def _position(F, h, B, wa, wb, ev, phi):
 
 
 @numba.njit(error_model="numpy")
-def invert_one(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance, r, C,
-               miss_out, converged_out, iterations_out, mapped_out, n):
+def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, converged_out, iterations_out,
+               mapped_out, n):
     """Invert one sample from ``start`` (3,) with the inverse-Jacobian estimate H (3, 3, updated in place) into
     r (3,) and C (3, 3); writes miss, converged, iterations and mapped at index n."""
-    nc = padded.shape[3]
+    nc = grid[0].shape[3]
     g = np.empty(nc)
     wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
     F, wa, wb, B, Fd, K = (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
@@ -81,7 +81,7 @@ def invert_one(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubi
                                              np.empty(3), np.empty(3), np.empty(3))
     for a in range(3):
         r[a] = start[a] if np.isfinite(start[a]) else v[a]
-    usable, mapped = _field_at(r, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, wz, dx, dy, dz, F)
+    usable, mapped = _field_at(r, grid, g, wx, wy, wz, dx, dy, dz, F)
     if not usable:
         for a in range(3):
             r[a] = np.nan
@@ -108,8 +108,7 @@ def invert_one(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubi
         for _ in range(BACKTRACKS):
             for a in range(3):
                 trial[a] = r[a] + step[a]
-            usable, mapped_t = _field_at(trial, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, wz,
-                                         dx, dy, dz, F)
+            usable, mapped_t = _field_at(trial, grid, g, wx, wy, wz, dx, dy, dz, F)
             if usable:
                 _position(F, h, B, wa, wb, ev, phi)
                 miss_t = 0.0
@@ -143,27 +142,27 @@ def invert_one(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubi
         miss = miss_t
         converged = miss <= tolerance
     # the orientation part, once, at the solution: C(r) of the closed form
-    _field_at(r, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, wz, dx, dy, dz, F)
+    _field_at(r, grid, g, wx, wy, wz, dx, dy, dz, F)
     closed_form_one(F, h, phi, C, wa, wb, ev, B, Fd, K)
     miss_out[n], converged_out[n], iterations_out[n], mapped_out[n] = miss, converged, iterations, mapped
 
 
 @numba.njit(**_OPTS)
-def invert_kernel(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance, r,
-                  C, miss, converged, iterations, mapped):  # pragma: no cover - compiled
+def invert_kernel(v, start, H, h, grid, max_iterations, tolerance, r, C, miss, converged, iterations,
+                  mapped):  # pragma: no cover - compiled
     """Invert every sample n from ``start[n]`` with the inverse-Jacobian estimates ``H[n]`` (updated in place)."""
     for n in numba.prange(v.shape[0]):
-        invert_one(v[n], start[n], H[n], h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                   tolerance, r[n], C[n], miss, converged, iterations, mapped, n)
+        invert_one(v[n], start[n], H[n], h, grid, max_iterations, tolerance, r[n], C[n], miss, converged, iterations,
+                   mapped, n)
 
 
 @numba.njit(cache=True, nogil=True)
-def invert_serial(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance, r,
-                  C, miss, converged, iterations, mapped):  # pragma: no cover - compiled
+def invert_serial(v, start, H, h, grid, max_iterations, tolerance, r, C, miss, converged, iterations,
+                  mapped):  # pragma: no cover - compiled
     """:func:`invert_kernel` without threads: for a few samples at a time (a live frame)."""
     for n in range(v.shape[0]):
-        invert_one(v[n], start[n], H[n], h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                   tolerance, r[n], C[n], miss, converged, iterations, mapped, n)
+        invert_one(v[n], start[n], H[n], h, grid, max_iterations, tolerance, r[n], C[n], miss, converged, iterations,
+                   mapped, n)
 
 
 _OUTSIDE, _NOT_CONVERGED, _HIGH_RESIDUAL, _INVALID_INPUT = OUTSIDE, NOT_CONVERGED, HIGH_RESIDUAL, INVALID_INPUT
@@ -201,8 +200,8 @@ def compose_kernel(C, Q, mapped, converged, miss, max_residual, q, flags):  # pr
 
 
 @numba.njit(cache=True, nogil=True)
-def stream_kernel(v, Q, slots, offset, tracked, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                  tolerance, max_residual, r, q, flags, miss, iterations):  # pragma: no cover - compiled
+def stream_kernel(v, Q, slots, offset, tracked, h, grid, max_iterations, tolerance, max_residual, r, q, flags, miss,
+                  iterations):  # pragma: no cover - compiled
     """One live frame: sample n of sensor ``slots[n]`` starts at ``v[n] + offset[slot]`` where ``tracked[slot]``
     (else at v[n]), is inverted (H = I, as the batch), composed and flagged; a trusted sample sets its sensor's
     offset ``r − v`` and tracked, any other clears tracked. Non-finite input: NaN, INVALID_INPUT."""
@@ -232,8 +231,7 @@ def stream_kernel(v, Q, slots, offset, tracked, h, padded, valid_cells, origin, 
             start[a] = v[n, a] + offset[slot, a] if tracked[slot] else v[n, a]
             for b in range(3):
                 H[a, b] = 1.0 if a == b else 0.0
-        invert_one(v[n], start, H, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
-                   r[n], C, m, c, it, mp, 0)
+        invert_one(v[n], start, H, h, grid, max_iterations, tolerance, r[n], C, m, c, it, mp, 0)
         flags[n] = _compose_one(C, Q[n], mp[0], c[0], m[0], max_residual, q[n])
         miss[n], iterations[n] = m[0], it[0]
         tracked[slot] = flags[n] == 0

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.correct.kernels import _model, _residual, _rotate_increment, _solve6, damped_matrix
+from ivc.correct.kernels import _residual, _rotate_increment, _solve6, damped_matrix, pose_model
 
 
 @numba.njit(inline="always")
@@ -33,7 +33,7 @@ def _normal(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape, cu
             p[i] = r0[i] + T0[i, 0] * b[n, 0] + T0[i, 1] * b[n, 1] + T0[i, 2] * b[n, 2]
             for j in range(3):
                 Tn[i, j] = T0[i, 0] * R[n, 0, j] + T0[i, 1] * R[n, 1, j] + T0[i, 2] * R[n, 2, j]
-        _model(p, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
+        pose_model(p, (padded, valid_cells, origin, spacing, shape, cubic), M, dM, g, dg, wx, wy, wz, dx, dy, dz)
         _residual(S[n], M, dM, Tn, e, J)
         w = 1.0 / scale[n]
         bx, by, bz = b[n, 0], b[n, 1], b[n, 2]

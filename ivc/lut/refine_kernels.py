@@ -12,7 +12,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.correct.kernels import _model, _residual, _rotate_increment, _solve6, damped_matrix
+from ivc.correct.kernels import _residual, _rotate_increment, _solve6, damped_matrix, pose_model
 from ivc.fixtures.kernels import cube_model
 
 
@@ -35,8 +35,8 @@ def _normal(S, valid, scale, b, R, centre, cube_scale, coefficients, padded, val
                 Tn[i, j] = T0[i, 0] * R[n, 0, j] + T0[i, 1] * R[n, 1, j] + T0[i, 2] * R[n, 2, j]
         if n == 0:
             cube_model(p, centre, cube_scale, coefficients, M, dM, G, H3)
-        elif not _model(p, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy,
-                        dz):
+        elif not pose_model(p, (padded, valid_cells, origin, spacing, shape, cubic), M, dM, g, dg, wx, wy, wz, dx,
+                            dy, dz):
             continue  # a sensor where the map says nothing does not pull the wand
         _residual(S[n], M, dM, Tn, e, J)
         w = 1.0 / scale[n]
