@@ -20,9 +20,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.correct.kernels import quaternion_of
-from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
-from ivc.dipole.kernels import closed_form_one, field_matrix, principal_eigenvector
+from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
+from ivc.dipole.kernels import closed_form_one, closed_form_position, field_matrix
+from ivc.linalg import quaternion_of
 from ivc.lut.kernels import grid_value
 
 # The helpers below are plain compiled functions, not numba-inlined: inlined three and four times over into
@@ -51,23 +51,6 @@ def _field_at(r, grid, g, wx, wy, wz, dx, dy, dz, F):
 
 
 @numba.njit(error_model="numpy")
-def _position(F, h, B, wa, wb, ev, phi):
-    """The closed-form dipole position of F (docs/math.md §3: range from tr FᵀF, direction its principal
-    eigenvector on the hemisphere's side) into phi (3,)."""
-    for i in range(3):
-        for j in range(3):
-            B[i, j] = F[0, i] * F[0, j] + F[1, i] * F[1, j] + F[2, i] * F[2, j]
-    tr = B[0, 0] + B[1, 1] + B[2, 2]
-    principal_eigenvector(B, wa, wb, ev)
-    sign = 1.0
-    if ev[0] * h[0] + ev[1] * h[1] + ev[2] * h[2] < 0.0:
-        sign = -1.0
-    rng = sign * (6.0 / tr) ** (1.0 / 6.0)
-    for a in range(3):
-        phi[a] = rng * ev[a]
-
-
-@numba.njit(error_model="numpy")
 def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, converged_out, iterations_out,
                mapped_out, n):
     """Invert one sample from ``start`` (3,) with the inverse-Jacobian estimate H (3, 3, updated in place) into
@@ -89,7 +72,7 @@ def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, 
                 C[a, b] = np.nan
         miss_out[n], converged_out[n], iterations_out[n], mapped_out[n] = np.nan, False, 0, False
         return
-    _position(F, h, B, wa, wb, ev, phi)
+    closed_form_position(F, h, phi, wa, wb, ev, B)
     miss = 0.0
     for a in range(3):
         e[a] = v[a] - phi[a]
@@ -110,7 +93,7 @@ def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, 
                 trial[a] = r[a] + step[a]
             usable, mapped_t = _field_at(trial, grid, g, wx, wy, wz, dx, dy, dz, F)
             if usable:
-                _position(F, h, B, wa, wb, ev, phi)
+                closed_form_position(F, h, phi, wa, wb, ev, B)
                 miss_t = 0.0
                 for a in range(3):
                     e_t[a] = v[a] - phi[a]

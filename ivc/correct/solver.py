@@ -18,12 +18,12 @@ import numpy as np
 
 from ivc import compiled, dipole
 from ivc.correct import kernels as _kernels
+from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
 from ivc.dipole.pose import hemisphere_vector
 from ivc.errors import InputError
 from ivc.lut.grid import GridField
 from ivc.lut.table import LookupTable
 
-OUTSIDE, NOT_CONVERGED, HIGH_RESIDUAL, INVALID_INPUT = 1, 2, 4, 8
 FLAG_NAMES = {OUTSIDE: "outside the mapped volume", NOT_CONVERGED: "not converged",
               HIGH_RESIDUAL: "residual too high", INVALID_INPUT: "invalid input"}
 #: default residual threshold, rms(M − T S)/rms(S)
@@ -64,11 +64,13 @@ class Corrector:
     """Applies a table to measurements: :meth:`batch` for arrays of frames, :meth:`update` for a live stream.
 
     ``interpolation``: ``cubic`` (default) or ``linear``. ``hemisphere``: where the sensors are
-    (default: the table's). ``max_residual``: the HIGH_RESIDUAL threshold.
+    (default: the table's). ``max_residual``: the HIGH_RESIDUAL threshold. ``seed_map``: whether cold
+    frames of batches of at least :data:`SEED_MAP_FRAMES` start from the table's correction map
+    (``ivc.correct.seed_map``; False: always from the fixed point, as smaller batches do).
     """
 
     def __init__(self, table: LookupTable | GridField, hemisphere: str | None = None, interpolation: str = "cubic",
-                 max_residual: float = MAX_RESIDUAL, max_iterations: int = MAX_ITERATIONS):
+                 max_residual: float = MAX_RESIDUAL, max_iterations: int = MAX_ITERATIONS, seed_map: bool = True):
         self.field = table.field(interpolation) if isinstance(table, LookupTable) else table
         hemisphere = hemisphere or (table.hemisphere if isinstance(table, LookupTable) else "+x")
         self.hemisphere = hemisphere
@@ -77,6 +79,7 @@ class Corrector:
         self.max_iterations = int(max_iterations)
         self._previous: dict = {}
         self._seed_map = None
+        self.use_seed_map = bool(seed_map)
 
     def seed_map(self) -> GridField:
         """The correction map cold frames of a large batch start from (``ivc.correct.seed_map``), built on
@@ -97,7 +100,8 @@ class Corrector:
         finite = np.all(np.isfinite(flat), axis=1) & np.any(flat != 0, axis=1)
         S = np.where(finite[:, None, None], S, np.eye(3))
         kernel = compiled.choose(_kernels.correct_serial if serial else _kernels.correct_kernel, n)
-        use_map = self._seed_map is not None or (n >= SEED_MAP_FRAMES and not np.isfinite(seeds).all())
+        use_map = self.use_seed_map and (self._seed_map is not None
+                                         or (n >= SEED_MAP_FRAMES and not np.isfinite(seeds).all()))
         seed_map = self.seed_map().kernel_grid if use_map else _NO_MAP
         kernel(S, seeds, self._h, self.field.kernel_grid, seed_map, use_map, self.max_iterations, STEP_TOLERANCE,
                self.max_residual, r, T, q, converged, iterations, residual, mapped)

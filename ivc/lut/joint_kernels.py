@@ -14,7 +14,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.correct.kernels import _residual, _rotate_increment, _solve6, damped_matrix, pose_model
+from ivc.linalg import rotate_increment, solve_spd6
+from ivc.lut.kernels import pose_model
+from ivc.pose.kernels import damped_matrix, pose_residual
 
 
 @numba.njit(inline="always")
@@ -34,7 +36,7 @@ def _normal(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape, cu
             for j in range(3):
                 Tn[i, j] = T0[i, 0] * R[n, 0, j] + T0[i, 1] * R[n, 1, j] + T0[i, 2] * R[n, 2, j]
         pose_model(p, (padded, valid_cells, origin, spacing, shape, cubic), M, dM, g, dg, wx, wy, wz, dx, dy, dz)
-        _residual(S[n], M, dM, Tn, e, J)
+        pose_residual(S[n], M, dM, Tn, e, J)
         w = 1.0 / scale[n]
         bx, by, bz = b[n, 0], b[n, 1], b[n, 2]
         for i in range(3):  # ∂r_n/∂ω = −T_0 [b_n]×
@@ -90,14 +92,14 @@ def wand_kernel(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape
         damping = 1e-3
         for _ in range(max_iterations):
             damped_matrix(H, damping, A)
-            if not _solve6(A, grad, step):
+            if not solve_spd6(A, grad, step):
                 damping *= 10.0
                 if damping > 1e8:
                     break
                 continue
             for a in range(3):
                 rt[a] = r[f, a] + step[a]
-            _rotate_increment(T[f], step[3:], Tt)
+            rotate_increment(T[f], step[3:], Tt)
             trial = _normal(S[f], use[f], scale[f], b, R, padded, valid_cells, origin, spacing, shape, cubic, rt, Tt,
                             Ht, gradt, work)
             small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance

@@ -13,6 +13,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ivc.dipole.kernels import field_matrix
+
 _OPTS = dict(parallel=True, cache=True, nogil=True)
 
 #: the fields of the bundled table argument, in order: padded values (nx+2, ny+2, nz+2, C) float64, valid
@@ -207,6 +209,34 @@ def grid_value(grid, p, value, wx, wy, wz, dx, dy, dz):
     return in_x and in_y and in_z and valid_cells[i, j, k]
 
 
+@numba.njit
+def pose_model(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz):
+    """M = f_D(r) + g(r) (3, 3) and ∂M/∂r (3, 3, 3); returns whether r is in the mapped volume."""
+    x, y, z = r[0], r[1], r[2]
+    field_matrix(x, y, z, M)
+    rho2 = x * x + y * y + z * z
+    inv5 = 1.0 / (rho2 * rho2 * np.sqrt(rho2))
+    inv7 = inv5 / rho2
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                s = 0.0
+                if i == k:
+                    s += r[j]
+                if j == k:
+                    s += r[i]
+                if i == j:
+                    s += r[k]
+                dM[i, j, k] = 3.0 * s * inv5 - 15.0 * r[i] * r[j] * r[k] * inv7
+    mapped = grid_point(grid, r, g, dg, wx, wy, wz, dx, dy, dz)
+    for i in range(3):
+        for j in range(3):
+            M[i, j] += g[3 * i + j]
+            for k in range(3):
+                dM[i, j, k] += dg[3 * i + j, k]
+    return mapped
+
+
 @numba.njit(**_OPTS)
 def grid_kernel(grid, points, values, gradients, inside):
     """Table value, gradient and validity at every point (N, 3)."""
@@ -278,6 +308,3 @@ def _gradient_row(X, Y, Z, degree, re, im, out):
                 out[2, k] = zi
                 k += 1
 
-
-#: the names ivc.correct.pose_kernels still imports (until its own rework)
-_cell, _weights = cell_of, axis_weights

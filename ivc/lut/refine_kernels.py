@@ -12,8 +12,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.correct.kernels import _residual, _rotate_increment, _solve6, damped_matrix, pose_model
 from ivc.fixtures.kernels import cube_model
+from ivc.linalg import rotate_increment, solve_spd6
+from ivc.lut.kernels import pose_model
+from ivc.pose.kernels import damped_matrix, pose_residual
 
 
 @numba.njit(inline="always")
@@ -38,7 +40,7 @@ def _normal(S, valid, scale, b, R, centre, cube_scale, coefficients, padded, val
         elif not pose_model(p, (padded, valid_cells, origin, spacing, shape, cubic), M, dM, g, dg, wx, wy, wz, dx,
                             dy, dz):
             continue  # a sensor where the map says nothing does not pull the wand
-        _residual(S[n], M, dM, Tn, e, J)
+        pose_residual(S[n], M, dM, Tn, e, J)
         w = 1.0 / scale[n]
         # ∂r_n/∂ω = −T_0 [b_n]×, and ω_n = R_nᵀ ω
         bx, by, bz = b[n, 0], b[n, 1], b[n, 2]
@@ -94,14 +96,14 @@ def rigid_kernel(S, valid, scale, b, R, centre, cube_scale, coefficients, padded
         damping = 1e-3
         for _ in range(max_iterations):
             damped_matrix(H, damping, A)
-            if not _solve6(A, grad, step):
+            if not solve_spd6(A, grad, step):
                 damping *= 10.0
                 if damping > 1e8:
                     break
                 continue
             for a in range(3):
                 rt[a] = r[f, a] + step[a]
-            _rotate_increment(T[f], step[3:], Tt)
+            rotate_increment(T[f], step[3:], Tt)
             trial = _normal(S[f], valid[f], scale[f], b, R, centre, cube_scale, coefficients, padded, valid_cells,
                             origin, spacing, shape, cubic, rt, Tt, Ht, gradt, work)
             small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance
