@@ -20,7 +20,7 @@ from ivc.pose.kernels import damped_matrix, pose_residual
 
 
 @numba.njit(inline="always")
-def _normal(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape, cubic, r0, T0, H, grad, work):
+def _normal(S, use, scale, b, R, grid, r0, T0, H, grad, work):
     """Cost Σ|e|², H = JᵀJ (6, 6) and grad = −Jᵀe (6,) of the rigid wand at (r0, T0)."""
     M, dM, g, dg, wx, wy, wz, dx, dy, dz, p, Tn, e, J, Jc, lever = work
     for a in range(6):
@@ -35,7 +35,7 @@ def _normal(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape, cu
             p[i] = r0[i] + T0[i, 0] * b[n, 0] + T0[i, 1] * b[n, 1] + T0[i, 2] * b[n, 2]
             for j in range(3):
                 Tn[i, j] = T0[i, 0] * R[n, 0, j] + T0[i, 1] * R[n, 1, j] + T0[i, 2] * R[n, 2, j]
-        pose_model(p, (padded, valid_cells, origin, spacing, shape, cubic), M, dM, g, dg, wx, wy, wz, dx, dy, dz)
+        pose_model(p, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
         pose_residual(S[n], M, dM, Tn, e, J)
         w = 1.0 / scale[n]
         bx, by, bz = b[n, 0], b[n, 1], b[n, 2]
@@ -69,8 +69,8 @@ def _normal(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape, cu
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def wand_kernel(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
-                active, r, T, converged, cost_out, H_out):  # pragma: no cover - compiled
+def wand_kernel(S, use, scale, b, R, grid, max_iterations, tolerance, active, r, T, converged, cost_out,
+                H_out):  # pragma: no cover - compiled
     """Solve every active frame of S (F, W, 3, 3) in place from (r, T), sensor 0's pose; converged (F,),
     the final cost (F,) and JᵀJ (F, 6, 6) at the solution."""
     for f in numba.prange(S.shape[0]):
@@ -87,8 +87,7 @@ def wand_kernel(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape
                 for c in range(6):
                     H_out[f, a, c] = 1.0 if a == c else 0.0
             continue
-        cost = _normal(S[f], use[f], scale[f], b, R, padded, valid_cells, origin, spacing, shape, cubic, r[f], T[f],
-                       H, grad, work)
+        cost = _normal(S[f], use[f], scale[f], b, R, grid, r[f], T[f], H, grad, work)
         damping = 1e-3
         for _ in range(max_iterations):
             damped_matrix(H, damping, A)
@@ -100,8 +99,7 @@ def wand_kernel(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape
             for a in range(3):
                 rt[a] = r[f, a] + step[a]
             rotate_increment(T[f], step[3:], Tt)
-            trial = _normal(S[f], use[f], scale[f], b, R, padded, valid_cells, origin, spacing, shape, cubic, rt, Tt,
-                            Ht, gradt, work)
+            trial = _normal(S[f], use[f], scale[f], b, R, grid, rt, Tt, Ht, gradt, work)
             small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance
             if trial <= cost:
                 for a in range(3):
