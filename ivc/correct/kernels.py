@@ -7,7 +7,7 @@ map covers ``v``; else a fixed-point start: closed-form dipole pose of ``S − T
 Levenberg-Marquardt over position and a rotation increment ``T ← T exp([ω]×)`` on the 9 residuals
 ``e = S − Tᵀ (f_D(r) + g(r))`` with analytic Jacobians.
 
-The table is one argument ``grid``, the tuple of ``ivc.lut.kernels.GRID``; so is the seed map (3 channels).
+The table is one argument ``grid``, the tuple of ``ivc.lut.kernels.GRID``; so is the correction map (3 channels).
 """
 
 from __future__ import annotations

@@ -56,7 +56,7 @@ class Correction:
         return self.flags == 0
 
 
-#: the seed-map argument of a kernel run without one (never read: ``use_map`` is False)
+#: the correction-map argument of a kernel run without one (never read: ``use_map`` is False)
 _NO_MAP = (np.zeros((4, 4, 4, 3)), np.zeros((1, 1, 1), dtype=bool), np.zeros(3), 1.0, np.array([2, 2, 2]), True)
 
 
