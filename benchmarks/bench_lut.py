@@ -9,8 +9,9 @@ frame every sample and correction lives in. ``ivc fit`` <= 60 s on the 100,000-f
 that time, may not grow by more than 2 %); correction >= 250,000 sensor-frames/s batched;
 streaming median latency <= 50 µs. What limits the correction is printed beside it (docs/lut.md,
 "Correction", breaks it down further): the rate
-with every frame warm-started at its answer (no seed search, about one iteration) and the
-mean number of iterations.
+with every frame warm-started at its answer (no seed search, about one iteration), the rate and
+iterations with the start used before issue 25 (the closed-form fixed point instead of the
+correction map), the map's build time and the largest position change it makes.
 
 Baselines in the same run: the uncorrected dipole solution (Table 24's other column), the
 local polynomial fit of Himberg 2010, and the batched NumPy Levenberg-Marquardt of ``ivc.pose``.
@@ -105,7 +106,13 @@ def run() -> list[Figure]:
     table = tables["harmonic"]
     corrector = Corrector(table)
     S = np.tile(session.steps["check"].signal_matrices()[:, 0], (10, 1, 1))  # 100,000 sensor-frames
+    corrector.batch(S[:64])  # compiled (or cached) before the map's build is timed
+    start = time.perf_counter()
+    corrector.seed_map()  # built once per corrector, on its first large batch
+    seed_map_seconds = time.perf_counter() - start
     batch = len(S) / best_time(lambda: corrector.batch(S), repeat=3)
+    fixed_point = Corrector(table, seed_map=False)
+    fixed_rate = len(S) / best_time(lambda: fixed_point.batch(S), repeat=3)
     field = table.field()
     model = dipole_plus(field.value_and_jacobian)
     seeds = dipole.closed_form_pose(S[:20_000], session.hemisphere)[0]
@@ -113,6 +120,15 @@ def run() -> list[Figure]:
     figures.append(Figure("correction, batched", batch, "frames/s", "NumPy LM (ivc.pose)", numpy_rate,
                           ">= 250,000 /s", passed=batch >= 250_000))
     cold = corrector.batch(S)
+    before = fixed_point.batch(S)
+    figures.append(Figure("correction, batched, fixed-point start", fixed_rate, "frames/s", "from the map", batch,
+                          "(reference: the start before issue 25)"))
+    trusted = cold.flags == 0
+    figures.append(Figure("correction map: max position change", float(np.nanmax(np.abs(cold.position[trusted]
+                          - before.position[trusted]))), "m", "", float("nan"), "(reference; flags equal: "
+                          f"{bool(np.array_equal(cold.flags, before.flags))})", higher_is_better=False))
+    figures.append(Figure("correction map build, once per corrector", seed_map_seconds, "s", "one batch of 100k",
+                          len(S) / batch, "(reference)", higher_is_better=False))
     answers = np.where(np.isfinite(cold.position), cold.position, np.nan)
     warm = len(S) / best_time(lambda: corrector.batch(S, seeds=answers), repeat=3)
     figures.append(Figure("correction, batched, warm-started at answer", warm, "frames/s", "cold (seed search)", batch,
@@ -120,6 +136,8 @@ def run() -> list[Figure]:
     figures.append(Figure("correction iterations per frame, mean", float(cold.iterations.mean()), "iterations",
                           "warm-started", float(corrector.batch(S, seeds=answers).iterations.mean()), "(reference)",
                           higher_is_better=False))
+    figures.append(Figure("correction iterations, fixed-point start", float(before.iterations.mean()), "iterations",
+                          "from the map", float(cold.iterations.mean()), "(reference)", higher_is_better=False))
     latencies, numpy_latencies = [], []
     streamed = S[:5000]
     corrector.update(streamed[:1])

@@ -1,7 +1,12 @@
-"""Compiled small dense linear algebra shared by the numba kernels (correction, prediction filters).
+"""The compiled small-matrix and quaternion primitives every numba kernel of ivc uses (one set).
 
-Matrices are at most a few rows; ``n`` (and ``m``) give the size used, so callers can pass
-larger scratch arrays. Every function is inlined into its caller.
+Dense n x n algebra (Cholesky, its solve, the Kalman update of the filters), 3 x 3 algebra
+(product, determinant, inverse transpose, the principal eigenvector of a symmetric matrix, the
+nearest rotation), rotations (the right increment ``T exp([w]×)``, the canonical quaternion of a
+matrix) and quaternions (scalar-first Hamilton, as ``ivc.rotations``: products, normalisation,
+the matrices of ``q ⊗ (0, ω)``). Matrices are at most a few rows; ``n`` (and ``m``) give the size
+used, so callers can pass larger scratch arrays. Most are inlined into their caller
+(``inline="always"``); the few larger ones (eigenvector, polar factor) are compiled once and called.
 """
 
 from __future__ import annotations
@@ -113,3 +118,236 @@ def congruence(A, P, n, T, out):
                 acc += T[a, c] * A[b, c]
             out[a, b] = acc
             out[b, a] = acc
+
+
+@numba.njit(inline="always")
+def solve_spd6(A, b, x):
+    """x = A⁻¹ b for a symmetric positive definite 6x6 A (Cholesky, in place on A). False if not PD."""
+    if not cholesky(A, 6, A):
+        return False
+    cholesky_solve(A, 6, b, x)
+    return True
+
+
+@numba.njit(inline="always")
+def matmul3(A, B, out):
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+
+
+@numba.njit(inline="always")
+def det3(A):
+    return (
+        A[0, 0] * (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1])
+        - A[0, 1] * (A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0])
+        + A[0, 2] * (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0])
+    )
+
+
+@numba.njit(inline="always")
+def inverse_transpose3(A, out):
+    """out = A⁻ᵀ, by cofactors."""
+    d = det3(A)
+    out[0, 0] = (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]) / d
+    out[0, 1] = -(A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0]) / d
+    out[0, 2] = (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]) / d
+    out[1, 0] = -(A[0, 1] * A[2, 2] - A[0, 2] * A[2, 1]) / d
+    out[1, 1] = (A[0, 0] * A[2, 2] - A[0, 2] * A[2, 0]) / d
+    out[1, 2] = -(A[0, 0] * A[2, 1] - A[0, 1] * A[2, 0]) / d
+    out[2, 0] = (A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]) / d
+    out[2, 1] = -(A[0, 0] * A[1, 2] - A[0, 2] * A[1, 0]) / d
+    out[2, 2] = (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]) / d
+
+
+@numba.njit(inline="always")
+def frobenius3(A):
+    s = 0.0
+    for i in range(3):
+        for j in range(3):
+            s += A[i, j] * A[i, j]
+    return np.sqrt(s)
+
+
+@numba.njit(error_model="numpy")  # not inlined: compiled once; inf/NaN as in a parallel kernel
+def principal_eigenvector(B, work_a, work_b, v):
+    """Unit eigenvector of the largest eigenvalue of a symmetric PSD 3x3 matrix.
+
+    Power iteration by repeated squaring: after k squarings the other eigen-directions
+    are suppressed by (λ2/λ1)^(2^k). In free space λ2/λ1 = 1/4, so 8 squarings leave
+    nothing; 12 cover strongly distorted fields too.
+    """
+    tr = B[0, 0] + B[1, 1] + B[2, 2]
+    for i in range(3):
+        for j in range(3):
+            work_a[i, j] = B[i, j] / tr
+    for _ in range(12):
+        matmul3(work_a, work_a, work_b)
+        t = work_b[0, 0] + work_b[1, 1] + work_b[2, 2]
+        for i in range(3):
+            for j in range(3):
+                work_a[i, j] = work_b[i, j] / t
+    best = 0
+    best_norm = -1.0
+    for j in range(3):
+        nrm = work_a[0, j] ** 2 + work_a[1, j] ** 2 + work_a[2, j] ** 2
+        if nrm > best_norm:
+            best_norm = nrm
+            best = j
+    for i in range(3):
+        v[i] = work_a[i, best]
+    # two plain power steps with B itself polish the last bits
+    for _ in range(2):
+        w0 = B[0, 0] * v[0] + B[0, 1] * v[1] + B[0, 2] * v[2]
+        w1 = B[1, 0] * v[0] + B[1, 1] * v[1] + B[1, 2] * v[2]
+        w2 = B[2, 0] * v[0] + B[2, 1] * v[1] + B[2, 2] * v[2]
+        nrm = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+        v[0] = w0 / nrm
+        v[1] = w1 / nrm
+        v[2] = w2 / nrm
+
+
+@numba.njit
+def rotation_polar_factor(K, X, work, out):
+    """Rotation nearest to K (orthogonal Procrustes), written into out.
+
+    Scaled Newton iteration for the polar factor, X <- (γX + X⁻ᵀ/γ)/2, which converges
+    quadratically to U Vᵀ when det K > 0. When det K <= 0 the nearest *rotation* is
+    U diag(1, 1, -1) Vᵀ, which Newton cannot reach: fall back to an SVD.
+    """
+    if not det3(K) > 0.0:
+        if not np.isfinite(det3(K)):
+            for i in range(3):
+                for j in range(3):
+                    out[i, j] = np.nan
+            return
+        U, _, Vt = np.linalg.svd(K)
+        d = np.sign(det3(U) * det3(Vt))
+        for i in range(3):
+            U[i, 2] *= d
+        matmul3(U, Vt, out)
+        return
+    for i in range(3):
+        for j in range(3):
+            X[i, j] = K[i, j]
+    for it in range(60):
+        inverse_transpose3(X, work)
+        gamma = np.sqrt(frobenius3(work) / frobenius3(X)) if it < 10 else 1.0
+        change = 0.0
+        for i in range(3):
+            for j in range(3):
+                new = 0.5 * (gamma * X[i, j] + work[i, j] / gamma)
+                change += (new - X[i, j]) ** 2
+                X[i, j] = new
+        if change < 1e-30:
+            break
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = X[i, j]
+
+
+@numba.njit
+def rotate_increment(T, w, out):
+    """out = T exp([w]×) (Rodrigues: exp([w]×) = I + a [w]× + b [w]×²)."""
+    angle2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    if angle2 < 1e-24:
+        a, b = 1.0, 0.5
+    else:
+        angle = np.sqrt(angle2)
+        a, b = np.sin(angle) / angle, (1.0 - np.cos(angle)) / angle2
+    x, y, z = w[0], w[1], w[2]
+    r00 = 1.0 - b * (y * y + z * z)
+    r11 = 1.0 - b * (x * x + z * z)
+    r22 = 1.0 - b * (x * x + y * y)
+    r01 = -a * z + b * x * y
+    r10 = a * z + b * x * y
+    r02 = a * y + b * x * z
+    r20 = -a * y + b * x * z
+    r12 = -a * x + b * y * z
+    r21 = a * x + b * y * z
+    for i in range(3):
+        t0, t1, t2 = T[i, 0], T[i, 1], T[i, 2]
+        out[i, 0] = t0 * r00 + t1 * r10 + t2 * r20
+        out[i, 1] = t0 * r01 + t1 * r11 + t2 * r21
+        out[i, 2] = t0 * r02 + t1 * r12 + t2 * r22
+
+
+@numba.njit(inline="always")
+def quaternion_of(T, q):
+    """Canonical unit quaternion of a rotation matrix, as ivc.rotations.from_matrix (Shepperd, then the
+    sign rule of ivc.rotations.canonical), into q (4,)."""
+    t00, t11, t22 = T[0, 0], T[1, 1], T[2, 2]
+    d21, d02, d10 = T[2, 1] - T[1, 2], T[0, 2] - T[2, 0], T[1, 0] - T[0, 1]
+    s01, s02, s12 = T[0, 1] + T[1, 0], T[0, 2] + T[2, 0], T[1, 2] + T[2, 1]
+    sq0, sq1, sq2, sq3 = 1.0 + t00 + t11 + t22, 1.0 + t00 - t11 - t22, 1.0 - t00 + t11 - t22, 1.0 - t00 - t11 + t22
+    largest = 0
+    top = sq0
+    if sq1 > top:
+        largest, top = 1, sq1
+    if sq2 > top:
+        largest, top = 2, sq2
+    if sq3 > top:
+        largest, top = 3, sq3
+    big = 0.5 * np.sqrt(max(top, 0.0))
+    k = 0.25 / big
+    if largest == 0:
+        q[0], q[1], q[2], q[3] = big, d21 * k, d02 * k, d10 * k
+    elif largest == 1:
+        q[0], q[1], q[2], q[3] = d21 * k, big, s01 * k, s02 * k
+    elif largest == 2:
+        q[0], q[1], q[2], q[3] = d02 * k, s01 * k, big, s12 * k
+    else:
+        q[0], q[1], q[2], q[3] = d10 * k, s02 * k, s12 * k, big
+    norm = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    sign = 1.0
+    for a in range(4):
+        if abs(q[a] / norm) > 1e-12:
+            if q[a] < 0.0:
+                sign = -1.0
+            break
+    for a in range(4):
+        q[a] = sign * q[a] / norm
+
+
+@numba.njit(inline="always")
+def qmul(p, q, out):
+    """out = p ⊗ q (out may not alias p or q)."""
+    out[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3]
+    out[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2]
+    out[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1]
+    out[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0]
+
+
+@numba.njit(inline="always")
+def qmul_conj(p, q, out):
+    """out = p ⊗ q* (the rotation from q to p for unit quaternions)."""
+    out[0] = p[0] * q[0] + p[1] * q[1] + p[2] * q[2] + p[3] * q[3]
+    out[1] = -p[0] * q[1] + p[1] * q[0] - p[2] * q[3] + p[3] * q[2]
+    out[2] = -p[0] * q[2] + p[1] * q[3] + p[2] * q[0] - p[3] * q[1]
+    out[3] = -p[0] * q[3] - p[1] * q[2] + p[2] * q[1] + p[3] * q[0]
+
+
+@numba.njit(inline="always")
+def quaternion_normalise(q):
+    n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    for i in range(4):
+        q[i] /= n
+
+
+@numba.njit(cache=True, inline="always")
+def q_matrix(q, out):
+    """Q_r(q) (4, 3), eq. 18 corrected: q ⊗ (0, ω) = Q_r(q) ω."""
+    out[0, 0], out[0, 1], out[0, 2] = -q[1], -q[2], -q[3]
+    out[1, 0], out[1, 1], out[1, 2] = q[0], -q[3], q[2]
+    out[2, 0], out[2, 1], out[2, 2] = q[3], q[0], -q[1]
+    out[3, 0], out[3, 1], out[3, 2] = -q[2], q[1], q[0]
+
+
+@numba.njit(cache=True, inline="always")
+def omega_matrix(w, out):
+    """Ω_r(ω) (4, 4), eq. 19: q ⊗ (0, ω) = Ω_r(ω) q."""
+    out[0, 0], out[0, 1], out[0, 2], out[0, 3] = 0.0, -w[0], -w[1], -w[2]
+    out[1, 0], out[1, 1], out[1, 2], out[1, 3] = w[0], 0.0, w[2], -w[1]
+    out[2, 0], out[2, 1], out[2, 2], out[2, 3] = w[1], -w[2], 0.0, w[0]
+    out[3, 0], out[3, 1], out[3, 2], out[3, 3] = w[2], w[1], -w[0], 0.0
+

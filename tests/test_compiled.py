@@ -54,7 +54,7 @@ def test_numpy_grid_kernel_equals_the_compiled_one(rng, cubic):
     points[0] = field.grid.origin  # a node: zero weights skipped
     points[1] = np.nan
     padded, valid_cells, origin, spacing, shape, _ = field.kernel_grid
-    args = (padded, valid_cells, origin, spacing, shape, points, cubic)
+    args = ((padded, valid_cells, origin, spacing, shape, cubic), points)
     C = padded.shape[3]
     out_c = np.empty((len(points), C)), np.empty((len(points), C, 3)), np.empty(len(points), bool)
     out_n = np.empty((len(points), C)), np.empty((len(points), C, 3)), np.empty(len(points), bool)

@@ -42,3 +42,10 @@ def test_no_test_imports_a_private_name():
                  for module, names in _imports(path) if module.startswith("ivc")
                  for name in names if name.startswith("_") and not name.startswith("__")]
     assert not offenders, offenders
+
+
+def test_no_product_module_imports_another_modules_private_name():
+    offenders = [f"{path.relative_to(ROOT)}: {module}.{name}" for path in _product_files()
+                 for module, names in _imports(path) if module.startswith("ivc")
+                 for name in names if name.startswith("_") and not name.startswith("__")]
+    assert not offenders, offenders

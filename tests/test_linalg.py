@@ -71,3 +71,29 @@ def test_factored_update_refuses_a_posterior_that_is_not_positive():
     PHt = np.array([[1.0], [0.0]])
     maha, x, P = _update(np.array([[1.0]]), PHt, np.array([0.5]), np.zeros(2), Pp, False)
     assert maha == -1.0 and np.all(np.isnan(x)) and np.all(np.isnan(P))
+
+
+@numba.njit(cache=True)
+def _three(A, B, w):
+    P, inv_t, R = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    la.matmul3(A, B, P)
+    la.inverse_transpose3(A, inv_t)
+    la.rotate_increment(B, w, R)
+    return P, la.det3(A), inv_t, la.frobenius3(A), R
+
+
+def test_three_by_three_primitives_against_numpy():
+    from ivc import rotations
+
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        A = rng.normal(size=(3, 3))
+        q = rng.normal(size=4)
+        B = rotations.to_matrix(q / np.linalg.norm(q))
+        w = rng.normal(size=3) * rng.choice([1e-14, 1e-3, 1.0])
+        P, det, inv_t, fro, R = _three(A, B, w)
+        np.testing.assert_allclose(P, A @ B, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(det, np.linalg.det(A), rtol=1e-12)
+        np.testing.assert_allclose(inv_t, np.linalg.inv(A).T, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(fro, np.linalg.norm(A), rtol=1e-14)
+        np.testing.assert_allclose(R, B @ rotations.to_matrix(rotations.from_rotvec(w)), rtol=0, atol=1e-14)

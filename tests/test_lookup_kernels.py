@@ -25,13 +25,13 @@ def test_separable_value_only_and_contains_equal_the_reference(cubic):
     w = [np.empty(4) for _ in range(6)]
     for p in points:
         value, gradient = np.empty(C), np.empty((C, 3))
-        inside = kernels.grid_point(padded, valid_cells, origin, spacing, shape, p, cubic, value, gradient, *w)
+        grid = (padded, valid_cells, origin, spacing, shape, cubic)
+        inside = kernels.grid_point(grid, p, value, gradient, *w)
         v2, g2, scratch = np.empty(C), np.empty((C, 3)), np.empty((3, C))
-        inside2 = kernels.grid_point_separable(padded, valid_cells, origin, spacing, shape, p, cubic, v2, g2, *w,
-                                               scratch)
+        inside2 = kernels.grid_point_separable(grid, p, v2, g2, *w, scratch)
         np.testing.assert_allclose(v2, value, rtol=0, atol=1e-12)
         np.testing.assert_allclose(g2, gradient, rtol=0, atol=1e-10)
         v3 = np.empty(C)
-        inside3 = kernels.grid_value(padded, valid_cells, origin, spacing, shape, p, cubic, v3, *w)
+        inside3 = kernels.grid_value(grid, p, v3, *w)
         np.testing.assert_array_equal(v3, value)  # same weights, same order: identical
-        assert inside == inside2 == inside3 == kernels.grid_contains(valid_cells, origin, spacing, shape, p)
+        assert inside == inside2 == inside3 == kernels.grid_contains(grid, p)

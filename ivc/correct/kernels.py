@@ -1,10 +1,13 @@
 """Compiled per-frame correction: the pose that explains S with the dipole field plus the mapped
 secondary field (docs/math.md §4 and §9), one frame at a time, parallel over frames.
 
-Per frame: a seed (the previous pose of the same sensor, or else a fixed-point start:
-closed-form dipole pose of ``S − Tᵀ g(r)``, repeated), then Levenberg-Marquardt over
-position and a rotation increment ``T ← T exp([ω]×)`` on the 9 residuals
+Per frame: a seed (the previous pose of the same sensor; else the closed-form dipole position
+``v = φ(r)`` moved by the correction map ``r − v`` tabulated at ``v`` (``ivc.correct.seed_map``) where that
+map covers ``v``; else a fixed-point start: closed-form dipole pose of ``S − Tᵀ g(r)``, repeated), then
+Levenberg-Marquardt over position and a rotation increment ``T ← T exp([ω]×)`` on the 9 residuals
 ``e = S − Tᵀ (f_D(r) + g(r))`` with analytic Jacobians.
+
+The table is one argument ``grid``, the tuple of ``ivc.lut.kernels.GRID``; so is the correction map (3 channels).
 """
 
 from __future__ import annotations
@@ -12,9 +15,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.dipole.kernels import _rotation_polar_factor, closed_form_one, field_matrix, principal_eigenvector
-from ivc.linalg import cholesky, cholesky_solve
-from ivc.lut.kernels import grid_contains, grid_point, grid_point_separable, grid_value
+from ivc.dipole.kernels import closed_form_one, closed_form_position, field_matrix
+from ivc.linalg import quaternion_of, rotate_increment, rotation_polar_factor, solve_spd6
+from ivc.lut.kernels import grid_contains, grid_point_separable, grid_value
+from ivc.pose.kernels import accept_step, damped_matrix, gauss_newton_matrix, pose_residual, residual_cost
 
 FIXED_POINT_STEPS = 2
 
@@ -30,24 +34,8 @@ def _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K):
 
 
 @numba.njit
-def _closed_form_position(S, hemisphere, r, work_a, work_b, v, B):
-    """The position of ivc.dipole's closed-form pose (the same operations), without its orientation."""
-    for i in range(3):
-        for j in range(3):
-            B[i, j] = S[0, i] * S[0, j] + S[1, i] * S[1, j] + S[2, i] * S[2, j]
-    tr = B[0, 0] + B[1, 1] + B[2, 2]
-    principal_eigenvector(B, work_a, work_b, v)
-    sign = 1.0
-    if v[0] * hemisphere[0] + v[1] * hemisphere[1] + v[2] * hemisphere[2] < 0.0:
-        sign = -1.0
-    rng = sign * (6.0 / tr) ** (1.0 / 6.0)  # docs/math.md §3
-    for a in range(3):
-        r[a] = rng * v[a]
-
-
-@numba.njit
-def _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz):
-    """M = f_D(r) + g(r) (3, 3) and ∂M/∂r (3, 3, 3); returns whether r is in the mapped volume."""
+def pose_model_separable(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch):
+    """:func:`pose_model` with the separable look-up (its partial sums in ``scratch`` (3, C))."""
     x, y, z = r[0], r[1], r[2]
     field_matrix(x, y, z, M)
     rho2 = x * x + y * y + z * z
@@ -64,157 +52,13 @@ def _model(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, 
                 if i == j:
                     s += r[k]
                 dM[i, j, k] = 3.0 * s * inv5 - 15.0 * r[i] * r[j] * r[k] * inv7
-    mapped = grid_point(padded, valid_cells, origin, spacing, shape, r, cubic, g, dg, wx, wy, wz, dx, dy, dz)
+    mapped = grid_point_separable(grid, r, g, dg, wx, wy, wz, dx, dy, dz, scratch)
     for i in range(3):
         for j in range(3):
             M[i, j] += g[3 * i + j]
             for k in range(3):
                 dM[i, j, k] += dg[3 * i + j, k]
     return mapped
-
-
-@numba.njit
-def _model_in(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz,
-              scratch):
-    """:func:`_model` with the separable look-up (its partial sums in ``scratch`` (3, C))."""
-    x, y, z = r[0], r[1], r[2]
-    field_matrix(x, y, z, M)
-    rho2 = x * x + y * y + z * z
-    inv5 = 1.0 / (rho2 * rho2 * np.sqrt(rho2))
-    inv7 = inv5 / rho2
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                s = 0.0
-                if i == k:
-                    s += r[j]
-                if j == k:
-                    s += r[i]
-                if i == j:
-                    s += r[k]
-                dM[i, j, k] = 3.0 * s * inv5 - 15.0 * r[i] * r[j] * r[k] * inv7
-    mapped = grid_point_separable(padded, valid_cells, origin, spacing, shape, r, cubic, g, dg, wx, wy, wz, dx, dy,
-                                  dz, scratch)
-    for i in range(3):
-        for j in range(3):
-            M[i, j] += g[3 * i + j]
-            for k in range(3):
-                dM[i, j, k] += dg[3 * i + j, k]
-    return mapped
-
-
-@numba.njit
-def _residual(S, M, dM, T, e, J):
-    """e = S − Tᵀ M (9,) and its Jacobian (9, 6) in (δr, ω)."""
-    for i in range(3):
-        for j in range(3):
-            p = T[0, i] * M[0, j] + T[1, i] * M[1, j] + T[2, i] * M[2, j]
-            e[3 * i + j] = S[i, j] - p
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                J[3 * i + j, k] = -(T[0, i] * dM[0, j, k] + T[1, i] * dM[1, j, k] + T[2, i] * dM[2, j, k])
-    # ∂e/∂ω_a = [e_a]× P with P = Tᵀ M = S − e
-    for j in range(3):
-        p0 = S[0, j] - e[j]
-        p1 = S[1, j] - e[3 + j]
-        p2 = S[2, j] - e[6 + j]
-        # a = x: rows (0, −p2, p1); a = y: (p2, 0, −p0); a = z: (−p1, p0, 0)
-        J[j, 3] = 0.0
-        J[3 + j, 3] = -p2
-        J[6 + j, 3] = p1
-        J[j, 4] = p2
-        J[3 + j, 4] = 0.0
-        J[6 + j, 4] = -p0
-        J[j, 5] = -p1
-        J[3 + j, 5] = p0
-        J[6 + j, 5] = 0.0
-
-
-@numba.njit(inline="always")
-def _cost(e):
-    c = 0.0
-    for a in range(9):
-        c += e[a] * e[a]
-    return c
-
-
-@numba.njit(inline="always")
-def _solve6(A, b, x):
-    """x = A⁻¹ b for a symmetric positive definite 6x6 A (Cholesky, in place on A). False if not PD."""
-    if not cholesky(A, 6, A):
-        return False
-    cholesky_solve(A, 6, b, x)
-    return True
-
-
-@numba.njit
-def _rotate_increment(T, w, out):
-    """out = T exp([w]×) (Rodrigues: exp([w]×) = I + a [w]× + b [w]×²)."""
-    angle2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
-    if angle2 < 1e-24:
-        a, b = 1.0, 0.5
-    else:
-        angle = np.sqrt(angle2)
-        a, b = np.sin(angle) / angle, (1.0 - np.cos(angle)) / angle2
-    x, y, z = w[0], w[1], w[2]
-    r00 = 1.0 - b * (y * y + z * z)
-    r11 = 1.0 - b * (x * x + z * z)
-    r22 = 1.0 - b * (x * x + y * y)
-    r01 = -a * z + b * x * y
-    r10 = a * z + b * x * y
-    r02 = a * y + b * x * z
-    r20 = -a * y + b * x * z
-    r12 = -a * x + b * y * z
-    r21 = a * x + b * y * z
-    for i in range(3):
-        t0, t1, t2 = T[i, 0], T[i, 1], T[i, 2]
-        out[i, 0] = t0 * r00 + t1 * r10 + t2 * r20
-        out[i, 1] = t0 * r01 + t1 * r11 + t2 * r21
-        out[i, 2] = t0 * r02 + t1 * r12 + t2 * r22
-
-
-@numba.njit
-def gauss_newton_matrix(J, e, H, grad):
-    """H = JᵀJ (6, 6) and grad = −Jᵀe (6,) of a 9-residual, 6-unknown pose step."""
-    for a in range(6):
-        s = 0.0
-        for k in range(9):
-            s -= J[k, a] * e[k]
-        grad[a] = s
-        for b in range(a + 1):
-            s = 0.0
-            for k in range(9):
-                s += J[k, a] * J[k, b]
-            H[a, b] = s
-            H[b, a] = s
-
-
-@numba.njit
-def damped_matrix(H, damping, A):
-    """A = H with Levenberg-Marquardt damping on its diagonal, ``damping · max(H_aa, 1e-30 · max_b H_bb)``
-    (A may be H itself)."""
-    scale_max = 0.0
-    for a in range(6):
-        scale_max = max(scale_max, H[a, a])
-    for a in range(6):
-        for c in range(6):
-            A[a, c] = H[a, c]
-        A[a, a] += damping * max(H[a, a], 1e-30 * scale_max)
-
-
-@numba.njit
-def accept_step(r, rt, T, Tt, e, et, J, Jt):
-    """The trial pose (rt, Tt), its residual et and Jacobian Jt become the current ones (copied in place)."""
-    for a in range(3):
-        r[a] = rt[a]
-    for i in range(3):
-        for j in range(3):
-            T[i, j] = Tt[i, j]
-    for k in range(9):
-        e[k] = et[k]
-        for a in range(6):
-            J[k, a] = Jt[k, a]
 
 
 @numba.njit
@@ -232,49 +76,56 @@ def workspace(channels):
 
 
 @numba.njit
-def correct_one(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
-                r, T):
+def correct_one(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, r, T):
     """Correct one frame: S (3, 3), seed (3,) (NaN: no warm start) -> r (3,), T (3, 3) written in place.
+    ``grid``: the table; ``seed_map``: the correction map (used for a cold start when ``use_map``).
 
     Returns (converged, iterations, relative residual rms(M − T S)/rms(S), mapped).
     """
-    return correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                          tolerance, r, T, workspace(padded.shape[3]))
+    return correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, r, T,
+                          workspace(grid[0].shape[3]))
 
 
 @numba.njit
-def correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                   tolerance, r, T, ws):
+def correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, r, T, ws):
     """:func:`correct_one` with its scratch arrays from ``ws`` (:func:`workspace`)."""
     M, dM, g, dg, wx, wy, wz, dx, dy, dz = ws[0], ws[1], ws[2], ws[3], ws[4], ws[5], ws[6], ws[7], ws[8], ws[9]
     work_a, work_b, B, F, K, v, Sc, Ma = ws[10], ws[11], ws[12], ws[13], ws[14], ws[15], ws[16], ws[17]
     e, J, et, Jt, H, grad, step, rt, Tt = ws[18], ws[19], ws[20], ws[21], ws[22], ws[23], ws[24], ws[25], ws[26]
     scratch = ws[32]
-    if np.isfinite(seed[0]) and np.isfinite(seed[1]) and np.isfinite(seed[2]):
+    seeded = np.isfinite(seed[0]) and np.isfinite(seed[1]) and np.isfinite(seed[2])
+    if seeded:
         for a in range(3):
             r[a] = seed[a]
-    else:
+    elif use_map:
+        # the closed-form position v and the map's r − v at v (one closed form and a 3-channel look-up,
+        # landing about 10 µm from the answer, where the fixed point below costs three closed forms)
+        closed_form_position(S, hemisphere, r, work_a, work_b, v, B)
+        if grid_value(seed_map, r, g, wx, wy, wz, dx, dy, dz):
+            for a in range(3):
+                r[a] += g[a]
+            seeded = True
+    if not seeded:
         _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
         for step_number in range(FIXED_POINT_STEPS):  # docs/math.md §9: subtract Tᵀ g(r), re-solve the dipole pose
-            grid_value(padded, valid_cells, origin, spacing, shape, r, cubic, g, wx, wy, wz, dx, dy, dz)
+            grid_value(grid, r, g, wx, wy, wz, dx, dy, dz)
             for i in range(3):
                 for j in range(3):
                     Sc[i, j] = S[i, j] - (T[0, i] * g[j] + T[1, i] * g[3 + j] + T[2, i] * g[6 + j])
             if step_number < FIXED_POINT_STEPS - 1:
                 _closed_form(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
             else:  # the last step's orientation would be replaced below: its position is all that is used
-                _closed_form_position(Sc, hemisphere, r, work_a, work_b, v, B)
-    mapped = _model_in(r, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz,
-                       scratch)
+                closed_form_position(Sc, hemisphere, r, work_a, work_b, v, B)
+    mapped = pose_model_separable(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch)
     for i in range(3):  # the model at the accepted position, and whether it is mapped: no re-evaluation at the end
         for j in range(3):
             Ma[i, j] = M[i, j]
     for i in range(3):
         for j in range(3):
             K[i, j] = M[i, 0] * S[j, 0] + M[i, 1] * S[j, 1] + M[i, 2] * S[j, 2]
-    _rotation_polar_factor(K, work_a, work_b, T)
-    _residual(S, M, dM, T, e, J)
-    cost = _cost(e)
+    rotation_polar_factor(K, work_a, work_b, T)
+    pose_residual(S, M, dM, T, e, J)
+    cost = residual_cost(e)
     damping = 1e-3
     converged = False
     iterations = 0
@@ -282,14 +133,14 @@ def correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, sh
         iterations += 1
         gauss_newton_matrix(J, e, H, grad)
         damped_matrix(H, damping, H)
-        if not _solve6(H, grad, step):
+        if not solve_spd6(H, grad, step):
             damping *= 10.0
             if damping > 1e8:
                 break
             continue
         for a in range(3):
             rt[a] = r[a] + step[a]
-        _rotate_increment(T, step[3:], Tt)
+        rotate_increment(T, step[3:], Tt)
         if np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance:
             # a step below the tolerance (0.1 µm) is taken without the look-up that would confirm it:
             # the model there is the current one moved along its Jacobian (an error of |step|², far
@@ -304,13 +155,12 @@ def correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, sh
             for i in range(3):
                 for j in range(3):
                     T[i, j] = Tt[i, j]
-            mapped = grid_contains(valid_cells, origin, spacing, shape, r)
+            mapped = grid_contains(grid, r)
             converged = True
             break
-        trial_mapped = _model_in(rt, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz,
-                                 dx, dy, dz, scratch)
-        _residual(S, M, dM, Tt, et, Jt)
-        trial = _cost(et)
+        trial_mapped = pose_model_separable(rt, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch)
+        pose_residual(S, M, dM, Tt, et, Jt)
+        trial = residual_cost(et)
         small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance
         if trial <= cost:
             mapped = trial_mapped
@@ -338,63 +188,24 @@ def correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, sh
     return converged, iterations, np.sqrt(lam / s2), mapped
 
 
-@numba.njit(inline="always")
-def quaternion_of(T, q):
-    """Canonical unit quaternion of a rotation matrix, as ivc.rotations.from_matrix (Shepperd, then the
-    sign rule of ivc.rotations.canonical), into q (4,)."""
-    t00, t11, t22 = T[0, 0], T[1, 1], T[2, 2]
-    d21, d02, d10 = T[2, 1] - T[1, 2], T[0, 2] - T[2, 0], T[1, 0] - T[0, 1]
-    s01, s02, s12 = T[0, 1] + T[1, 0], T[0, 2] + T[2, 0], T[1, 2] + T[2, 1]
-    sq0, sq1, sq2, sq3 = 1.0 + t00 + t11 + t22, 1.0 + t00 - t11 - t22, 1.0 - t00 + t11 - t22, 1.0 - t00 - t11 + t22
-    largest = 0
-    top = sq0
-    if sq1 > top:
-        largest, top = 1, sq1
-    if sq2 > top:
-        largest, top = 2, sq2
-    if sq3 > top:
-        largest, top = 3, sq3
-    big = 0.5 * np.sqrt(max(top, 0.0))
-    k = 0.25 / big
-    if largest == 0:
-        q[0], q[1], q[2], q[3] = big, d21 * k, d02 * k, d10 * k
-    elif largest == 1:
-        q[0], q[1], q[2], q[3] = d21 * k, big, s01 * k, s02 * k
-    elif largest == 2:
-        q[0], q[1], q[2], q[3] = d02 * k, s01 * k, big, s12 * k
-    else:
-        q[0], q[1], q[2], q[3] = d10 * k, s02 * k, s12 * k, big
-    norm = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    sign = 1.0
-    for a in range(4):
-        if abs(q[a] / norm) > 1e-12:
-            if q[a] < 0.0:
-                sign = -1.0
-            break
-    for a in range(4):
-        q[a] = sign * q[a] / norm
-
-
 @numba.njit
-def correct_best(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
-                 retry_residual, r, T):
+def correct_best(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r, T):
     """correct_one, retried when the result is poor (not converged, or residual above ``retry_residual``).
 
     Distortion makes the dipole field's near-mirror images (the position reflected across the
     planes through the hemisphere axis) into local minima with small residuals; the retries
-    start from the cold fixed-point seed and from those reflections, and the lowest residual
-    among the converged solutions wins.
+    start from the cold fixed-point seed (never the map's) and from those reflections, and the lowest
+    residual among the converged solutions wins.
     """
-    return correct_best_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                           tolerance, retry_residual, r, T, workspace(padded.shape[3]))
+    return correct_best_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual,
+                           r, T, workspace(grid[0].shape[3]))
 
 
 @numba.njit
-def correct_best_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                    tolerance, retry_residual, r, T, ws):
+def correct_best_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r, T,
+                    ws):
     """:func:`correct_best` with its scratch arrays from ``ws`` (:func:`workspace`)."""
-    c, it, res, m = correct_one_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, shape, cubic,
-                                   max_iterations, tolerance, r, T, ws)
+    c, it, res, m = correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, r, T, ws)
     if c and res <= retry_residual:
         return c, it, res, m
     best_r, best_T, trial_r, trial_T, candidates = ws[27], ws[28], ws[29], ws[30], ws[31]
@@ -420,8 +231,8 @@ def correct_best_in(S, seed, hemisphere, padded, valid_cells, origin, spacing, s
         if k > 0 and not (np.isfinite(candidates[k, 0]) and np.isfinite(candidates[k, 1])
                           and np.isfinite(candidates[k, 2])):
             continue
-        c2, it2, res2, m2 = correct_one_in(S, candidates[k], hemisphere, padded, valid_cells, origin, spacing, shape,
-                                           cubic, max_iterations, tolerance, trial_r, trial_T, ws)
+        c2, it2, res2, m2 = correct_one_in(S, candidates[k], hemisphere, grid, seed_map, False, max_iterations,
+                                           tolerance, trial_r, trial_T, ws)
         it += it2
         if (c2 and not best[0]) or (c2 == best[0] and res2 < best[2]):
             best = (c2, it, res2, m2)
@@ -437,27 +248,25 @@ BLOCK = 256
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def correct_kernel(S, seeds, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                   tolerance, retry_residual, r_out, T_out, q_out, converged, iterations, residual,
-                   mapped):  # pragma: no cover - compiled
+def correct_kernel(S, seeds, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r_out,
+                   T_out, q_out, converged, iterations, residual, mapped):  # pragma: no cover - compiled
     blocks = (S.shape[0] + BLOCK - 1) // BLOCK
     for block in numba.prange(blocks):
-        ws = workspace(padded.shape[3])
+        ws = workspace(grid[0].shape[3])
         for n in range(BLOCK * block, min(BLOCK * block + BLOCK, S.shape[0])):
             converged[n], iterations[n], residual[n], mapped[n] = correct_best_in(
-                S[n], seeds[n], hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                tolerance, retry_residual, r_out[n], T_out[n], ws)
+                S[n], seeds[n], hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual,
+                r_out[n], T_out[n], ws)
             quaternion_of(T_out[n], q_out[n])
 
 
 @numba.njit(cache=True, nogil=True)
-def correct_serial(S, seeds, hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                   tolerance, retry_residual, r_out, T_out, q_out, converged, iterations, residual,
-                   mapped):  # pragma: no cover - compiled
+def correct_serial(S, seeds, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r_out,
+                   T_out, q_out, converged, iterations, residual, mapped):  # pragma: no cover - compiled
     """The same as correct_kernel on the calling thread: no thread start-up, for a few frames at a time."""
-    ws = workspace(padded.shape[3])
+    ws = workspace(grid[0].shape[3])
     for n in range(S.shape[0]):
         converged[n], iterations[n], residual[n], mapped[n] = correct_best_in(
-            S[n], seeds[n], hemisphere, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
-            retry_residual, r_out[n], T_out[n], ws)
+            S[n], seeds[n], hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r_out[n],
+            T_out[n], ws)
         quaternion_of(T_out[n], q_out[n])

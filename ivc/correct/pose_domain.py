@@ -190,7 +190,7 @@ class PoseCorrector:
             miss, converged = np.empty(n), np.empty(n, dtype=bool)
             iterations, mapped = np.empty(n, dtype=np.int64), np.empty(n, dtype=bool)
             kernel = compiled.choose(_pose_kernels.invert_serial if serial else _pose_kernels.invert_kernel, n)
-            kernel(v, start, H.copy(), self._h, *f.kernel_grid, self.max_iterations, self.tolerance, r, C, miss,
+            kernel(v, start, H.copy(), self._h, f.kernel_grid, self.max_iterations, self.tolerance, r, C, miss,
                    converged, iterations, mapped)
             return r, C, miss, converged, iterations, mapped
         inv = invert_distortion(v, self._secondary, self.solver, self.hemisphere, start, self.tolerance,
@@ -284,7 +284,7 @@ class PoseCorrector:
             miss, iterations = np.empty(n), np.empty(n, dtype=np.int64)
             f = self.field
             stream = compiled.choose(_pose_kernels.stream_kernel, n)
-            stream(v, Q, slots, self._offset, self._tracked, self._h, *f.kernel_grid, self.max_iterations,
+            stream(v, Q, slots, self._offset, self._tracked, self._h, f.kernel_grid, self.max_iterations,
                    self.tolerance, self.max_residual, r, q, flags, miss, iterations)
             return Correction(r, q, flags, miss, iterations)
         tracked = self._tracked[slots]
@@ -323,7 +323,7 @@ class PoseCorrector:
             out = [np.empty((1, 3)), np.empty((1, 4)), np.empty(1, dtype=np.uint8), np.empty(1),
                    np.empty(1, dtype=np.int64)]
             _pose_kernels.stream_kernel(np.ascontiguousarray(v), Q, np.zeros(1, dtype=np.int64), np.zeros((1, 3)),
-                                        np.ones(1, dtype=bool), self._h, *self.field.kernel_grid,
+                                        np.ones(1, dtype=bool), self._h, self.field.kernel_grid,
                                         self.max_iterations, self.tolerance, self.max_residual, *out)
 
     def _slots(self, sensors, n: int) -> np.ndarray:

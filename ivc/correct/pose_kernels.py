@@ -20,9 +20,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.correct.kernels import quaternion_of
-from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
-from ivc.dipole.kernels import closed_form_one, field_matrix, principal_eigenvector
+from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
+from ivc.dipole.kernels import closed_form_one, closed_form_position, field_matrix
+from ivc.linalg import quaternion_of
 from ivc.lut.kernels import grid_value
 
 # The helpers below are plain compiled functions, not numba-inlined: inlined three and four times over into
@@ -35,12 +35,12 @@ BACKTRACKS = 12
 
 
 @numba.njit(error_model="numpy")
-def _field_at(r, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, wz, dx, dy, dz, F):
+def _field_at(r, grid, g, wx, wy, wz, dx, dy, dz, F):
     """F = f_D(r) + g(r) (3, 3); returns (usable, mapped)."""
     rho2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
     if not (rho2 > 1e-12) or not np.isfinite(rho2):
         return False, False
-    mapped = grid_value(padded, valid_cells, origin, spacing, shape, r, cubic, g, wx, wy, wz, dx, dy, dz)
+    mapped = grid_value(grid, r, g, wx, wy, wz, dx, dy, dz)
     field_matrix(r[0], r[1], r[2], F)
     tr = 0.0
     for i in range(3):
@@ -51,28 +51,11 @@ def _field_at(r, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, 
 
 
 @numba.njit(error_model="numpy")
-def _position(F, h, B, wa, wb, ev, phi):
-    """The closed-form dipole position of F (docs/math.md §3: range from tr FᵀF, direction its principal
-    eigenvector on the hemisphere's side) into phi (3,)."""
-    for i in range(3):
-        for j in range(3):
-            B[i, j] = F[0, i] * F[0, j] + F[1, i] * F[1, j] + F[2, i] * F[2, j]
-    tr = B[0, 0] + B[1, 1] + B[2, 2]
-    principal_eigenvector(B, wa, wb, ev)
-    sign = 1.0
-    if ev[0] * h[0] + ev[1] * h[1] + ev[2] * h[2] < 0.0:
-        sign = -1.0
-    rng = sign * (6.0 / tr) ** (1.0 / 6.0)
-    for a in range(3):
-        phi[a] = rng * ev[a]
-
-
-@numba.njit(error_model="numpy")
-def invert_one(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance, r, C,
-               miss_out, converged_out, iterations_out, mapped_out, n):
+def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, converged_out, iterations_out,
+               mapped_out, n):
     """Invert one sample from ``start`` (3,) with the inverse-Jacobian estimate H (3, 3, updated in place) into
     r (3,) and C (3, 3); writes miss, converged, iterations and mapped at index n."""
-    nc = padded.shape[3]
+    nc = grid[0].shape[3]
     g = np.empty(nc)
     wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
     F, wa, wb, B, Fd, K = (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
@@ -81,7 +64,7 @@ def invert_one(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubi
                                              np.empty(3), np.empty(3), np.empty(3))
     for a in range(3):
         r[a] = start[a] if np.isfinite(start[a]) else v[a]
-    usable, mapped = _field_at(r, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, wz, dx, dy, dz, F)
+    usable, mapped = _field_at(r, grid, g, wx, wy, wz, dx, dy, dz, F)
     if not usable:
         for a in range(3):
             r[a] = np.nan
@@ -89,7 +72,7 @@ def invert_one(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubi
                 C[a, b] = np.nan
         miss_out[n], converged_out[n], iterations_out[n], mapped_out[n] = np.nan, False, 0, False
         return
-    _position(F, h, B, wa, wb, ev, phi)
+    closed_form_position(F, h, phi, wa, wb, ev, B)
     miss = 0.0
     for a in range(3):
         e[a] = v[a] - phi[a]
@@ -108,10 +91,9 @@ def invert_one(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubi
         for _ in range(BACKTRACKS):
             for a in range(3):
                 trial[a] = r[a] + step[a]
-            usable, mapped_t = _field_at(trial, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, wz,
-                                         dx, dy, dz, F)
+            usable, mapped_t = _field_at(trial, grid, g, wx, wy, wz, dx, dy, dz, F)
             if usable:
-                _position(F, h, B, wa, wb, ev, phi)
+                closed_form_position(F, h, phi, wa, wb, ev, B)
                 miss_t = 0.0
                 for a in range(3):
                     e_t[a] = v[a] - phi[a]
@@ -143,27 +125,27 @@ def invert_one(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubi
         miss = miss_t
         converged = miss <= tolerance
     # the orientation part, once, at the solution: C(r) of the closed form
-    _field_at(r, padded, valid_cells, origin, spacing, shape, cubic, g, wx, wy, wz, dx, dy, dz, F)
+    _field_at(r, grid, g, wx, wy, wz, dx, dy, dz, F)
     closed_form_one(F, h, phi, C, wa, wb, ev, B, Fd, K)
     miss_out[n], converged_out[n], iterations_out[n], mapped_out[n] = miss, converged, iterations, mapped
 
 
 @numba.njit(**_OPTS)
-def invert_kernel(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance, r,
-                  C, miss, converged, iterations, mapped):  # pragma: no cover - compiled
+def invert_kernel(v, start, H, h, grid, max_iterations, tolerance, r, C, miss, converged, iterations,
+                  mapped):  # pragma: no cover - compiled
     """Invert every sample n from ``start[n]`` with the inverse-Jacobian estimates ``H[n]`` (updated in place)."""
     for n in numba.prange(v.shape[0]):
-        invert_one(v[n], start[n], H[n], h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                   tolerance, r[n], C[n], miss, converged, iterations, mapped, n)
+        invert_one(v[n], start[n], H[n], h, grid, max_iterations, tolerance, r[n], C[n], miss, converged, iterations,
+                   mapped, n)
 
 
 @numba.njit(cache=True, nogil=True)
-def invert_serial(v, start, H, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance, r,
-                  C, miss, converged, iterations, mapped):  # pragma: no cover - compiled
+def invert_serial(v, start, H, h, grid, max_iterations, tolerance, r, C, miss, converged, iterations,
+                  mapped):  # pragma: no cover - compiled
     """:func:`invert_kernel` without threads: for a few samples at a time (a live frame)."""
     for n in range(v.shape[0]):
-        invert_one(v[n], start[n], H[n], h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                   tolerance, r[n], C[n], miss, converged, iterations, mapped, n)
+        invert_one(v[n], start[n], H[n], h, grid, max_iterations, tolerance, r[n], C[n], miss, converged, iterations,
+                   mapped, n)
 
 
 _OUTSIDE, _NOT_CONVERGED, _HIGH_RESIDUAL, _INVALID_INPUT = OUTSIDE, NOT_CONVERGED, HIGH_RESIDUAL, INVALID_INPUT
@@ -201,8 +183,8 @@ def compose_kernel(C, Q, mapped, converged, miss, max_residual, q, flags):  # pr
 
 
 @numba.njit(cache=True, nogil=True)
-def stream_kernel(v, Q, slots, offset, tracked, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations,
-                  tolerance, max_residual, r, q, flags, miss, iterations):  # pragma: no cover - compiled
+def stream_kernel(v, Q, slots, offset, tracked, h, grid, max_iterations, tolerance, max_residual, r, q, flags, miss,
+                  iterations):  # pragma: no cover - compiled
     """One live frame: sample n of sensor ``slots[n]`` starts at ``v[n] + offset[slot]`` where ``tracked[slot]``
     (else at v[n]), is inverted (H = I, as the batch), composed and flagged; a trusted sample sets its sensor's
     offset ``r − v`` and tracked, any other clears tracked. Non-finite input: NaN, INVALID_INPUT."""
@@ -232,8 +214,7 @@ def stream_kernel(v, Q, slots, offset, tracked, h, padded, valid_cells, origin, 
             start[a] = v[n, a] + offset[slot, a] if tracked[slot] else v[n, a]
             for b in range(3):
                 H[a, b] = 1.0 if a == b else 0.0
-        invert_one(v[n], start, H, h, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
-                   r[n], C, m, c, it, mp, 0)
+        invert_one(v[n], start, H, h, grid, max_iterations, tolerance, r[n], C, m, c, it, mp, 0)
         flags[n] = _compose_one(C, Q[n], mp[0], c[0], m[0], max_residual, q[n])
         miss[n], iterations[n] = m[0], it[0]
         tracked[slot] = flags[n] == 0

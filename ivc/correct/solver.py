@@ -18,18 +18,21 @@ import numpy as np
 
 from ivc import compiled, dipole
 from ivc.correct import kernels as _kernels
+from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
 from ivc.dipole.pose import hemisphere_vector
 from ivc.errors import InputError
 from ivc.lut.grid import GridField
 from ivc.lut.table import LookupTable
 
-OUTSIDE, NOT_CONVERGED, HIGH_RESIDUAL, INVALID_INPUT = 1, 2, 4, 8
 FLAG_NAMES = {OUTSIDE: "outside the mapped volume", NOT_CONVERGED: "not converged",
               HIGH_RESIDUAL: "residual too high", INVALID_INPUT: "invalid input"}
 #: default residual threshold, rms(M − T S)/rms(S)
 MAX_RESIDUAL = 1e-3
 MAX_ITERATIONS = 50
 STEP_TOLERANCE = 1e-7  # m: a tenth of a micrometre
+#: batches of at least this many frames start cold frames from the table's correction map
+#: (``ivc.correct.seed_map``, built once per corrector: about as long as correcting a few thousand frames)
+SEED_MAP_FRAMES = 4096
 
 
 def describe(flags: int) -> str:
@@ -53,15 +56,21 @@ class Correction:
         return self.flags == 0
 
 
+#: the correction-map argument of a kernel run without one (never read: ``use_map`` is False)
+_NO_MAP = (np.zeros((4, 4, 4, 3)), np.zeros((1, 1, 1), dtype=bool), np.zeros(3), 1.0, np.array([2, 2, 2]), True)
+
+
 class Corrector:
     """Applies a table to measurements: :meth:`batch` for arrays of frames, :meth:`update` for a live stream.
 
     ``interpolation``: ``cubic`` (default) or ``linear``. ``hemisphere``: where the sensors are
-    (default: the table's). ``max_residual``: the HIGH_RESIDUAL threshold.
+    (default: the table's). ``max_residual``: the HIGH_RESIDUAL threshold. ``seed_map``: whether cold
+    frames of batches of at least :data:`SEED_MAP_FRAMES` start from the table's correction map
+    (``ivc.correct.seed_map``; False: always from the fixed point, as smaller batches do).
     """
 
     def __init__(self, table: LookupTable | GridField, hemisphere: str | None = None, interpolation: str = "cubic",
-                 max_residual: float = MAX_RESIDUAL, max_iterations: int = MAX_ITERATIONS):
+                 max_residual: float = MAX_RESIDUAL, max_iterations: int = MAX_ITERATIONS, seed_map: bool = True):
         self.field = table.field(interpolation) if isinstance(table, LookupTable) else table
         hemisphere = hemisphere or (table.hemisphere if isinstance(table, LookupTable) else "+x")
         self.hemisphere = hemisphere
@@ -69,9 +78,19 @@ class Corrector:
         self.max_residual = float(max_residual)
         self.max_iterations = int(max_iterations)
         self._previous: dict = {}
+        self._seed_map = None
+        self.use_seed_map = bool(seed_map)
+
+    def seed_map(self) -> GridField:
+        """The correction map cold frames of a large batch start from (``ivc.correct.seed_map``), built on
+        first use and kept."""
+        if self._seed_map is None:
+            from ivc.correct.seed_map import correction_seeds
+
+            self._seed_map = correction_seeds(self.field, self._h)
+        return self._seed_map
 
     def _run(self, S: np.ndarray, seeds: np.ndarray, serial: bool) -> Correction:
-        f = self.field
         n = len(S)
         r, T, q = np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 4))
         converged, iterations = np.empty(n, dtype=bool), np.empty(n, dtype=np.int64)
@@ -81,9 +100,11 @@ class Corrector:
         finite = np.all(np.isfinite(flat), axis=1) & np.any(flat != 0, axis=1)
         S = np.where(finite[:, None, None], S, np.eye(3))
         kernel = compiled.choose(_kernels.correct_serial if serial else _kernels.correct_kernel, n)
-        kernel(S, seeds, self._h, f._padded, f.valid_cells, f._origin, f.grid.spacing, f._shape,
-               f.interpolation == "cubic", self.max_iterations, STEP_TOLERANCE, self.max_residual, r, T, q, converged,
-               iterations, residual, mapped)
+        use_map = self.use_seed_map and (self._seed_map is not None
+                                         or (n >= SEED_MAP_FRAMES and not np.isfinite(seeds).all()))
+        seed_map = self.seed_map().kernel_grid if use_map else _NO_MAP
+        kernel(S, seeds, self._h, self.field.kernel_grid, seed_map, use_map, self.max_iterations, STEP_TOLERANCE,
+               self.max_residual, r, T, q, converged, iterations, residual, mapped)
         flags = (np.where(mapped, 0, OUTSIDE) | np.where(converged, 0, NOT_CONVERGED)
                  | np.where(residual <= self.max_residual, 0, HIGH_RESIDUAL)).astype(np.uint8)
         flags[~finite] = INVALID_INPUT

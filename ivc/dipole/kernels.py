@@ -10,6 +10,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ivc.linalg import principal_eigenvector, rotation_polar_factor
+
 _OPTS = dict(parallel=True, cache=True, nogil=True)
 
 
@@ -54,121 +56,22 @@ def signal_kernel(r, T, out):  # pragma: no cover - compiled
             out[n, i, 2] = a * f02 + b * f12 + c * f22
 
 
-@numba.njit(inline="always")
-def _matmul3(A, B, out):
+@numba.njit(error_model="numpy")  # compiled once; inf/NaN as in a parallel kernel
+def closed_form_position(S, hemisphere, r, work_a, work_b, v, B):
+    """The position of :func:`closed_form_one` (the same operations) into r (3,), without the orientation: range
+    from tr SᵀS, direction its principal eigenvector on the hemisphere's side (docs/math.md §3)."""
     for i in range(3):
         for j in range(3):
-            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
-
-
-@numba.njit(error_model="numpy")  # not inlined: compiled once; inf/NaN as in a parallel kernel
-def principal_eigenvector(B, work_a, work_b, v):
-    """Unit eigenvector of the largest eigenvalue of a symmetric PSD 3x3 matrix.
-
-    Power iteration by repeated squaring: after k squarings the other eigen-directions
-    are suppressed by (λ2/λ1)^(2^k). In free space λ2/λ1 = 1/4, so 8 squarings leave
-    nothing; 12 cover strongly distorted fields too.
-    """
+            B[i, j] = S[0, i] * S[0, j] + S[1, i] * S[1, j] + S[2, i] * S[2, j]
     tr = B[0, 0] + B[1, 1] + B[2, 2]
-    for i in range(3):
-        for j in range(3):
-            work_a[i, j] = B[i, j] / tr
-    for _ in range(12):
-        _matmul3(work_a, work_a, work_b)
-        t = work_b[0, 0] + work_b[1, 1] + work_b[2, 2]
-        for i in range(3):
-            for j in range(3):
-                work_a[i, j] = work_b[i, j] / t
-    best = 0
-    best_norm = -1.0
-    for j in range(3):
-        nrm = work_a[0, j] ** 2 + work_a[1, j] ** 2 + work_a[2, j] ** 2
-        if nrm > best_norm:
-            best_norm = nrm
-            best = j
-    for i in range(3):
-        v[i] = work_a[i, best]
-    # two plain power steps with B itself polish the last bits
-    for _ in range(2):
-        w0 = B[0, 0] * v[0] + B[0, 1] * v[1] + B[0, 2] * v[2]
-        w1 = B[1, 0] * v[0] + B[1, 1] * v[1] + B[1, 2] * v[2]
-        w2 = B[2, 0] * v[0] + B[2, 1] * v[1] + B[2, 2] * v[2]
-        nrm = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-        v[0] = w0 / nrm
-        v[1] = w1 / nrm
-        v[2] = w2 / nrm
+    principal_eigenvector(B, work_a, work_b, v)
+    sign = 1.0
+    if v[0] * hemisphere[0] + v[1] * hemisphere[1] + v[2] * hemisphere[2] < 0.0:
+        sign = -1.0
+    rng = sign * (6.0 / tr) ** (1.0 / 6.0)  # docs/math.md §3
+    for a in range(3):
+        r[a] = rng * v[a]
 
-
-@numba.njit(inline="always")
-def _det3(A):
-    return (
-        A[0, 0] * (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1])
-        - A[0, 1] * (A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0])
-        + A[0, 2] * (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0])
-    )
-
-
-@numba.njit(inline="always")
-def _inverse_transpose3(A, out):
-    """out = A⁻ᵀ, by cofactors."""
-    d = _det3(A)
-    out[0, 0] = (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]) / d
-    out[0, 1] = -(A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0]) / d
-    out[0, 2] = (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]) / d
-    out[1, 0] = -(A[0, 1] * A[2, 2] - A[0, 2] * A[2, 1]) / d
-    out[1, 1] = (A[0, 0] * A[2, 2] - A[0, 2] * A[2, 0]) / d
-    out[1, 2] = -(A[0, 0] * A[2, 1] - A[0, 1] * A[2, 0]) / d
-    out[2, 0] = (A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]) / d
-    out[2, 1] = -(A[0, 0] * A[1, 2] - A[0, 2] * A[1, 0]) / d
-    out[2, 2] = (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]) / d
-
-
-@numba.njit(inline="always")
-def _fro(A):
-    s = 0.0
-    for i in range(3):
-        for j in range(3):
-            s += A[i, j] * A[i, j]
-    return np.sqrt(s)
-
-
-@numba.njit
-def rotation_polar_factor(K, X, work, out):
-    """Rotation nearest to K (orthogonal Procrustes), written into out.
-
-    Scaled Newton iteration for the polar factor, X <- (γX + X⁻ᵀ/γ)/2, which converges
-    quadratically to U Vᵀ when det K > 0. When det K <= 0 the nearest *rotation* is
-    U diag(1, 1, -1) Vᵀ, which Newton cannot reach: fall back to an SVD.
-    """
-    if not _det3(K) > 0.0:
-        if not np.isfinite(_det3(K)):
-            for i in range(3):
-                for j in range(3):
-                    out[i, j] = np.nan
-            return
-        U, _, Vt = np.linalg.svd(K)
-        d = np.sign(_det3(U) * _det3(Vt))
-        for i in range(3):
-            U[i, 2] *= d
-        _matmul3(U, Vt, out)
-        return
-    for i in range(3):
-        for j in range(3):
-            X[i, j] = K[i, j]
-    for it in range(60):
-        _inverse_transpose3(X, work)
-        gamma = np.sqrt(_fro(work) / _fro(X)) if it < 10 else 1.0
-        change = 0.0
-        for i in range(3):
-            for j in range(3):
-                new = 0.5 * (gamma * X[i, j] + work[i, j] / gamma)
-                change += (new - X[i, j]) ** 2
-                X[i, j] = new
-        if change < 1e-30:
-            break
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = X[i, j]
 
 
 @numba.njit(error_model="numpy")  # not inlined: compiled once; inf/NaN as in a parallel kernel
@@ -207,6 +110,3 @@ def closed_form_pose_kernel(S, hemisphere, r_out, T_out):  # pragma: no cover - 
         closed_form_one(S[n], hemisphere, r_out[n], T_out[n], np.empty((3, 3)), np.empty((3, 3)), np.empty(3),
                         np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)))
 
-
-#: the names ivc.correct.kernels and ivc.correct.pose_kernels still import (until their own rework)
-_rotation_polar_factor, _principal_eigenvector = rotation_polar_factor, principal_eigenvector

@@ -80,7 +80,7 @@ def _sum_in_order(A):
 
 
 def _principal_eigenvector(B):
-    """ivc.dipole.kernels._principal_eigenvector for every B[n]: repeated squaring, then two power steps."""
+    """ivc.linalg.principal_eigenvector for every B[n]: repeated squaring, then two power steps."""
     a = B / _trace(B)[:, None, None]
     for _ in range(12):
         b = _matmul3(a, a)
@@ -94,7 +94,7 @@ def _principal_eigenvector(B):
 
 
 def _rotation_polar_factor(K):
-    """ivc.dipole.kernels._rotation_polar_factor for every K[n]: scaled Newton, SVD where det K <= 0."""
+    """ivc.linalg.rotation_polar_factor for every K[n]: scaled Newton, SVD where det K <= 0."""
     out = np.full_like(K, np.nan)
     det = _det3(K)
     newton = det > 0.0

@@ -150,7 +150,7 @@ class GridField:
     def kernel_grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, bool]:
         """The table as compiled look-ups take it: padded values (nx+2, ny+2, nz+2, C), valid cells
         (nx-1, ny-1, nz-1), origin (3,) m, spacing m, shape (3,) int64 and whether the interpolation is cubic."""
-        return (self._padded, self.valid_cells, self._origin, self.grid.spacing, self._shape,
+        return (self._padded, self.valid_cells, self._origin, float(self.grid.spacing), self._shape,
                 self.interpolation == "cubic")
 
     def evaluate(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -163,8 +163,7 @@ class GridField:
         gradients = np.empty((len(points), C, 3))
         mapped = np.empty(len(points), dtype=bool)
         kernel = compiled.choose(_kernels.grid_kernel, len(points), compiled.VECTORISED, grid_numpy.grid_kernel)
-        kernel(self._padded, self.valid_cells, self._origin, self.grid.spacing, self._shape, points,
-               self.interpolation == "cubic", values, gradients, mapped)
+        kernel(self.kernel_grid, points, values, gradients, mapped)
         finite = np.all(np.isfinite(points), axis=1)
         mapped &= finite
         return (values.reshape(*lead, *self.channel_shape), gradients.reshape(*lead, *self.channel_shape, 3),

@@ -34,9 +34,10 @@ CHUNK = 8192
 _STENCIL = np.arange(4)
 
 
-def grid_kernel(padded, valid_cells, origin, spacing, shape, points, cubic, values, gradients, inside):
+def grid_kernel(grid, points, values, gradients, inside):
     """Table value, gradient and validity at every point (N, 3), as the compiled kernel (the 64-node sums
     contracted axis by axis: equal to rounding)."""
+    padded, valid_cells, origin, spacing, shape, cubic = grid
     with np.errstate(invalid="ignore", over="ignore"):
         for lo in range(0, len(points), CHUNK):
             block = slice(lo, lo + CHUNK)

@@ -158,10 +158,9 @@ def solve_wand_table(S: np.ndarray, use: np.ndarray, wand: WandCalibration, tabl
     F = len(S)
     converged = np.zeros(F, dtype=bool)
     cost, H = np.zeros(F), np.zeros((F, 6, 6))
-    padded, valid_cells, origin, spacing, shape, cubic = table.kernel_grid
     wand_kernel(np.ascontiguousarray(S), np.ascontiguousarray(use), np.ascontiguousarray(scale),
                 np.ascontiguousarray(wand.positions, dtype=float), np.ascontiguousarray(wand.rotations, dtype=float),
-                padded, valid_cells, origin, float(spacing), shape, bool(cubic), int(max_iterations),
+                table.kernel_grid, int(max_iterations),
                 float(step_tolerance), active, r, T, converged, cost, H)
     return _wand_solution(r, T, converged, active, use, cost, H)
 

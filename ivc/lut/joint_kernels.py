@@ -15,12 +15,14 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.correct.kernels import _model, _residual, _rotate_increment, _solve6, damped_matrix
+from ivc.linalg import rotate_increment, solve_spd6
+from ivc.lut.kernels import pose_model
 from ivc.lut.rigid_kernels import add_sensor, clear, symmetrise
+from ivc.pose.kernels import damped_matrix, pose_residual
 
 
 @numba.njit(inline="always")
-def _normal(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape, cubic, r0, T0, H, grad, work):
+def _normal(S, use, scale, b, R, grid, r0, T0, H, grad, work):
     """Cost Σ|e|², H = JᵀJ (6, 6) and grad = −Jᵀe (6,) of the rigid wand at (r0, T0)."""
     M, dM, g, dg, wx, wy, wz, dx, dy, dz, p, Tn, e, J, Jc, lever = work
     clear(H, grad)
@@ -32,16 +34,16 @@ def _normal(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape, cu
             p[i] = r0[i] + T0[i, 0] * b[n, 0] + T0[i, 1] * b[n, 1] + T0[i, 2] * b[n, 2]
             for j in range(3):
                 Tn[i, j] = T0[i, 0] * R[n, 0, j] + T0[i, 1] * R[n, 1, j] + T0[i, 2] * R[n, 2, j]
-        _model(p, padded, valid_cells, origin, spacing, shape, cubic, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
-        _residual(S[n], M, dM, Tn, e, J)
+        pose_model(p, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
+        pose_residual(S[n], M, dM, Tn, e, J)
         cost += add_sensor(e, J, 1.0 / scale[n], b[n], R[n], T0, H, grad, Jc, lever)
     symmetrise(H)
     return cost
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def wand_kernel(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape, cubic, max_iterations, tolerance,
-                active, r, T, converged, cost_out, H_out):  # pragma: no cover - compiled
+def wand_kernel(S, use, scale, b, R, grid, max_iterations, tolerance, active, r, T, converged, cost_out,
+                H_out):  # pragma: no cover - compiled
     """Solve every active frame of S (F, W, 3, 3) in place from (r, T), sensor 0's pose; converged (F,),
     the final cost (F,) and JᵀJ (F, 6, 6) at the solution."""
     for f in numba.prange(S.shape[0]):
@@ -58,21 +60,19 @@ def wand_kernel(S, use, scale, b, R, padded, valid_cells, origin, spacing, shape
                 for c in range(6):
                     H_out[f, a, c] = 1.0 if a == c else 0.0
             continue
-        cost = _normal(S[f], use[f], scale[f], b, R, padded, valid_cells, origin, spacing, shape, cubic, r[f], T[f],
-                       H, grad, work)
+        cost = _normal(S[f], use[f], scale[f], b, R, grid, r[f], T[f], H, grad, work)
         damping = 1e-3
         for _ in range(max_iterations):
             damped_matrix(H, damping, A)
-            if not _solve6(A, grad, step):
+            if not solve_spd6(A, grad, step):
                 damping *= 10.0
                 if damping > 1e8:
                     break
                 continue
             for a in range(3):
                 rt[a] = r[f, a] + step[a]
-            _rotate_increment(T[f], step[3:], Tt)
-            trial = _normal(S[f], use[f], scale[f], b, R, padded, valid_cells, origin, spacing, shape, cubic, rt, Tt,
-                            Ht, gradt, work)
+            rotate_increment(T[f], step[3:], Tt)
+            trial = _normal(S[f], use[f], scale[f], b, R, grid, rt, Tt, Ht, gradt, work)
             small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance
             if trial <= cost:
                 for a in range(3):

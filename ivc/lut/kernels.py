@@ -3,6 +3,9 @@
 The table is ``padded``: (nx + 2, ny + 2, nz + 2, C) with one ghost node on every face,
 so that the 4-node Catmull-Rom stencil of every cell is in range. Node ``(i, j, k)`` of
 the grid is ``padded[i + 1, j + 1, k + 1]``.
+
+Every look-up takes the table as one argument, the tuple :data:`GRID` describes
+(``ivc.lut.grid.GridField.kernel_grid`` builds it).
 """
 
 from __future__ import annotations
@@ -10,7 +13,13 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ivc.dipole.kernels import field_matrix
+
 _OPTS = dict(parallel=True, cache=True, nogil=True)
+
+#: the fields of the bundled table argument, in order: padded values (nx+2, ny+2, nz+2, C) float64, valid
+#: cells (nx-1, ny-1, nz-1) bool, origin (3,) m, spacing m (float), shape (3,) int64, cubic (bool)
+GRID = ("padded", "valid_cells", "origin", "spacing", "shape", "cubic")
 
 
 @numba.njit(inline="always")
@@ -60,8 +69,10 @@ def axis_weights(t, cubic, w, dw):
 
 
 @numba.njit
-def grid_point(padded, valid_cells, origin, spacing, shape, p, cubic, value, gradient, wx, wy, wz, dx, dy, dz):
-    """Value (C,) and gradient (C, 3) of the table at one point p; returns whether p is in a valid cell."""
+def grid_point(grid, p, value, gradient, wx, wy, wz, dx, dy, dz):
+    """Value (C,) and gradient (C, 3) of the table ``grid`` (:data:`GRID`) at one point p; returns whether p
+    is in a valid cell."""
+    padded, valid_cells, origin, spacing, shape, cubic = grid
     i, tx, in_x = cell_of(p[0], origin[0], spacing, shape[0])
     j, ty, in_y = cell_of(p[1], origin[1], spacing, shape[1])
     k, tz, in_z = cell_of(p[2], origin[2], spacing, shape[2])
@@ -106,12 +117,12 @@ def grid_point(padded, valid_cells, origin, spacing, shape, p, cubic, value, gra
 
 
 @numba.njit
-def grid_point_separable(padded, valid_cells, origin, spacing, shape, p, cubic, value, gradient, wx, wy, wz, dx, dy,
-                         dz, scratch):
+def grid_point_separable(grid, p, value, gradient, wx, wy, wz, dx, dy, dz, scratch):
     """:func:`grid_point` contracted one axis at a time (z, then y, then x) with the partial sums in
     ``scratch`` (3, C): 1,728 multiply-adds for the cubic stencil of 9 channels instead of 2,304, and
     the innermost sums held in registers rather than re-stored at every node. Equal to
     :func:`grid_point` up to rounding (the summation order differs)."""
+    padded, valid_cells, origin, spacing, shape, cubic = grid
     i, tx, in_x = cell_of(p[0], origin[0], spacing, shape[0])
     j, ty, in_y = cell_of(p[1], origin[1], spacing, shape[1])
     k, tz, in_z = cell_of(p[2], origin[2], spacing, shape[2])
@@ -158,8 +169,9 @@ def grid_point_separable(padded, valid_cells, origin, spacing, shape, p, cubic, 
 
 
 @numba.njit
-def grid_contains(valid_cells, origin, spacing, shape, p):
+def grid_contains(grid, p):
     """Whether p (3,) is in a valid cell: what :func:`grid_point` returns, without the interpolation."""
+    _, valid_cells, origin, spacing, shape, _ = grid
     i, _, in_x = cell_of(p[0], origin[0], spacing, shape[0])
     j, _, in_y = cell_of(p[1], origin[1], spacing, shape[1])
     k, _, in_z = cell_of(p[2], origin[2], spacing, shape[2])
@@ -167,9 +179,10 @@ def grid_contains(valid_cells, origin, spacing, shape, p):
 
 
 @numba.njit
-def grid_value(padded, valid_cells, origin, spacing, shape, p, cubic, value, wx, wy, wz, dx, dy, dz):
+def grid_value(grid, p, value, wx, wy, wz, dx, dy, dz):
     """:func:`grid_point` without the gradient (a quarter of its arithmetic): value (C,) at p, and
     whether p is in a valid cell. The same weights and summation order, so the same value."""
+    padded, valid_cells, origin, spacing, shape, cubic = grid
     i, tx, in_x = cell_of(p[0], origin[0], spacing, shape[0])
     j, ty, in_y = cell_of(p[1], origin[1], spacing, shape[1])
     k, tz, in_z = cell_of(p[2], origin[2], spacing, shape[2])
@@ -196,8 +209,36 @@ def grid_value(padded, valid_cells, origin, spacing, shape, p, cubic, value, wx,
     return in_x and in_y and in_z and valid_cells[i, j, k]
 
 
+@numba.njit
+def pose_model(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz):
+    """M = f_D(r) + g(r) (3, 3) and ∂M/∂r (3, 3, 3); returns whether r is in the mapped volume."""
+    x, y, z = r[0], r[1], r[2]
+    field_matrix(x, y, z, M)
+    rho2 = x * x + y * y + z * z
+    inv5 = 1.0 / (rho2 * rho2 * np.sqrt(rho2))
+    inv7 = inv5 / rho2
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                s = 0.0
+                if i == k:
+                    s += r[j]
+                if j == k:
+                    s += r[i]
+                if i == j:
+                    s += r[k]
+                dM[i, j, k] = 3.0 * s * inv5 - 15.0 * r[i] * r[j] * r[k] * inv7
+    mapped = grid_point(grid, r, g, dg, wx, wy, wz, dx, dy, dz)
+    for i in range(3):
+        for j in range(3):
+            M[i, j] += g[3 * i + j]
+            for k in range(3):
+                dM[i, j, k] += dg[3 * i + j, k]
+    return mapped
+
+
 @numba.njit(**_OPTS)
-def grid_kernel(padded, valid_cells, origin, spacing, shape, points, cubic, values, gradients, inside):
+def grid_kernel(grid, points, values, gradients, inside):
     """Table value, gradient and validity at every point (N, 3)."""
     for n in numba.prange(points.shape[0]):
         wx = np.empty(4)
@@ -206,8 +247,7 @@ def grid_kernel(padded, valid_cells, origin, spacing, shape, points, cubic, valu
         dx = np.empty(4)
         dy = np.empty(4)
         dz = np.empty(4)
-        inside[n] = grid_point(padded, valid_cells, origin, spacing, shape, points[n], cubic, values[n],
-                               gradients[n], wx, wy, wz, dx, dy, dz)
+        inside[n] = grid_point(grid, points[n], values[n], gradients[n], wx, wy, wz, dx, dy, dz)
 
 
 @numba.njit(inline="always")
@@ -268,6 +308,3 @@ def _gradient_row(X, Y, Z, degree, re, im, out):
                 out[2, k] = zi
                 k += 1
 
-
-#: the names ivc.correct.pose_kernels still imports (until its own rework)
-_cell, _weights = cell_of, axis_weights

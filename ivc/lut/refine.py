@@ -156,7 +156,7 @@ def _compiled(S, valid, scale, wand, field: HarmonicField, map_field: GridField,
     rigid_kernel(np.ascontiguousarray(S), np.ascontiguousarray(valid), np.ascontiguousarray(scale),
                  np.ascontiguousarray(wand.positions, dtype=float), np.ascontiguousarray(wand.rotations, dtype=float),
                  np.ascontiguousarray(field.centre, dtype=float), float(field.scale),
-                 np.ascontiguousarray(field.coefficients, dtype=float), *m.kernel_grid, int(max_iterations),
+                 np.ascontiguousarray(field.coefficients, dtype=float), m.kernel_grid, int(max_iterations),
                  float(step_tolerance), r, T, converged)
     return converged
 

@@ -38,10 +38,10 @@ from ivc.predict.base import (
 from ivc.predict.delta import deltas
 from ivc.predict.gains import kinematic_gain
 from ivc.predict.linear_steps import ACCELERATION_NOISE, WHITE_ACCELERATION, steady_posterior
-from ivc.predict.linear_steps import _frame as _steps_frame
-from ivc.predict.linear_steps import _run as _steps_run
-from ivc.predict.linear_steps import _show as _steps_show
+from ivc.predict.linear_steps import run_steps as _steps_run
+from ivc.predict.linear_steps import show_frame as _steps_show
 from ivc.predict.linear_steps import state as steps_state
+from ivc.predict.linear_steps import step_frame as _steps_frame
 from ivc.predict.quat import delta_q, qmul, qmul_conj, rate_of
 from ivc.predict.timing import check_time, repeats, restarts
 

@@ -50,7 +50,7 @@ def steady_posterior(n: int, kind: int, noise: float, R: float, T: float) -> np.
 
 
 @numba.njit(cache=True)
-def _frame(q, ok, use, restart, now, n, kind, noise, R, T, P0, x, P, theta, base, scal):
+def step_frame(q, ok, use, restart, now, n, kind, noise, R, T, P0, x, P, theta, base, scal):
     """One frame for every sensor; scal (S, 2) = [started, time of the latest usable sample]."""
     S = q.shape[0]
     A = np.zeros((n, n))
@@ -107,7 +107,7 @@ def _frame(q, ok, use, restart, now, n, kind, noise, R, T, P0, x, P, theta, base
 
 
 @numba.njit(cache=True)
-def _show(ok, now, horizon, n, x, theta, base, scal, out):
+def show_frame(ok, now, horizon, n, x, theta, base, scal, out):
     """out (S, 4) = exp(D(horizon + age) x − θ) ⊗ base; NaN where not ok or not started."""
     dq = np.empty(4)
     for s in range(ok.shape[0]):
@@ -125,12 +125,13 @@ def _show(ok, now, horizon, n, x, theta, base, scal, out):
 
 
 @numba.njit(cache=True)
-def _run(q, ok, use, restart, t, horizons, n, kind, noise, R, T, P0, x, P, theta, base, scal, out):
-    """The batch: every frame through :func:`_frame`, then :func:`_show` at each horizon into out (H, F, S, 4)."""
+def run_steps(q, ok, use, restart, t, horizons, n, kind, noise, R, T, P0, x, P, theta, base, scal, out):
+    """The batch: every frame through :func:`step_frame`, then :func:`show_frame` at each horizon into out
+    (H, F, S, 4)."""
     for k in range(q.shape[0]):
-        _frame(q[k], ok[k], use[k], restart[k], t[k], n, kind, noise, R, T, P0, x, P, theta, base, scal)
+        step_frame(q[k], ok[k], use[k], restart[k], t[k], n, kind, noise, R, T, P0, x, P, theta, base, scal)
         for i in range(horizons.shape[0]):
-            _show(ok[k], t[k], horizons[i], n, x, theta, base, scal, out[i, k])
+            show_frame(ok[k], t[k], horizons[i], n, x, theta, base, scal, out[i, k])
 
 
 def state(n_sensors: int, n: int) -> tuple:

@@ -29,7 +29,8 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from ivc.linalg import congruence
+from ivc.linalg import congruence, omega_matrix, q_matrix, qmul
+from ivc.linalg import quaternion_normalise as normalise
 from ivc.predict.base import (
     Predictor,
     PredictorError,
@@ -41,7 +42,6 @@ from ivc.predict.base import (
     check_stream,
 )
 from ivc.predict.qekf import quaternion_update
-from ivc.predict.quat import normalise, qmul
 from ivc.predict.timing import MAX_GAP_S, check_time, repeats, restarts
 
 #: V_r of the paper: variance of each measured quaternion component
@@ -53,24 +53,6 @@ DEFAULT_W = (1e-9, 1e-9, 1e-9, 1e-9, 1e-6, 1e-6, 1e-6, 1.0, 1.0, 1.0)
 #: terms of the Taylor series of expm(hF); ‖hF‖ < 0.1 for head motion at 120 Hz, error < 1e-12
 EXPM_TERMS = 8
 N = 10
-
-
-@numba.njit(cache=True, inline="always")
-def q_matrix(q, out):
-    """Q_r(q) (4, 3), eq. 18 corrected: q ⊗ (0, ω) = Q_r(q) ω."""
-    out[0, 0], out[0, 1], out[0, 2] = -q[1], -q[2], -q[3]
-    out[1, 0], out[1, 1], out[1, 2] = q[0], -q[3], q[2]
-    out[2, 0], out[2, 1], out[2, 2] = q[3], q[0], -q[1]
-    out[3, 0], out[3, 1], out[3, 2] = -q[2], q[1], q[0]
-
-
-@numba.njit(cache=True, inline="always")
-def omega_matrix(w, out):
-    """Ω_r(ω) (4, 4), eq. 19: q ⊗ (0, ω) = Ω_r(ω) q."""
-    out[0, 0], out[0, 1], out[0, 2], out[0, 3] = 0.0, -w[0], -w[1], -w[2]
-    out[1, 0], out[1, 1], out[1, 2], out[1, 3] = w[0], 0.0, w[2], -w[1]
-    out[2, 0], out[2, 1], out[2, 2], out[2, 3] = w[1], -w[2], 0.0, w[0]
-    out[3, 0], out[3, 1], out[3, 2], out[3, 3] = w[2], w[1], -w[0], 0.0
 
 
 @numba.njit(cache=True)

@@ -1,4 +1,5 @@
-"""Compiled scalar quaternion helpers shared by the predictor kernels (scalar-first Hamilton, as ivc.rotations).
+"""Compiled quaternion motion helpers shared by the predictor kernels (scalar-first Hamilton, as ivc.rotations),
+on top of the quaternion primitives of :mod:`ivc.linalg`.
 
 Δq(ω, t) is the rotation a constant angular velocity ω (rad/s, reference frame) makes in t
 seconds: ``[cos(|ω|t/2), ω/|ω| sin(|ω|t/2)]`` (docs/math.md §11.2, with the
@@ -10,33 +11,15 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ivc.linalg import qmul, qmul_conj
+from ivc.linalg import quaternion_normalise as normalise
+
+#: the quaternion primitives (product, normalisation) are ivc.linalg's, named here as the predictors import them
+__all__ = ["SMALL_ANGLE", "delta_q", "delta_q_jacobian", "normalise", "predict_orientation", "qmul", "qmul_conj",
+           "rate_of", "slerp"]
+
 #: below this |ω|t the series forms are used (their error is O((|ω|t)^4), below 1e-16 relative)
 SMALL_ANGLE = 1e-4
-
-
-@numba.njit(inline="always")
-def qmul(p, q, out):
-    """out = p ⊗ q (out may not alias p or q)."""
-    out[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3]
-    out[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2]
-    out[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1]
-    out[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0]
-
-
-@numba.njit(inline="always")
-def qmul_conj(p, q, out):
-    """out = p ⊗ q* (the rotation from q to p for unit quaternions)."""
-    out[0] = p[0] * q[0] + p[1] * q[1] + p[2] * q[2] + p[3] * q[3]
-    out[1] = -p[0] * q[1] + p[1] * q[0] - p[2] * q[3] + p[3] * q[2]
-    out[2] = -p[0] * q[2] + p[1] * q[3] + p[2] * q[0] - p[3] * q[1]
-    out[3] = -p[0] * q[3] - p[1] * q[2] + p[2] * q[1] + p[3] * q[0]
-
-
-@numba.njit(inline="always")
-def normalise(q):
-    n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    for i in range(4):
-        q[i] /= n
 
 
 @numba.njit(inline="always")

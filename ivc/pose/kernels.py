@@ -1,0 +1,97 @@
+"""Compiled pieces of a Levenberg-Marquardt pose solve on the 9 residuals of one signal matrix.
+
+The pose is a position r and a rotation T updated as ``T ← T exp([ω]×)``
+(:func:`ivc.linalg.rotate_increment`); the residual is ``e = S − Tᵀ M(r)`` with ``M = f_D + g``
+(docs/math.md §4 and §9). The correction (``ivc.correct.kernels``), the cube solve
+(``ivc.fixtures.kernels``), the rigid-wand refinement and the joint map (``ivc.lut``) share these;
+the model of a table, ``f_D + g`` and its gradient, is :func:`ivc.lut.kernels.pose_model`.
+The batched NumPy form of the same solve is :func:`ivc.pose.solve_pose`.
+"""
+
+from __future__ import annotations
+
+import numba
+
+
+@numba.njit
+def pose_residual(S, M, dM, T, e, J):
+    """e = S − Tᵀ M (9,) and its Jacobian (9, 6) in (δr, ω)."""
+    for i in range(3):
+        for j in range(3):
+            p = T[0, i] * M[0, j] + T[1, i] * M[1, j] + T[2, i] * M[2, j]
+            e[3 * i + j] = S[i, j] - p
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                J[3 * i + j, k] = -(T[0, i] * dM[0, j, k] + T[1, i] * dM[1, j, k] + T[2, i] * dM[2, j, k])
+    # ∂e/∂ω_a = [e_a]× P with P = Tᵀ M = S − e
+    for j in range(3):
+        p0 = S[0, j] - e[j]
+        p1 = S[1, j] - e[3 + j]
+        p2 = S[2, j] - e[6 + j]
+        # a = x: rows (0, −p2, p1); a = y: (p2, 0, −p0); a = z: (−p1, p0, 0)
+        J[j, 3] = 0.0
+        J[3 + j, 3] = -p2
+        J[6 + j, 3] = p1
+        J[j, 4] = p2
+        J[3 + j, 4] = 0.0
+        J[6 + j, 4] = -p0
+        J[j, 5] = -p1
+        J[3 + j, 5] = p0
+        J[6 + j, 5] = 0.0
+
+
+
+@numba.njit(inline="always")
+def residual_cost(e):
+    c = 0.0
+    for a in range(9):
+        c += e[a] * e[a]
+    return c
+
+
+
+@numba.njit
+def gauss_newton_matrix(J, e, H, grad):
+    """H = JᵀJ (6, 6) and grad = −Jᵀe (6,) of a 9-residual, 6-unknown pose step."""
+    for a in range(6):
+        s = 0.0
+        for k in range(9):
+            s -= J[k, a] * e[k]
+        grad[a] = s
+        for b in range(a + 1):
+            s = 0.0
+            for k in range(9):
+                s += J[k, a] * J[k, b]
+            H[a, b] = s
+            H[b, a] = s
+
+
+
+@numba.njit
+def damped_matrix(H, damping, A):
+    """A = H with Levenberg-Marquardt damping on its diagonal, ``damping · max(H_aa, 1e-30 · max_b H_bb)``
+    (A may be H itself)."""
+    scale_max = 0.0
+    for a in range(6):
+        scale_max = max(scale_max, H[a, a])
+    for a in range(6):
+        for c in range(6):
+            A[a, c] = H[a, c]
+        A[a, a] += damping * max(H[a, a], 1e-30 * scale_max)
+
+
+
+@numba.njit
+def accept_step(r, rt, T, Tt, e, et, J, Jt):
+    """The trial pose (rt, Tt), its residual et and Jacobian Jt become the current ones (copied in place)."""
+    for a in range(3):
+        r[a] = rt[a]
+    for i in range(3):
+        for j in range(3):
+            T[i, j] = Tt[i, j]
+    for k in range(9):
+        e[k] = et[k]
+        for a in range(6):
+            J[k, a] = Jt[k, a]
+
