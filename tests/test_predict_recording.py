@@ -80,7 +80,7 @@ def test_auto_is_the_default_and_live_equals_batch(rng):
     assert np.allclose(weights.sum(axis=-1), 1.0)
     stream = predictor.stream(2)
     live = np.empty((len(t), 2, 4))
-    picks = np.empty((len(t), 2, len(CANDIDATES)))
+    picks = np.empty((len(t), 2, len(predictor.members)))
     for k in range(len(t)):
         stream.update(q2[k], valid[k], time=t[k])
         live[k] = stream.predict(0.05)
@@ -91,21 +91,22 @@ def test_auto_is_the_default_and_live_equals_batch(rng):
 
 
 def test_auto_picks_what_suits_the_stream(rng):
-    """A static sensor's noise: no prediction, or a ``direct`` learner, which learns that the noise reverts to its mean.
-    A steady turn: a velocity predictor. Either way, the best."""
+    """A static sensor's noise: no prediction, a ``direct`` learner, which learns that the noise reverts to its mean, or
+    the combination of the bank. A steady turn: a velocity predictor. Either way, the best."""
     n = 1500
     t = np.cumsum(rng.uniform(0.006, 0.011, n))
     still = rotations.from_rotvec(rng.normal(0, 2e-3, (n, 3)))
     turning = rotations.multiply(delta_q(np.array([0.0, 1.5, 0.3]) * t[:, None], 1.0), still[0])
     turning = rotations.multiply(rotations.from_rotvec(rng.normal(0, 2e-4, (n, 3))), turning)
-    names = list(CANDIDATES)
-    learners = tuple(c for c in names if c.startswith("direct"))
+    names = list(make("auto", 120.0).members)
+    assert names == [*CANDIDATES, "combine"]
+    learners = tuple(c for c in names if c.startswith("direct") or c == "combine")
     for q, best_kind in ((still, ("none", *learners)), (turning, tuple(c for c in names if c != "none"))):
         _, weights = make("auto", 120.0).selections(q, [0.05], time=t)
         shown = weights[0, 300:, 0].mean(axis=0)
         favourite = names[int(np.argmax(shown))]
         assert favourite in best_kind, (favourite, shown)
-        scores = score([make("auto", 120.0)] + [CANDIDATES[c](120.0) for c in names], q, t, [0.05])
+        scores = score([make("auto", 120.0)] + [CANDIDATES[c](120.0) for c in CANDIDATES], q, t, [0.05])
         best = min(s.at(0.05)["median"] for s in scores[1:])
         assert scores[0].at(0.05)["median"] <= 1.05 * best
 
@@ -118,6 +119,6 @@ def test_auto_on_a_real_headset_is_as_good_as_the_best_simple_predictor():
                                                  ("auto", "none", "poly1", "dqekf-cv", "mmdq2")], q, t, [0.05])}
     for key in ("median", "p95"):
         simple = min(scores["poly1"][key], scores["dqekf-cv"][key])
-        assert scores["auto"][key] <= 0.95 * simple  # measured 0.93x (median), 0.91x (p95)
+        assert scores["auto"][key] <= 0.95 * simple  # measured 0.917x (median), 0.898x (p95)
         assert scores["auto"][key] < 0.7 * scores["mmdq2"][key]  # the thesis's fixed default lost to none
     assert scores["auto"]["median"] < 0.55 * scores["none"]["median"]

@@ -14,6 +14,10 @@ normalised: in effect the best candidate, blended with the nearly as good ones (
 scored, ``none``; a sum of exactly 0 takes all the weight, ties to the earlier candidate). Where a
 candidate has no prediction yet, its turn is 0 (the measured orientation). In batch the weights are
 kept per horizon; the live form scores at ``horizon_s`` and uses those weights at any horizon.
+
+One more member, ``combine`` (on unless ``combination=False``), is not a filter of its own: the
+candidates' turns combined with weights learned online by constrained least squares from the targets
+whose time has arrived (:mod:`ivc.predict.combine`); it is scored and blended like the others.
 """
 
 from __future__ import annotations
@@ -36,6 +40,8 @@ from ivc.predict.base import (
     check_rate,
     check_stream,
 )
+from ivc.predict.combine import MEMORY_S as COMBINATION_MEMORY_S
+from ivc.predict.combine import accumulate, combine, decay, ridge_for, solve_weights
 from ivc.predict.direct import DirectPredictor
 from ivc.predict.dq import SIGMA_CV1, dqekf_ca, dqekf_cv, mmdq2
 from ivc.predict.hold import NoPrediction
@@ -138,13 +144,17 @@ def _select(err, known, dt, memory, power, out):
 
 
 @numba.njit(cache=True)
-def _score(shown, sensors, q, knot_q, knot_t, now, target, max_step, total):
+def _score(shown, base, sensors, q, knot_q, knot_t, now, target, max_step, total, members, A, b):
     """Add the errors (mrad) of one frame's pending predictions shown (S, C, 4) for ``target`` s to total (S, C),
     for the sensors whose sample q (S, 4) at ``now`` just arrived: the reference is slerped between each one's
-    previous usable sample (knot_q, knot_t) and q, as :func:`ivc.predict.recording.future_reference` does."""
+    previous usable sample (knot_q, knot_t) and q, as :func:`ivc.predict.recording.future_reference` does.
+    With ``members`` > 0, the first ``members`` predictions' turns from the frame's measured orientation base
+    (S, 4), in its body frame, and the reference's are added to the combination's sums A (S, 3, m, m), b (S, 3, m)."""
     S, C = total.shape
     ref = np.empty(4)
     d = np.empty(4)
+    turns = np.empty((max(members, 1), 3))
+    goal = np.empty(3)
     for s in range(S):
         if not sensors[s]:
             continue
@@ -160,6 +170,55 @@ def _score(shown, sensors, q, knot_q, knot_t, now, target, max_step, total):
             qmul_conj(shown[s, c], ref, d)
             v = np.sqrt(d[1] ** 2 + d[2] ** 2 + d[3] ** 2)
             total[s, c] += 1e3 * 2.0 * np.arctan2(v, abs(d[0]))
+        if members > 0:
+            for c in range(members):
+                _body_turn(base[s], shown[s, c], d, turns[c])
+            _body_turn(base[s], ref, d, goal)
+            accumulate(turns, goal, A[s], b[s])
+
+
+@numba.njit(cache=True)
+def _body_turn(q, p, d, out):
+    """out (3,) = the rotation vector of q* ⊗ p (the turn from q to p in q's frame; scalar part made non-negative),
+    rad; d a (4,) scratch."""
+    qc = np.empty(4)
+    qc[0] = q[0]
+    for i in range(1, 4):
+        qc[i] = -q[i]
+    qmul(qc, p, d)
+    if d[0] < 0.0:
+        for i in range(4):
+            d[i] = -d[i]
+    rate_of(d, 1.0, out)
+
+
+@numba.njit(cache=True)
+def _solve_all(A, b, ridge, out):
+    """out[s] (3, m) = :func:`ivc.predict.combine.solve_weights` of each sensor's sums A (S, 3, m, m), b (S, 3, m)."""
+    for s in range(A.shape[0]):
+        solve_weights(A[s], b[s], ridge, out[s])
+
+
+@numba.njit(cache=True)
+def _combine_frame(ahead, weights, last, ok, out):
+    """out (S, 4) = last ⊗ exp(Σ_c w_ac r_ac) per sensor: r_c the body-frame turn from last (S, 4) to ahead (C, S, 4),
+    weights (S, 3, C); the measured orientation where not ok."""
+    C, S = ahead.shape[0], ahead.shape[1]
+    d = np.empty(4)
+    r = np.empty(3)
+    m = np.empty(3)
+    dq = np.empty(4)
+    for s in range(S):
+        if not ok[s]:
+            out[s, :] = last[s]
+            continue
+        m[:] = 0.0
+        for c in range(C):
+            _body_turn(last[s], ahead[c, s], d, r)
+            for a in range(3):
+                m[a] += weights[s, a, c] * r[a]
+        delta_q(m[0], m[1], m[2], 1.0, dq)
+        qmul(last[s], dq, out[s])
 
 
 @numba.njit(cache=True)
@@ -204,6 +263,8 @@ class AutoPredictor(Predictor):
     power: float = POWER
     horizon_s: float = 0.05  # the live form's scoring horizon
     max_step_s: float = REFERENCE_MAX_STEP_S
+    combination: bool = True  # the ``combine`` member (module docstring)
+    combination_memory_s: float = COMBINATION_MEMORY_S
     name: str = "auto"
     bank: list = field(init=False, repr=False)
 
@@ -212,16 +273,37 @@ class AutoPredictor(Predictor):
         unknown = [c for c in self.candidates if c not in CANDIDATES]
         if unknown or not self.candidates:
             raise PredictorError(f"auto's candidates are among {', '.join(CANDIDATES)}; got {self.candidates}")
-        if not (self.memory_s > 0 and self.max_step_s > 0 and self.power >= 0):
-            raise PredictorError("memory_s and max_step_s must be positive numbers of seconds, power >= 0")
+        if not (self.memory_s > 0 and self.max_step_s > 0 and self.power >= 0 and self.combination_memory_s > 0):
+            raise PredictorError("memory_s, combination_memory_s and max_step_s must be positive numbers of seconds, "
+                                 "power >= 0")
         check_horizons(self.horizon_s)
         self.bank = [CANDIDATES[c](self.rate_hz) for c in self.candidates]
         for p in self.bank:  # a member that learns from its errors (direct) learns at the horizon auto scores at
             if hasattr(p, "horizon_s") and self.horizon_s > 0:
                 p.horizon_s = float(self.horizon_s)
 
+    @property
+    def members(self) -> tuple[str, ...]:
+        """The names of what is blended, in the order of the weights: the candidates, then ``combine`` if on."""
+        return tuple(self.candidates) + (("combine",) if self.combination else ())
+
+    def _combined(self, shown, qs, ok, t, horizon, references) -> FloatArray:
+        """The ``combine`` member (F, S, 4) at one horizon from the candidates' predictions shown (C, F, S, 4)."""
+        out = np.array(qs)
+        if horizon == 0.0:  # nothing to learn: the measurement
+            return out
+        turns = rotations.to_rotvec(rotations.multiply(rotations.conjugate(qs)[None], shown))  # (C, F, S, 3), body
+        turns[:, ~ok] = 0.0
+        for s, (ref, scored, known) in enumerate(references):
+            goal = np.full((len(t), 3), np.nan)
+            goal[scored] = rotations.to_rotvec(rotations.multiply(rotations.conjugate(qs[scored, s]), ref[scored]))
+            mean, _ = combine(turns[:, :, s], goal, known, t, horizon, self.combination_memory_s)
+            out[ok[:, s], s] = rotations.multiply(qs[ok[:, s], s], rotations.from_rotvec(mean[ok[:, s]]))
+        return out
+
     def selections(self, q, horizons, valid=None, time=None) -> tuple[FloatArray, np.ndarray]:
-        """(predictions (H, F, S, 4) as :meth:`predict`, the candidates' weights (H, F, S, C), in candidates' order)."""
+        """(predictions (H, F, S, 4) as :meth:`predict`, the members' weights (H, F, S, M), in :attr:`members`'
+        order)."""
         h = check_horizons(horizons)
         qs, ok, _ = check_stream(q, valid)
         F, S = ok.shape
@@ -233,14 +315,23 @@ class AutoPredictor(Predictor):
             P = p.predict(qs, h, ok, time=t)
             shown.append(np.where(np.all(np.isfinite(P), axis=-1, keepdims=True), P, qs[None]))
         shown = np.stack(shown)  # (C, H, F, S, 4)
-        weights = np.zeros((len(h), F, S, len(self.bank)))
-        for i, d in enumerate(h):
+        references = []  # per horizon, per sensor: (reference, scored, the frame it is known at or -1)
+        for d in h:
+            references.append([])
             for s in range(S):
                 ref, inside, known = future_reference(t, qs[:, s], usable[:, s], d, self.max_step_s, known_at=True)
                 scored = inside & ok[:, s]
-                err = np.full((len(self.bank), F), np.nan)
+                references[-1].append((ref, scored, np.where(scored, known, -1)))
+        if self.combination:
+            mixed = [self._combined(shown[:, i], qs, ok, t, float(d), references[i]) for i, d in enumerate(h)]
+            shown = np.concatenate([shown, np.stack(mixed)[None]])
+        M = shown.shape[0]
+        weights = np.zeros((len(h), F, S, M))
+        for i in range(len(h)):
+            for s, (ref, scored, known) in enumerate(references[i]):
+                err = np.full((M, F), np.nan)
                 err[:, scored] = 1e3 * rotations.angle_between(shown[:, i, scored, s], ref[scored][None])
-                _select(err, np.where(scored, known, -1), dt, self.memory_s, self.power, weights[i, :, s])
+                _select(err, known, dt, self.memory_s, self.power, weights[i, :, s])
         out = blend(shown, np.moveaxis(weights, -1, 0), qs[None])
         out[:, ~ok] = np.nan
         return out, weights
@@ -260,10 +351,20 @@ class AutoStream(Stream):
         super().__init__(predictor, n_sensors)
         self.streams = [p.stream(n_sensors) for p in predictor.bank]
         self.clock = StreamClock(predictor.rate_hz, n_sensors)
-        self.total = np.zeros((n_sensors, len(self.streams)))
-        self.weights = np.zeros((n_sensors, len(self.streams)))
+        C = len(self.streams)
+        self.combined = C if predictor.combination else 0  # how many candidates the combination learns from (0: off)
+        M = len(predictor.members)
+        self.total = np.zeros((n_sensors, M))
+        self.weights = np.zeros((n_sensors, M))
         self.weights[:, 0] = 1.0
-        self.pending = deque()  # (target time, shown (S, C, 4), the sensors still to score (S,)), in time order
+        self.A = np.zeros((n_sensors, 3, C, C))  # the combination's sums and weights, per axis
+        self.b = np.zeros((n_sensors, 3, C))
+        self.mix = np.full((n_sensors, 3, C), 1.0 / C)
+        self.ridge = ridge_for(predictor.horizon_s)
+        # scoring at 0 s leaves the combination nothing to learn: it keeps equal weights
+        self.learning = self.combined if predictor.horizon_s > 0 else 0
+        # (target time, shown (S, M, 4), the measured orientation (S, 4), the sensors still to score (S,)), by time
+        self.pending = deque()
         self.previous = np.full((n_sensors, 4), np.nan)  # the latest valid sample (repeat test)
         self.knot_t = np.full(n_sensors, np.nan)  # the latest usable sample: time, orientation
         self.knot_q = np.full((n_sensors, 4), np.nan)
@@ -283,34 +384,53 @@ class AutoStream(Stream):
         p = self.predictor
         if dt > 0:
             self.total *= np.exp(-dt / p.memory_s)
+            if self.learning:
+                decay(self.A, self.b, np.exp(-dt / p.combination_memory_s))
         usable = ok & ~np.all(qs == self.previous, axis=1)
         self.previous = np.where(ok[:, None], qs, self.previous)
         if np.any(usable):
-            for target, shown, waiting in self.pending:  # each scored at the sensor's first usable sample after it
+            for target, shown, base, waiting in self.pending:  # each scored at the sensor's first usable sample after
                 if target > now:
                     break
-                _score(shown, waiting & usable, qs, self.knot_q, self.knot_t, now, target, p.max_step_s, self.total)
+                _score(shown, base, waiting & usable, qs, self.knot_q, self.knot_t, now, target, p.max_step_s,
+                       self.total, self.learning, self.A, self.b)
                 waiting &= ~usable
-            while self.pending and self.pending[0][0] <= now and not self.pending[0][2].any():
+            while self.pending and self.pending[0][0] <= now and not self.pending[0][3].any():
                 self.pending.popleft()
         self.knot_t = np.where(usable, now, self.knot_t)
         self.knot_q = np.where(usable[:, None], qs, self.knot_q)
         _weigh(self.total, p.power, self.weights)
-        self.ahead = None
-        if np.any(ok):
-            ahead = np.stack([s.predict(p.horizon_s) for s in self.streams])  # (C, S, 4)
-            self.ahead = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, qs[None])
-            self.pending.append((now + p.horizon_s, np.ascontiguousarray(self.ahead.transpose(1, 0, 2)), ok.copy()))
+        if self.learning:
+            _solve_all(self.A, self.b, self.ridge, self.mix)
         self.ok = ok
         self.last = qs
+        self.ahead = None
+        if np.any(ok):
+            self.ahead = self._ahead(p.horizon_s)
+            self.pending.append((now + p.horizon_s, np.ascontiguousarray(self.ahead.transpose(1, 0, 2)), qs, ok.copy()))
+
+    def _ahead(self, horizon: float) -> FloatArray:
+        """Every member's prediction (M, S, 4) at ``horizon`` s from the latest frame; the measured orientation
+        where a candidate has none, as in batch."""
+        C = len(self.streams)
+        out = np.empty((C + (1 if self.combined else 0), self.n_sensors, 4))
+        for c, s in enumerate(self.streams):
+            out[c] = s.predict(horizon)
+        ahead = out[:C]
+        ahead[:] = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, self.last[None])
+        if self.combined:
+            if horizon > 0.0:
+                _combine_frame(ahead, self.mix, self.last, self.ok, out[C])
+            else:
+                out[C] = self.last
+        return out
 
     def predict(self, horizon):
         d = float(check_horizons(horizon)[0])
         if self.ahead is not None and d == self.predictor.horizon_s:  # the live loop's case: computed by update
             ahead = self.ahead
         else:
-            ahead = np.stack([s.predict(d) for s in self.streams])  # (C, S, 4)
-            ahead = np.where(np.all(np.isfinite(ahead), axis=-1, keepdims=True), ahead, self.last[None])  # as batch
+            ahead = self._ahead(d)
         out = np.empty((self.n_sensors, 4))
         _blend_frame(ahead, self.weights, self.last, self.ok, out)
         return out
