@@ -1,15 +1,96 @@
-"""Repository-wide pytest set-up: the doctest of docs/python.md runs the whole pipeline, so it is slow."""
+"""Repository-wide pytest set-up: the doctest of docs/python.md runs the whole pipeline, so it is slow.
 
+The suite runs on two processes (pytest-xdist, ``addopts`` in pyproject.toml). On an empty compile cache both
+would compile the same numba kernels at the same time; :func:`_compile_once_across_workers` makes the second
+process wait for the first one's compilation and load it from numba's on-disk cache instead.
+"""
+
+import contextlib
+import hashlib
 import os
+import tempfile
+import threading
+from pathlib import Path
 
 import pytest
+
+try:
+    import fcntl
+except ImportError:  # not on Windows: the workers may then compile a kernel twice, nothing worse
+    fcntl = None
 
 # the tests exercise the compiled kernels, whatever the state of the cache: no interpreted stand-ins for small
 # inputs (ivc.compiled; tests/test_compiled.py tests those on purpose). Subprocesses inherit it.
 os.environ.setdefault("IVC_INTERPRETED_MAX", "0")
 
 
+#: test modules that run a live loop against sockets with a few seconds' timeouts: kept on one worker, one after
+#: the other (on a loaded machine, a sibling test's compilation or interpreted kernels starved them)
+LIVE_LOOP_MODULES = {"test_live.py", "test_live_robust.py", "test_live_startup.py", "test_pose_only.py"}
+
+
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if type(item).__name__ == "DoctestItem":
             item.add_marker(pytest.mark.slow)
+        # ``--dist loadgroup`` (pyproject.toml): a module's tests stay on one worker (its module-scoped fixtures,
+        # e.g. a simulated session or a demo run, are built once), the live-loop modules share one worker
+        module = item.path.name
+        item.add_marker(pytest.mark.xdist_group("live-loop" if module in LIVE_LOOP_MODULES else module))
+
+
+def _compile_once_across_workers(run_id: str) -> None:
+    """Serialise, across the xdist workers of one run, the compilation of each cached numba kernel.
+
+    Numba compiles a ``cache=True`` kernel only after looking for it in its on-disk cache, and writes it there
+    when done (atomically). Holding a per-kernel file lock around that compile means a worker that needs a
+    kernel the other worker is compiling waits for it, then finds it in the cache (well under a second)
+    instead of compiling it again (tens of seconds). The lock is taken inside numba's own (re-entrant,
+    per-process) compiler lock, so within a process only one thread ever waits on a file lock; kernels call
+    kernels along an acyclic graph, so two workers cannot wait on each other. Results are the same: the
+    cache holds what either worker would have compiled.
+    """
+    from numba.core import caching, dispatcher
+    from numba.core.compiler_lock import global_compiler_lock
+
+    folder = Path(tempfile.gettempdir()) / f"ivc-compile-locks-{run_id}"
+    folder.mkdir(exist_ok=True)
+    held: dict[str, int] = {}  # lock name -> depth (a kernel compiling for one signature inside another's)
+    guard = threading.Lock()
+    compile_ = dispatcher.Dispatcher.compile
+
+    @contextlib.contextmanager
+    def locked(name: str):
+        with guard:
+            depth = held.get(name, 0)
+            held[name] = depth + 1
+        try:
+            if depth:
+                yield
+                return
+            with open(folder / name, "w") as f:
+                fcntl.flock(f, fcntl.LOCK_EX)
+                try:
+                    yield
+                finally:
+                    fcntl.flock(f, fcntl.LOCK_UN)
+        finally:
+            with guard:
+                held[name] -= 1
+
+    def compile_once(self, sig):
+        cache = getattr(self, "_cache", None)
+        if cache is None or isinstance(cache, caching.NullCache):
+            return compile_(self, sig)
+        try:
+            index = str(cache._cache_file._index_path)
+        except AttributeError:  # another numba's internals: compile as numba would
+            return compile_(self, sig)
+        with global_compiler_lock, locked(hashlib.sha1(index.encode()).hexdigest()):
+            return compile_(self, sig)
+
+    dispatcher.Dispatcher.compile = compile_once
+
+
+if os.environ.get("PYTEST_XDIST_WORKER") and fcntl is not None and os.environ.get("IVC_TEST_COMPILE_LOCK", "1") != "0":
+    _compile_once_across_workers(os.environ.get("PYTEST_XDIST_TESTRUNUID", "run"))
