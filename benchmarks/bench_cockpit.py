@@ -8,7 +8,8 @@ of the same session (``ivc fit`` without the extension sweeps: the harmonic fit 
 Targets: >= 95 % of the box mapped, >= 95 % of the check poses trusted; corrected position median
 <= 0.2 mm, p95 <= 1 mm, max <= 5 mm, orientation median <= 1 mrad, in the declared cube frame
 (uncorrected beside); where the single-frame noise floor (Cramér-Rao bound at the check poses,
-``ivc.sim.noise_floor``) exceeds half a target, the target becomes twice the floor; the error
+``ivc.sim.noise_floor``) exceeds a target, that target becomes twice the floor (the issue's rule,
+applied to the same statistic of the floor; a floor below the target gives no relief); the error
 against distance from the cube in fifths, outermost within 2x the innermost at the median; the
 whole cockpit pipeline (collect, fit with the joint solve, evaluate) <= 5 minutes and <= 4 GB.
 Then the default scene: the equivalent-source fit beside the harmonic fit (the default) on the
@@ -36,6 +37,11 @@ from ivc.sim.tracker import noise_sigma
 
 TARGETS_MM = {"p50": 0.2, "p95": 1.0, "max": 5.0}
 TARGET_MRAD = 1.0
+
+
+def relieved(target: float, floor: float) -> float:
+    """The target a figure is held to: ``target``, or twice the noise floor where the floor exceeds it."""
+    return 2.0 * floor if floor > target else target
 #: bench_lut's held values of the default fit (refinement on), to show the default is unchanged
 DEFAULT_BEFORE = {"p50": 0.04276, "p95": 0.2509}
 
@@ -129,14 +135,14 @@ def run() -> list[Figure]:
                       np.percentile(position[ok], 95) if key == "p95" else np.max(position[ok]))
         floor = float(np.median(floor_mm[ok]) if key == "p50" else
                       np.percentile(floor_mm[ok], 95) if key == "p95" else np.max(floor_mm[ok]))
-        target = max(TARGETS_MM[key], 2 * floor)
+        target = relieved(TARGETS_MM[key], floor)
         bound = f"<= {target:.3g} mm" + (" (2x floor)" if target > TARGETS_MM[key] else "")
         figures.append(Figure(f"cockpit: corrected position {label}", value, "mm", "uncorrected",
                               dipole_position[key], bound, value <= target, higher_is_better=False))
         figures.append(Figure(f"cockpit: noise floor (CRB) {label}", floor, "mm", target="(reference)"))
     value = float(np.median(orientation[ok]))
     floor = float(np.median(floor_mrad[ok]))
-    target = max(TARGET_MRAD, 2 * floor)
+    target = relieved(TARGET_MRAD, floor)
     figures.append(Figure("cockpit: corrected orientation median", value, "mrad", "uncorrected",
                           report["dipole"]["orientation_mrad"]["p50"], f"<= {target:.3g} mrad", value <= target,
                           higher_is_better=False))
