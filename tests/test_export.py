@@ -394,6 +394,7 @@ def test_vrui_leaves_poses_outside_the_grid_alone(table, reported_grid, tmp_path
     assert np.allclose(base, (g.origin - VRUI_MARGIN * g.spacing) * MM) and np.allclose(cell, g.spacing * MM)
 
 
+@pytest.mark.slow  # every export format through the CLI, end to end
 def test_cli_export_every_format_and_refuse_to_overwrite(table, tmp_path):
     lut_path = tmp_path / "map.h5"
     write_lut(table, lut_path)

@@ -6,6 +6,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 from pyigtl import TransformMessage
 
 from ivc import compiled, rotations
@@ -40,6 +41,7 @@ def _received(consumer, framer, count, deadline):
     return out
 
 
+@pytest.mark.slow  # the whole live loop on interpreted kernels (its seed map built by NumPy): ~14 s
 def test_live_connects_at_once_on_a_cold_cache_and_switches_to_compiled(exact_table, rng, monkeypatch):
     ready, go = threading.Event(), threading.Event()
     monkeypatch.setattr(compiled, "SMALL", 64)

@@ -68,6 +68,7 @@ def test_collect_replays_a_plus_file_into_a_session(tmp_path):
     assert step.sensor_ids == ["ProbeToTracker", "ReferenceToTracker", "StylusToTracker"]
 
 
+@pytest.mark.slow  # `ivc correct` of a PLUS sequence file, end to end
 def test_correct_writes_the_sequence_back_with_ivc_transforms_added(exact_table, tmp_path):  # noqa: F811
     path = real(FILES[0])
     lut_file = tmp_path / "lut.h5"

@@ -228,6 +228,7 @@ def test_report_corrects_pose_only_check_poses_through_the_pose_path(pose_only_t
     assert summarise(view.errors)["ivc"] == other["ivc"] != expected["ivc"]
 
 
+@pytest.mark.slow  # the live loop end to end over sockets
 def test_live_transform_input_is_corrected_and_published_as_trusted_tdata(exact_table, rng):
     r, T, v, Q = reported(rng, 8 * 3)
     m = np.zeros((8, 3, 4, 4))
