@@ -15,7 +15,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.dipole.kernels import closed_form_one, closed_form_position, field_matrix
+from ivc.dipole.kernels import closed_form_one, closed_form_position, dipole_jacobian, field_matrix
 from ivc.linalg import quaternion_of, rotate_increment, rotation_polar_factor, solve_spd6
 from ivc.lut.kernels import grid_contains, grid_point_separable, grid_value
 from ivc.pose.kernels import accept_step, damped_matrix, gauss_newton_matrix, pose_residual, residual_cost
@@ -36,22 +36,8 @@ def _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K):
 @numba.njit
 def pose_model_separable(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch):
     """:func:`pose_model` with the separable look-up (its partial sums in ``scratch`` (3, C))."""
-    x, y, z = r[0], r[1], r[2]
-    field_matrix(x, y, z, M)
-    rho2 = x * x + y * y + z * z
-    inv5 = 1.0 / (rho2 * rho2 * np.sqrt(rho2))
-    inv7 = inv5 / rho2
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                s = 0.0
-                if i == k:
-                    s += r[j]
-                if j == k:
-                    s += r[i]
-                if i == j:
-                    s += r[k]
-                dM[i, j, k] = 3.0 * s * inv5 - 15.0 * r[i] * r[j] * r[k] * inv7
+    field_matrix(r[0], r[1], r[2], M)
+    dipole_jacobian(r, dM)
     mapped = grid_point_separable(grid, r, g, dg, wx, wy, wz, dx, dy, dz, scratch)
     for i in range(3):
         for j in range(3):

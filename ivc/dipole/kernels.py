@@ -36,6 +36,25 @@ def field_matrix(x, y, z, out):
     out[1, 2] = out[2, 1] = f12
 
 
+@numba.njit(inline="always")
+def dipole_jacobian(r, dM):
+    """∂f_D/∂r (3, 3, 3) at r: 3 (δ_ik r_j + δ_jk r_i + δ_ij r_k)/|r|⁵ − 15 r_i r_j r_k/|r|⁷."""
+    rho2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+    inv5 = 1.0 / (rho2 * rho2 * np.sqrt(rho2))
+    inv7 = inv5 / rho2
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                s = 0.0
+                if i == k:
+                    s += r[j]
+                if j == k:
+                    s += r[i]
+                if i == j:
+                    s += r[k]
+                dM[i, j, k] = 3.0 * s * inv5 - 15.0 * r[i] * r[j] * r[k] * inv7
+
+
 @numba.njit(**_OPTS)
 def field_kernel(r, out):  # pragma: no cover - compiled
     for n in numba.prange(r.shape[0]):

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.dipole.kernels import field_matrix
+from ivc.dipole.kernels import dipole_jacobian, field_matrix
 
 _OPTS = dict(parallel=True, cache=True, nogil=True)
 
@@ -212,22 +212,8 @@ def grid_value(grid, p, value, wx, wy, wz, dx, dy, dz):
 @numba.njit
 def pose_model(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz):
     """M = f_D(r) + g(r) (3, 3) and ∂M/∂r (3, 3, 3); returns whether r is in the mapped volume."""
-    x, y, z = r[0], r[1], r[2]
-    field_matrix(x, y, z, M)
-    rho2 = x * x + y * y + z * z
-    inv5 = 1.0 / (rho2 * rho2 * np.sqrt(rho2))
-    inv7 = inv5 / rho2
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                s = 0.0
-                if i == k:
-                    s += r[j]
-                if j == k:
-                    s += r[i]
-                if i == j:
-                    s += r[k]
-                dM[i, j, k] = 3.0 * s * inv5 - 15.0 * r[i] * r[j] * r[k] * inv7
+    field_matrix(r[0], r[1], r[2], M)
+    dipole_jacobian(r, dM)
     mapped = grid_point(grid, r, g, dg, wx, wy, wz, dx, dy, dz)
     for i in range(3):
         for j in range(3):
