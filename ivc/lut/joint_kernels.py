@@ -17,7 +17,7 @@ import numpy as np
 
 from ivc.linalg import rotate_increment, solve_spd6
 from ivc.lut.kernels import pose_model
-from ivc.lut.rigid_kernels import add_sensor, clear, symmetrise
+from ivc.lut.rigid_kernels import accept_trial, add_sensor, clear, symmetrise
 from ivc.pose.kernels import damped_matrix, pose_residual
 
 
@@ -75,14 +75,7 @@ def wand_kernel(S, use, scale, b, R, grid, max_iterations, tolerance, active, r,
             trial = _normal(S[f], use[f], scale[f], b, R, grid, rt, Tt, Ht, gradt, work)
             small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance
             if trial <= cost:
-                for a in range(3):
-                    r[f, a] = rt[a]
-                    for c in range(3):
-                        T[f, a, c] = Tt[a, c]
-                for a in range(6):
-                    grad[a] = gradt[a]
-                    for c in range(6):
-                        H[a, c] = Ht[a, c]
+                accept_trial(r[f], rt, T[f], Tt, H, Ht, grad, gradt)
                 cost = trial
                 damping = max(damping * 0.3, 1e-12)
                 if small:

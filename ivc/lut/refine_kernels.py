@@ -16,7 +16,7 @@ import numpy as np
 from ivc.fixtures.kernels import cube_model
 from ivc.linalg import rotate_increment, solve_spd6
 from ivc.lut.kernels import pose_model
-from ivc.lut.rigid_kernels import add_sensor, clear, symmetrise
+from ivc.lut.rigid_kernels import accept_trial, add_sensor, clear, symmetrise
 from ivc.pose.kernels import damped_matrix, pose_residual
 
 
@@ -79,14 +79,7 @@ def rigid_kernel(S, valid, scale, b, R, centre, cube_scale, coefficients, grid, 
                             work)
             small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance
             if trial <= cost:
-                for a in range(3):
-                    r[f, a] = rt[a]
-                    for c in range(3):
-                        T[f, a, c] = Tt[a, c]
-                for a in range(6):
-                    grad[a] = gradt[a]
-                    for c in range(6):
-                        H[a, c] = Ht[a, c]
+                accept_trial(r[f], rt, T[f], Tt, H, Ht, grad, gradt)
                 cost = trial
                 damping = max(damping * 0.3, 1e-12)
                 if small:

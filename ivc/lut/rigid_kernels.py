@@ -6,7 +6,8 @@ Both the refinement's solve (:mod:`ivc.lut.refine_kernels`) and the joint map's
 ``J`` (9, 6) with respect to its own position and rotation increment, the chain to sensor 0's
 increments is ``∂r_n/∂r_0 = I``, ``∂r_n/∂ω = −T_0 [b_n]×`` and ``ω_n = R_nᵀ ω``; the sensor's rows are
 weighted by ``w = 1 / rms(S_n)``. :func:`add_sensor` adds them to ``H = JᵀJ`` (lower triangle) and
-``grad = −Jᵀe``; :func:`symmetrise` fills the upper triangle once all sensors are in.
+``grad = −Jᵀe``; :func:`symmetrise` fills the upper triangle once all sensors are in;
+:func:`accept_trial` makes an accepted Levenberg-Marquardt trial the current pose and equations.
 """
 
 from __future__ import annotations
@@ -62,3 +63,17 @@ def symmetrise(H):
     for a in range(6):
         for c in range(a):
             H[c, a] = H[a, c]
+
+
+@numba.njit(inline="always")
+def accept_trial(r, rt, T, Tt, H, Ht, grad, gradt):
+    """The trial pose (rt (3,), Tt (3, 3)) and its normal equations (Ht (6, 6), gradt (6,)) become the
+    current ones (r, T, H, grad; copied in place)."""
+    for a in range(3):
+        r[a] = rt[a]
+        for c in range(3):
+            T[a, c] = Tt[a, c]
+    for a in range(6):
+        grad[a] = gradt[a]
+        for c in range(6):
+            H[a, c] = Ht[a, c]
