@@ -8,6 +8,7 @@ from ivc.dipole.calibrate import Fixtures, rigid_transform
 from ivc.dipole.tracker import Tracker
 from ivc.lut import harmonics
 from ivc.lut.samples import FieldSamples
+from ivc.predict.delta import delta_q
 from ivc.session import Session, Step, Truth
 from ivc.sim.scene import NoiseSpec
 from ivc.sim.tracker import measure
@@ -124,3 +125,16 @@ def reported_matrices(S):
     m = np.zeros((*S.shape[:-2], 4, 4))
     m[..., :3, :3], m[..., :3, 3], m[..., 3, 3] = rotation, position * 1000.0, 1.0
     return m.astype(np.float32)
+
+
+def wandering_head(rng, n=900):
+    """A smooth random head motion (t (n,) s at jittered 12-22 ms steps, q (n, 4)) with a stale frame every 23
+    from frame 200 (the sample repeated)."""
+    t = np.cumsum(rng.uniform(0.012, 0.022, n))
+    w = np.stack([np.convolve(rng.normal(0, 3.0, n + 40), np.ones(40) / 40, "valid")[:n] for _ in range(3)], 1)
+    q = np.empty((n, 4))
+    q[0] = rotations.random(1, rng)[0]
+    for k in range(1, n):
+        q[k] = rotations.multiply(delta_q(w[k] * (t[k] - t[k - 1]), 1.0), q[k - 1])
+    q[200::23] = q[199::23][: len(q[200::23])]  # stale frames
+    return t, q

@@ -10,7 +10,7 @@ from ivc.errors import PredictorError
 from ivc.predict import make
 from ivc.predict.auto import CANDIDATES, AutoPredictor
 from ivc.predict.combine import combine, ridge_for
-from ivc.predict.delta import delta_q
+from tests.helpers import wandering_head
 
 
 def _members(rng, n=600, C=4):
@@ -88,19 +88,8 @@ def test_combine_refuses_bad_input(rng):
             combine(turns, target, known, t, horizon)
 
 
-def _wander(rng, n=900):
-    t = np.cumsum(rng.uniform(0.012, 0.022, n))
-    w = np.stack([np.convolve(rng.normal(0, 3.0, n + 40), np.ones(40) / 40, "valid")[:n] for _ in range(3)], 1)
-    q = np.empty((n, 4))
-    q[0] = rotations.random(1, rng)[0]
-    for k in range(1, n):
-        q[k] = rotations.multiply(delta_q(w[k] * (t[k] - t[k - 1]), 1.0), q[k - 1])
-    q[200::23] = q[199::23][: len(q[200::23])]  # stale frames
-    return t, q
-
-
 def test_auto_with_the_combination_is_causal(rng):
-    t, q = _wander(rng)
+    t, q = wandering_head(rng)
     p = make("auto", 60.0)
     assert p.members == (*CANDIDATES, "combine")
     pred, weights = p.selections(q, [0.05, 0.1], time=t)
@@ -114,7 +103,7 @@ def test_auto_with_the_combination_is_causal(rng):
 
 
 def test_auto_without_the_combination_is_the_selection_alone(rng):
-    t, q = _wander(rng, 500)
+    t, q = wandering_head(rng, 500)
     on, off = make("auto", 60.0), AutoPredictor(60.0, combination=False)
     assert off.members == tuple(CANDIDATES)
     pred_off, w_off = off.selections(q, [0.05], time=t)

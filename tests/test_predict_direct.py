@@ -8,23 +8,17 @@ import pytest
 from ivc import rotations
 from ivc.errors import PredictorError
 from ivc.predict import make
-from ivc.predict.delta import delta_q
 from ivc.predict.direct import DirectPredictor
 from ivc.predict.recording import future_reference, score
 from ivc.predict.timing import repeats
+from tests.helpers import wandering_head
 
 HEAD = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "head_motion" / "user1_quaternion.txt"
 
 
 def _wander(rng, n=900):
     """A smooth random head motion at jittered 12-22 ms steps, with repeats and a few invalid samples."""
-    t = np.cumsum(rng.uniform(0.012, 0.022, n))
-    w = np.stack([np.convolve(rng.normal(0, 3.0, n + 40), np.ones(40) / 40, "valid")[:n] for _ in range(3)], 1)
-    q = np.empty((n, 4))
-    q[0] = rotations.random(1, rng)[0]
-    for k in range(1, n):
-        q[k] = rotations.multiply(delta_q(w[k] * (t[k] - t[k - 1]), 1.0), q[k - 1])
-    q[200::23] = q[199::23][: len(q[200::23])]  # stale frames
+    t, q = wandering_head(rng, n)
     q[5::2] *= -1  # sign flips
     valid = np.ones(n, bool)
     valid[400:404] = False
