@@ -143,11 +143,12 @@ def test_an_interrupted_fit_or_collect_leaves_no_partial_output_and_the_input_in
     interrupted = False
     for delay in (4.0, 2.5, 1.5, 0.8, 0.3):  # a fast machine may finish the small fit before the first delays
         code, err = _interrupt(["fit", session_file, "-o", tmp_path / "lut.h5"], tmp_path, delay)
-        if code != 0:
-            assert not (tmp_path / "lut.h5").exists(), err
+        if code != 0 and not (tmp_path / "lut.h5").exists():
             interrupted = True
             break
-        read_lut(tmp_path / "lut.h5")  # finished first: then the table is whole
+        # The fit finished first, or the signal came after the atomic rename (while the summary printed or the
+        # interpreter exited): either way the table on disk must be whole.
+        read_lut(tmp_path / "lut.h5")
         (tmp_path / "lut.h5").unlink()
     assert interrupted
     code, err = _interrupt(["collect", "protocol", "-o", tmp_path / "new.h5", "--sweep-frames", "200000"], tmp_path,
