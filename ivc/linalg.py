@@ -169,7 +169,7 @@ def frobenius3(A):
     return np.sqrt(s)
 
 
-@numba.njit(error_model="numpy")  # not inlined: compiled once; inf/NaN as in a parallel kernel
+@numba.njit(cache=True, error_model="numpy")  # not inlined: compiled once; inf/NaN as in a parallel kernel
 def principal_eigenvector(B, work_a, work_b, v):
     """Unit eigenvector of the largest eigenvalue of a symmetric PSD 3x3 matrix.
 
@@ -207,7 +207,7 @@ def principal_eigenvector(B, work_a, work_b, v):
         v[2] = w2 / nrm
 
 
-@numba.njit
+@numba.njit(cache=True)
 def rotation_polar_factor(K, X, work, out):
     """Rotation nearest to K (orthogonal Procrustes), written into out.
 
@@ -246,7 +246,7 @@ def rotation_polar_factor(K, X, work, out):
             out[i, j] = X[i, j]
 
 
-@numba.njit
+@numba.njit(cache=True)
 def rotate_increment(T, w, out):
     """out = T exp([w]×) (Rodrigues: exp([w]×) = I + a [w]× + b [w]×²)."""
     angle2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]

@@ -27,13 +27,13 @@ FIXED_POINT_STEPS = 2
 # kernels take minutes (the cold start of `ivc correct`).
 
 
-@numba.njit
+@numba.njit(cache=True)
 def _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K):
     """ivc.dipole's closed-form pose of one frame, compiled once here rather than inlined at each use."""
     closed_form_one(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
 
 
-@numba.njit
+@numba.njit(cache=True)
 def pose_model_separable(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch):
     """:func:`pose_model` with the separable look-up (its partial sums in ``scratch`` (3, C))."""
     field_matrix(r[0], r[1], r[2], M)
@@ -47,7 +47,7 @@ def pose_model_separable(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch)
     return mapped
 
 
-@numba.njit
+@numba.njit(cache=True)
 def workspace(channels):
     """The scratch arrays of one frame's correction, allocated once and reused over many frames
     (per-frame allocation was a measurable share of the batched correction)."""
@@ -61,7 +61,7 @@ def workspace(channels):
             np.empty((3, channels)))  # the look-up's partial sums
 
 
-@numba.njit
+@numba.njit(cache=True)
 def correct_one(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, r, T):
     """Correct one frame: S (3, 3), seed (3,) (NaN: no warm start) -> r (3,), T (3, 3) written in place.
     ``grid``: the table; ``seed_map``: the correction map (used for a cold start when ``use_map``).
@@ -72,7 +72,7 @@ def correct_one(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, to
                           workspace(grid[0].shape[3]))
 
 
-@numba.njit
+@numba.njit(cache=True)
 def correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, r, T, ws):
     """:func:`correct_one` with its scratch arrays from ``ws`` (:func:`workspace`)."""
     M, dM, g, dg, wx, wy, wz, dx, dy, dz = ws[0], ws[1], ws[2], ws[3], ws[4], ws[5], ws[6], ws[7], ws[8], ws[9]
@@ -174,7 +174,7 @@ def correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations,
     return converged, iterations, np.sqrt(lam / s2), mapped
 
 
-@numba.njit
+@numba.njit(cache=True)
 def correct_best(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r, T):
     """correct_one, retried when the result is poor (not converged, or residual above ``retry_residual``).
 
@@ -187,7 +187,7 @@ def correct_best(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, t
                            r, T, workspace(grid[0].shape[3]))
 
 
-@numba.njit
+@numba.njit(cache=True)
 def correct_best_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r, T,
                     ws):
     """:func:`correct_best` with its scratch arrays from ``ws`` (:func:`workspace`)."""
@@ -217,8 +217,9 @@ def correct_best_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations
         if k > 0 and not (np.isfinite(candidates[k, 0]) and np.isfinite(candidates[k, 1])
                           and np.isfinite(candidates[k, 2])):
             continue
-        c2, it2, res2, m2 = correct_one_in(S, candidates[k], hemisphere, grid, seed_map, False, max_iterations,
-                                           tolerance, trial_r, trial_T, ws)
+        # np.bool_(False), not a literal False: the same specialisation of correct_one_in as the first call
+        c2, it2, res2, m2 = correct_one_in(S, candidates[k], hemisphere, grid, seed_map, np.bool_(False),
+                                           max_iterations, tolerance, trial_r, trial_T, ws)
         it += it2
         if (c2 and not best[0]) or (c2 == best[0] and res2 < best[2]):
             best = (c2, it, res2, m2)

@@ -34,7 +34,7 @@ _OPTS = dict(parallel=True, cache=True, nogil=True)
 BACKTRACKS = 12
 
 
-@numba.njit(error_model="numpy")
+@numba.njit(cache=True, error_model="numpy")
 def _field_at(r, grid, g, wx, wy, wz, dx, dy, dz, F):
     """F = f_D(r) + g(r) (3, 3); returns (usable, mapped)."""
     rho2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
@@ -50,7 +50,7 @@ def _field_at(r, grid, g, wx, wy, wz, dx, dy, dz, F):
     return (tr > 0.0) and np.isfinite(tr), mapped
 
 
-@numba.njit(error_model="numpy")
+@numba.njit(cache=True, error_model="numpy")
 def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, converged_out, iterations_out,
                mapped_out, n):
     """Invert one sample from ``start`` (3,) with the inverse-Jacobian estimate H (3, 3, updated in place) into
@@ -136,7 +136,7 @@ def invert_kernel(v, start, H, h, grid, max_iterations, tolerance, r, C, miss, c
     """Invert every sample n from ``start[n]`` with the inverse-Jacobian estimates ``H[n]`` (updated in place)."""
     for n in numba.prange(v.shape[0]):
         invert_one(v[n], start[n], H[n], h, grid, max_iterations, tolerance, r[n], C[n], miss, converged, iterations,
-                   mapped, n)
+                   mapped, np.int64(n))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -145,7 +145,7 @@ def invert_serial(v, start, H, h, grid, max_iterations, tolerance, r, C, miss, c
     """:func:`invert_kernel` without threads: for a few samples at a time (a live frame)."""
     for n in range(v.shape[0]):
         invert_one(v[n], start[n], H[n], h, grid, max_iterations, tolerance, r[n], C[n], miss, converged, iterations,
-                   mapped, n)
+                   mapped, np.int64(n))
 
 
 _OUTSIDE, _NOT_CONVERGED, _HIGH_RESIDUAL, _INVALID_INPUT = OUTSIDE, NOT_CONVERGED, HIGH_RESIDUAL, INVALID_INPUT
@@ -214,7 +214,7 @@ def stream_kernel(v, Q, slots, offset, tracked, h, grid, max_iterations, toleran
             start[a] = v[n, a] + offset[slot, a] if tracked[slot] else v[n, a]
             for b in range(3):
                 H[a, b] = 1.0 if a == b else 0.0
-        invert_one(v[n], start, H, h, grid, max_iterations, tolerance, r[n], C, m, c, it, mp, 0)
+        invert_one(v[n], start, H, h, grid, max_iterations, tolerance, r[n], C, m, c, it, mp, np.int64(0))
         flags[n] = _compose_one(C, Q[n], mp[0], c[0], m[0], max_residual, q[n])
         miss[n], iterations[n] = m[0], it[0]
         tracked[slot] = flags[n] == 0

@@ -75,7 +75,7 @@ def signal_kernel(r, T, out):  # pragma: no cover - compiled
             out[n, i, 2] = a * f02 + b * f12 + c * f22
 
 
-@numba.njit(error_model="numpy")  # compiled once; inf/NaN as in a parallel kernel
+@numba.njit(cache=True, error_model="numpy")  # compiled once; inf/NaN as in a parallel kernel
 def closed_form_position(S, hemisphere, r, work_a, work_b, v, B):
     """The position of :func:`closed_form_one` (the same operations) into r (3,), without the orientation: range
     from tr SᵀS, direction its principal eigenvector on the hemisphere's side (docs/math.md §3)."""
@@ -93,7 +93,7 @@ def closed_form_position(S, hemisphere, r, work_a, work_b, v, B):
 
 
 
-@numba.njit(error_model="numpy")  # not inlined: compiled once; inf/NaN as in a parallel kernel
+@numba.njit(cache=True, error_model="numpy")  # not inlined: compiled once; inf/NaN as in a parallel kernel
 def closed_form_one(s, hemisphere, r_out, T_out, work_a, work_b, v, B, F, K):
     """Closed-form dipole pose (docs/math.md §3) of one signal matrix s, into r_out (3,) and T_out (3, 3).
 

@@ -68,7 +68,7 @@ def axis_weights(t, cubic, w, dw):
         dw[3] = 0.0
 
 
-@numba.njit
+@numba.njit(cache=True)
 def grid_point(grid, p, value, gradient, wx, wy, wz, dx, dy, dz):
     """Value (C,) and gradient (C, 3) of the table ``grid`` (:data:`GRID`) at one point p; returns whether p
     is in a valid cell."""
@@ -116,7 +116,7 @@ def grid_point(grid, p, value, gradient, wx, wy, wz, dx, dy, dz):
     return in_x and in_y and in_z and valid_cells[i, j, k]
 
 
-@numba.njit
+@numba.njit(cache=True)
 def grid_point_separable(grid, p, value, gradient, wx, wy, wz, dx, dy, dz, scratch):
     """:func:`grid_point` contracted one axis at a time (z, then y, then x) with the partial sums in
     ``scratch`` (3, C): 1,728 multiply-adds for the cubic stencil of 9 channels instead of 2,304, and
@@ -168,7 +168,7 @@ def grid_point_separable(grid, p, value, gradient, wx, wy, wz, dx, dy, dz, scrat
     return in_x and in_y and in_z and valid_cells[i, j, k]
 
 
-@numba.njit
+@numba.njit(cache=True)
 def grid_contains(grid, p):
     """Whether p (3,) is in a valid cell: what :func:`grid_point` returns, without the interpolation."""
     _, valid_cells, origin, spacing, shape, _ = grid
@@ -178,7 +178,7 @@ def grid_contains(grid, p):
     return in_x and in_y and in_z and valid_cells[i, j, k]
 
 
-@numba.njit
+@numba.njit(cache=True)
 def grid_value(grid, p, value, wx, wy, wz, dx, dy, dz):
     """:func:`grid_point` without the gradient (a quarter of its arithmetic): value (C,) at p, and
     whether p is in a valid cell. The same weights and summation order, so the same value."""
@@ -209,7 +209,7 @@ def grid_value(grid, p, value, wx, wy, wz, dx, dy, dz):
     return in_x and in_y and in_z and valid_cells[i, j, k]
 
 
-@numba.njit
+@numba.njit(cache=True)
 def pose_model(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz):
     """M = f_D(r) + g(r) (3, 3) and ∂M/∂r (3, 3, 3); returns whether r is in the mapped volume."""
     field_matrix(r[0], r[1], r[2], M)

@@ -20,7 +20,7 @@ from ivc.lut.rigid_kernels import accept_trial, add_sensor, clear, symmetrise
 from ivc.pose.kernels import damped_matrix, pose_residual
 
 
-@numba.njit(inline="always")
+@numba.njit(cache=True)  # not inlined: rigid_kernel calls it twice, and two copies of its IR doubled the compile
 def _normal(S, valid, scale, b, R, centre, cube_scale, coefficients, grid, r0, T0, H, grad, work):
     """Cost Σ|e|², H = JᵀJ (6, 6) and grad = −Jᵀe (6,) of the rigid wand at (r0, T0)."""
     M, dM, G, H3, g, dg, wx, wy, wz, dx, dy, dz, p, Tn, e, J, Jc, lever = work

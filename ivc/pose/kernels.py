@@ -13,7 +13,7 @@ from __future__ import annotations
 import numba
 
 
-@numba.njit
+@numba.njit(cache=True)
 def pose_residual(S, M, dM, T, e, J):
     """e = S − Tᵀ M (9,) and its Jacobian (9, 6) in (δr, ω)."""
     for i in range(3):
@@ -51,7 +51,7 @@ def residual_cost(e):
 
 
 
-@numba.njit
+@numba.njit(cache=True)
 def gauss_newton_matrix(J, e, H, grad):
     """H = JᵀJ (6, 6) and grad = −Jᵀe (6,) of a 9-residual, 6-unknown pose step."""
     for a in range(6):
@@ -68,7 +68,7 @@ def gauss_newton_matrix(J, e, H, grad):
 
 
 
-@numba.njit
+@numba.njit(cache=True)
 def damped_matrix(H, damping, A):
     """A = H with Levenberg-Marquardt damping on its diagonal, ``damping · max(H_aa, 1e-30 · max_b H_bb)``
     (A may be H itself)."""
@@ -82,7 +82,7 @@ def damped_matrix(H, damping, A):
 
 
 
-@numba.njit
+@numba.njit(cache=True)
 def accept_step(r, rt, T, Tt, e, et, J, Jt):
     """The trial pose (rt, Tt), its residual et and Jacobian Jt become the current ones (copied in place)."""
     for a in range(3):

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from ivc.linalg import cholesky, cholesky_solve
 from ivc.predict.base import (
     Predictor,
     PredictorError,
@@ -110,6 +111,9 @@ def _frame(q, ok, now, dt, horizon, memory, prior, floor, max_gap, max_step, lag
     D = 3 * lags
     P = pend_t.shape[1]
     phi = np.empty(D)
+    A = np.empty((D, D))
+    rhs = np.empty(D)
+    col = np.empty(D)
     y = np.empty(3)
     ref = np.empty(4)
     d = np.empty(4)
@@ -180,15 +184,21 @@ def _frame(q, ok, now, dt, horizon, memory, prior, floor, max_gap, max_step, lag
             scal[s, _READY] = 0.0
             continue
         _features(ht[s], hq[s], lags, phi)
-        A = L[s] + prior * np.eye(D)
-        rhs = B[s].copy()
+        for a in range(D):  # A = L + prior I: symmetric positive definite (prior > 0), solved by Cholesky
+            for b in range(D):
+                A[a, b] = L[s, a, b]
+            A[a, a] += prior
+        if not cholesky(A, D, A):  # NaN in the sums: no prediction from this sample
+            scal[s, _READY] = 0.0
+            continue
         for c in range(3):
-            rhs[c, c] += prior  # the prior W0: the newest interval's velocity (identity on the first 3 features)
-        W = np.linalg.solve(A, rhs)
-        for c in range(3):
+            for a in range(D):
+                rhs[a] = B[s, a, c]
+            rhs[c] += prior  # the prior W0: the newest interval's velocity (identity on the first 3 features)
+            cholesky_solve(A, D, rhs, col)
             acc = 0.0
             for a in range(D):
-                acc += phi[a] * W[a, c]
+                acc += phi[a] * col[a]
             vel[s, c] = acc
         scal[s, _READY] = 1.0
         if scal[s, _LEN] >= P:  # full: the oldest pending prediction is not learned

@@ -333,8 +333,9 @@ def run(qs, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R
     for s in numba.prange(qs.shape[1]):
         xs, Ps, pr, tp, qp, st, es, cl = (x[s].copy(), P[s].copy(), probs[s].copy(), tpm[s].copy(),
                                           q_prev[s].copy(), status[s].copy(), est[s].copy(), clock[s].copy())
-        filter_sensor(s, qs, ok, dt.copy(), xs, Ps, pr, tp, qp, st, es, cl, kinds.copy(), qvar.copy(), R.copy(),
-                      cfg.copy(), make_work(kinds.shape[0]), np.empty(4), out_est, out_ok, out_mu, out_age)
+        # np.int64(s): the parallel loop's index is typed twice (int64, then uint64); one type, one compile
+        filter_sensor(np.int64(s), qs, ok, dt.copy(), xs, Ps, pr, tp, qp, st, es, cl, kinds.copy(), qvar.copy(),
+                      R.copy(), cfg.copy(), make_work(kinds.shape[0]), np.empty(4), out_est, out_ok, out_mu, out_age)
         x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s], clock[s] = xs, Ps, pr, tp, qp, st, es, cl
 
 

@@ -421,8 +421,8 @@ def _frame_steps(vectors, ok, use, restart, now, x, P, logp, init, w, last, F, G
         dt = now - last[s] if init[s, 0, 0] == 1 else tau
         _discrete(F, GQG, kappa, dt, Phi, Qd)
         for v in range(2):
-            _step(vectors[s, v], True, x[s, v], P[s, v], logp[s, v], init[s, v], w[s, v], Phi, Qd, r, thr, log_pmin,
-                  none, dummy)
+            _step(vectors[s, v], np.bool_(True), x[s, v], P[s, v], logp[s, v], init[s, v], w[s, v], Phi, Qd, r, thr,
+                  log_pmin, none, dummy)
         last[s] = now
 
 

@@ -168,7 +168,7 @@ def _run(qs, ok, use, restart, t, x, P, status, W, V, tau, p0, out_x, out_ok, ou
                 ready = False
             if use[k, s]:
                 h = t[k] - last if status[s, 0] == 1 else tau
-                ready = _step(qs[k, s], True, x[s], P[s], status[s], W, V, h, p0, work, tau)
+                ready = _step(qs[k, s], np.bool_(True), x[s], P[s], status[s], W, V, h, p0, work, tau)
                 last = t[k]
             out_ok[k, s] = ready and ok[k, s]
             out_x[k, s] = x[s]
