@@ -331,7 +331,9 @@ class AutoPredictor(Predictor):
             for s, (ref, scored, known) in enumerate(references[i]):
                 err = np.full((M, F), np.nan)
                 err[:, scored] = 1e3 * rotations.angle_between(shown[:, i, scored, s], ref[scored][None])
-                _select(err, known, dt, self.memory_s, self.power, weights[i, :, s])
+                chosen = np.empty((F, M))  # contiguous, whatever S: one specialisation of _select
+                _select(err, known, dt, self.memory_s, self.power, chosen)
+                weights[i, :, s] = chosen
         out = blend(shown, np.moveaxis(weights, -1, 0), qs[None])
         out[:, ~ok] = np.nan
         return out, weights

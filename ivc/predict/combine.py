@@ -112,6 +112,7 @@ def _combine(turns, target, known, dt, memory, ridge, out, weights):
     order = np.argsort(known, kind="mergesort")
     A = np.zeros((3, C, C))
     b = np.zeros((3, C))
+    tk = np.empty((C, 3))
     e = 0
     while e < F and known[order[e]] < 0:
         e += 1
@@ -121,7 +122,8 @@ def _combine(turns, target, known, dt, memory, ridge, out, weights):
         while e < F and known[order[e]] == j:
             k = order[e]
             if np.isfinite(target[k, 0]) and np.isfinite(target[k, 1]) and np.isfinite(target[k, 2]):
-                accumulate(turns[:, k], target[k], A, b)
+                tk[:, :] = turns[:, k]  # contiguous, as auto's live step passes it: one specialisation
+                accumulate(tk, target[k], A, b)
             e += 1
         solve_weights(A, b, ridge, weights[j])
         for i in range(3):

@@ -161,7 +161,7 @@ def face_integral_matrix(mesh: ConductorMesh) -> np.ndarray:
     d = np.linalg.norm(centroids[pairs[:, 0]] - centroids[pairs[:, 1]], axis=1)
     pairs = pairs[d < NEAR_FACTOR * (radii[pairs[:, 0]] + radii[pairs[:, 1]])]
     near = np.concatenate([pairs, pairs[:, ::-1], np.repeat(np.arange(F), 2).reshape(-1, 2)])
-    f, g = near[:, 0], near[:, 1]
+    f, g = np.ascontiguousarray(near[:, 0]), np.ascontiguousarray(near[:, 1])  # one layout: one compile
     values = np.empty(len(near))
     _near_pair_kernel(np.ascontiguousarray(mesh.corners), f, g, QUAD_BARY, QUAD_WEIGHTS, values)
     P[f, g] = values
