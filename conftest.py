@@ -33,10 +33,31 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if type(item).__name__ == "DoctestItem":
             item.add_marker(pytest.mark.slow)
-        # ``--dist loadgroup`` (pyproject.toml): a module's tests stay on one worker (its module-scoped fixtures,
-        # e.g. a simulated session or a demo run, are built once), the live-loop modules share one worker
-        module = item.path.name
-        item.add_marker(pytest.mark.xdist_group("live-loop" if module in LIVE_LOOP_MODULES else module))
+
+
+def worker_group(nodeid: str) -> str:
+    """The worker group of a test: its module, or ``live-loop`` for the modules of :data:`LIVE_LOOP_MODULES`."""
+    module = nodeid.split("::", 1)[0]
+    return "live-loop" if Path(module).name in LIVE_LOOP_MODULES else module
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadgroup`` (pyproject.toml) by module: a module's tests stay on one worker, one after the other (its
+    module-scoped fixtures, e.g. a simulated session or a demo run, are built once), the live-loop modules share one.
+
+    Done here rather than with ``xdist_group`` marks: pytest-xdist 3.8 groups marked tests by renaming their node
+    ids (``item._nodeid``), which pytest 9 no longer reads, so the marks grouped nothing and a module's tests were
+    spread over both workers, each building the module's fixtures.
+    """
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ModuleScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return worker_group(nodeid)
+
+    return ModuleScheduling(config, log)
 
 
 def _compile_once_across_workers(run_id: str) -> None:
