@@ -108,7 +108,7 @@ def test_even_subset_thins_the_dense_region_first(rng):
     sparse = sparse[np.abs(sparse).max(axis=1) > 0.3]
     points = np.concatenate([dense, sparse])
     chosen = even_subset(points, 4_000, 0.04)
-    assert len(chosen) <= 4_000 and np.all(np.diff(chosen) > 0)
+    assert len(chosen) == 4_000 and np.all(np.diff(chosen) > 0)
     kept_sparse = np.sum(chosen >= len(dense))
     assert kept_sparse == len(sparse)  # one or two per cube out there: under any cap
     np.testing.assert_array_equal(even_subset(points, 4_000, 0.04), chosen)  # deterministic

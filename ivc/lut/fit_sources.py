@@ -168,7 +168,8 @@ class NormalEquations:
 def even_subset(positions: np.ndarray, max_samples: int, cell: float, seed: int = 0) -> np.ndarray:
     """Indices (sorted) of at most ``max_samples`` of the points (N, 3) m spread evenly over space: the points
     are binned in cubes of ``cell`` m and each cube keeps at most ``c`` of its points (in a fixed random
-    order), ``c`` the largest that keeps the total within ``max_samples``: a dense region (the cube sweep's
+    order), ``c`` the largest that keeps the total within ``max_samples``, the rest of the budget one more
+    from each of an even draw of the cubes holding more than ``c``: a dense region (the cube sweep's
     ball) gives up samples before a sparse one (the far faces, reached by one sensor of the wand)."""
     positions = np.asarray(positions, float)
     if len(positions) <= max_samples:
@@ -178,9 +179,7 @@ def even_subset(positions: np.ndarray, max_samples: int, cell: float, seed: int 
     keys = np.floor((positions - positions.min(axis=0)) / cell).astype(np.int64)
     _, box, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     box = box.reshape(-1)
-    low, high = 1, int(counts.max())  # the largest cap c with sum(min(counts, c)) <= max_samples
-    if np.minimum(counts, low).sum() > max_samples:
-        low = 0
+    low, high = 0, int(counts.max())  # the largest cap c with sum(min(counts, c)) <= max_samples
     while low < high:
         middle = (low + high + 1) // 2
         if np.minimum(counts, middle).sum() <= max_samples:
@@ -192,9 +191,10 @@ def even_subset(positions: np.ndarray, max_samples: int, cell: float, seed: int 
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     rank = np.arange(len(positions)) - starts[box[order]]
     chosen = order[rank < low]
-    if low == 0:  # more occupied cubes than samples allowed: one from each of an even draw of cubes
-        first = order[rank == 0]
-        chosen = first[np.linspace(0, len(first) - 1, max_samples).astype(int)]
+    spare = max_samples - len(chosen)  # filled with one more from each of an even draw of the fuller cubes
+    more = order[rank == low]
+    if spare > 0 and len(more):
+        chosen = np.concatenate([chosen, more[np.linspace(0, len(more) - 1, min(spare, len(more))).astype(int)]])
     return np.sort(chosen)
 
 
