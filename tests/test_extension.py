@@ -149,3 +149,19 @@ def test_joint_fit_grows_the_map_and_reports_it(tmp_path):
     assert box["mapped_litres"] <= joint.report["mapped_litres"] + 1.0  # the 1 cm lattice: within a litre
     assert box["mapped_litres"] == pytest.approx(box["fraction"] * 120.0, abs=0.01)
     assert "Declared working volume" in page
+    # the region each sweep maps: the cube sweep as the report solves it, each extension sweep re-solved against
+    # the final map (the fit's last round solved it against the map before, so about as many frames are kept)
+    regions = report.numbers["sweep_regions"]
+    assert [r["name"] for r in regions] == ["wand_sweep", "extension_sweep_1", "extension_sweep_2"]
+    assert regions[0]["samples"] == report.numbers["sweep"]["samples"]["kept"]
+    for region in regions[1:]:
+        assert region["frames_kept"] >= 0.9 * rounds[-1]["frames_solved"][region["name"]]
+        assert region["frames_solved"] == 1500 and region["stride"] == 2
+    assert report.numbers["coverage"]["samples_kept"] == sum(r["samples"] for r in regions)
+    for region in regions:
+        assert 0 < region["mapped_litres_reached_by_it_alone"] <= region["mapped_litres_reached"]
+        assert region["mapped_litres_reached"] <= joint.report["mapped_litres"] + 1e-6
+        assert 0 < region["box_share_reached"] <= box["fraction"] + 0.02  # the lattice probes cells, not nodes
+    # the mapped region needs samples: the sweeps' reached cells together hold most of it
+    assert sum(r["mapped_litres_reached"] for r in regions) > 0.8 * joint.report["mapped_litres"]
+    assert "Region mapped by each sweep" in page and (tmp_path / "report" / "sweep_regions.png").exists()

@@ -63,5 +63,13 @@ def report(session_file, lut_file, check_file, directory, step, thin, max_frames
     if box is not None:
         click.echo(f"working volume: {100 * box['fraction']:.1f} % of the declared {box['box_litres']:.0f} litres "
                    f"mapped ({box['mapped_litres']:.1f} litres)")
+    regions = result.numbers.get("sweep_regions") or []
+    if len(regions) > 1:  # extension sweeps: the region each one maps
+        for row in regions:
+            share = (f", {100 * row['box_share_reached']:.1f} % of the working volume"
+                     if "box_share_reached" in row else "")
+            click.echo(f"  {row['name']}: {row['frames_kept']:,} of {row['frames_solved']:,} solved frames kept, "
+                       f"{row['mapped_litres_reached']:.1f} mapped litres reached "
+                       f"({row['mapped_litres_reached_by_it_alone']:.1f} by it alone){share}")
     figures = sum(1 for f in result.files if f.suffix == ".png")
     click.echo(f"wrote {result.html} ({figures} figures embedded) and report.json in {Path(directory)}")

@@ -50,9 +50,13 @@ _CAPTIONS = {
                       "optimised cube's vertex (eq. 108, Table 21), in the fixture frame. The fixture frame is built "
                       "from sensors 0, 4 and 2 (origin, x axis, xy plane), so those errors are partly zero by "
                       "construction, as in Himberg 2010's Table 20.",
-    "coverage": "Kept wand samples per grid cell on the same slices as the field. Inside the red line every node "
-                "is valid and corrections are trusted; a red x marks a thin cell: mapped, but with few samples of "
-                "its own, so its values come from the neighbours.",
+    "sweep_regions": "Where each sweep's kept wand samples lie, projected along each axis: the cube sweep solved in "
+                     "the cube, each extension sweep solved as a rigid wand against this table from its sensors the "
+                     "table maps (with the gates the table was fitted with). A region outside every sweep's colour "
+                     "but inside the dashed line is mapped by the field model's reach alone.",
+    "coverage": "Kept wand samples (every sweep's) per grid cell on the same slices as the field. Inside the red line "
+                "every node is valid and corrections are trusted; a red x marks a thin cell: mapped, but with few "
+                "samples of its own, so its values come from the neighbours.",
 }
 
 
@@ -178,15 +182,19 @@ def _page(data: ReportData, numbers: dict, images: dict, missing: dict, warnings
             rows.append(("distance from the cube centre", c["distance_from_cube_mm"], "mm"))
         accuracy = (f"<p>IVC judged against {html.escape(c['frame'])}{placement}. Flagged: {flagged}.</p>"
                     + html.percentile_table(rows))
-    if "volume" in numbers or "box" in numbers:
+    regions = _regions(numbers["sweep_regions"]) + fig("sweep_regions") if "sweep_regions" in numbers else ""
+    whole_volume = "volume" in numbers or "box" in numbers
+    if whole_volume:
         sections.append(("volume", "Whole working volume (extension sweeps)",
-                         box_section(numbers.get("box")) + (_volume(numbers["volume"]) if "volume" in numbers else "")))
+                         box_section(numbers.get("box")) + (_volume(numbers["volume"]) if "volume" in numbers else "")
+                         + regions))
     sections.append(("accuracy", "Accuracy on the check poses", accuracy + fig("error_histograms")
                      + fig("error_vs_distance")))
     field_numbers = numbers["secondary_field"]["percent_of_measured_at_valid_nodes"]
     sections.append(("field", "Secondary field", html.percentile_table(
         [("|G| / |f_D + G| at valid nodes", field_numbers, "%")]) + fig("secondary_field")))
-    sections.append(("coverage", "Wand coverage", _coverage(cov) + fig("coverage")))
+    sections.append(("coverage", "Wand coverage", _coverage(cov) + fig("coverage")
+                     + ("" if whole_volume else regions or fig("sweep_regions"))))
     sections.append(("sweep", "Pose in the cube and the residual Λ", _sweep(s) + fig("lambda_vs_error")))
     sections.append(("cube", "Interpolation cube", _cube(cube) + fig("cube_residuals")))
     title = f"ivc report: {Path(names['lut']).name}" if "lut" in names else "ivc report"
@@ -221,6 +229,18 @@ def _volume(volume: dict) -> str:
                  f"{r['error_p95_mm']:.3f}"] for r in volume.get("error_by_distance", [])]
     return out + html.table(["distance from the cube (mm)", "samples", "estimated error p50 (mm)", "p95 (mm)"],
                             distance)
+
+
+def _regions(rows: list[dict]) -> str:
+    """Per sweep: frames solved and kept, samples, and the mapped region its samples reach."""
+    box = any("box_share_reached" in row for row in rows)
+    body = [[row["name"], f"{row['frames_solved']:,} of {row['frames_recorded']:,}", f"{row['frames_kept']:,}",
+             f"{row['samples']:,}", f"{row['mapped_litres_reached']:.1f}",
+             f"{row['mapped_litres_reached_by_it_alone']:.1f}",
+             *([f"{100 * row['box_share_reached']:.1f}"] if box else [])] for row in rows]
+    head = ["sweep", "frames solved", "frames kept", "samples", "mapped litres its samples reach",
+            "reached by it alone (litres)", *(["share of the working volume reached (%)"] if box else [])]
+    return "<p>The region each sweep maps (grid cells holding its kept samples):</p>" + html.table(head, body)
 
 
 def _caption(name: str, data: ReportData) -> str:

@@ -24,11 +24,12 @@ from ivc.fixtures.mapping import FixtureModel, Gates, SweepMapping, map_sweep
 from ivc.fixtures.pose_mapping import has_signals
 from ivc.fixtures.report import SweepErrors, sweep_errors
 from ivc.lut.build import FitOptions
-from ivc.lut.coverage import box_coverage
+from ivc.lut.coverage import box_coverage, box_points
 from ivc.lut.grid import GridField
+from ivc.lut.joint import JointOptions, extension_samples
 from ivc.lut.support import MIN_SUPPORT
 from ivc.lut.table import LookupTable
-from ivc.session import Session, working_volume
+from ivc.session import Session, SessionError, extension_steps, working_volume
 from ivc.truth import declared_frame_map, percentiles
 
 #: horizontal slices drawn at most
@@ -80,6 +81,21 @@ class SweepView:
 
 
 @dataclass
+class SweepRegion:
+    """Where one sweep's kept wand samples lie: the part of the volume that sweep maps.
+
+    ``positions`` (N, 3) m, the table's frame; ``frames_recorded`` in the session, ``frames_solved``
+    of them (every ``stride``-th), ``frames_kept``: solved frames that gave at least one sample."""
+
+    name: str
+    positions: np.ndarray
+    frames_recorded: int
+    frames_solved: int
+    frames_kept: int
+    stride: int
+
+
+@dataclass
 class CheckView:
     errors: CheckErrors
     distance: np.ndarray | None  # (F, N) metres from the cube centre, true positions (declared frame)
@@ -104,6 +120,8 @@ class ReportData:
     mapped_cells: np.ndarray  # (nx-1, ny-1, nz-1) cells whose eight nodes are valid
     mapping_missing: tuple[str, ...] = ()
     box: dict | None = None  # the declared working volume's coverage (ivc.lut.coverage.box_coverage), if declared
+    regions: list[SweepRegion] | None = None  # per sweep (the cube's first, then each extension sweep), with a sweep
+    volume: tuple[np.ndarray, np.ndarray] | None = None  # the declared working volume (centre, size) m
 
     @property
     def cube_centre(self) -> np.ndarray | None:
@@ -186,6 +204,69 @@ def solve_sweep(session: Session, model: FixtureModel, table: LookupTable, cube_
     return SweepView(mapping, recorded, stride, sweep_errors(session, mapping), distance, gates)
 
 
+def sweep_regions(session: Session, model: FixtureModel, table: LookupTable, field: GridField, sweep: SweepView,
+                  progress: Progress = no_progress) -> list[SweepRegion]:
+    """Where each sweep's samples lie: the cube sweep's kept samples as solved in the cube (``sweep``), then each
+    extension sweep solved as a rigid wand against the table's ``field``, from its sensors the table maps, with
+    the gates and the decimation the table was fitted with (its provenance and fit record; the joint fit's
+    defaults otherwise). The joint fit solved its last round against the map before; against the final map
+    about as many frames pass."""
+    parameters = table.provenance.get("parameters", {})
+    fitted = table.fit.get("extension_sweeps", {})
+    defaults = JointOptions()
+    options = JointOptions(max_residual=float(parameters.get("max_residual", defaults.max_residual)),
+                           max_error=float(parameters.get("max_error", defaults.max_error)))
+    mapping = sweep.mapping
+    regions = [SweepRegion("wand_sweep", mapping.positions[mapping.keep], sweep.recorded, len(mapping.inside),
+                           int(mapping.keep.any(axis=1).sum()), sweep.stride)]
+    for name in extension_steps(session.steps):
+        step = session.steps[name]
+        if step.n_sensors != len(model.wand.positions):
+            raise SessionError(f"/steps/{name}: {step.n_sensors} sensors but the wand calibration has "
+                               f"{len(model.wand.positions)}")
+        stride = max(1, int(fitted.get(name, {}).get("stride") or -(-step.n_frames // options.max_extension_frames)))
+        part = step.select(slice(None, None, stride))
+        update = progress(f"solving {name} against the table", 1)
+        samples, _, kept = extension_samples(part.signal_matrices(), part.valid_mask, model.wand, field,
+                                             session.hemisphere, options, 0)
+        update(1)
+        regions.append(SweepRegion(name, samples.positions, step.n_frames, part.n_frames,
+                                   int(np.unique(samples.frame).size), stride))
+    return regions
+
+
+def region_cells(table: LookupTable, positions: np.ndarray) -> np.ndarray:
+    """The grid cells (nx − 1, ny − 1, nz − 1) holding at least one of ``positions`` (N, 3) m."""
+    return cell_counts(table, positions) > 0
+
+
+def region_summary(data: ReportData) -> list[dict]:
+    """Per sweep: frames, samples, the mapped litres its samples reach, those only it reaches, and (with a
+    declared working volume) the share of the box it reaches, probed on the coverage lattice."""
+    table, mapped = data.table, data.mapped_cells
+    cell_litres = 1000 * table.grid.spacing ** 3
+    reached = [region_cells(table, r.positions) & mapped for r in data.regions]
+    total = np.sum(reached, axis=0)
+    inside = None
+    if data.volume is not None:
+        g = table.grid
+        index = np.floor((box_points(*data.volume) - g.origin) / g.spacing).astype(np.int64)
+        inside = np.all((index >= 0) & (index < np.array(g.shape) - 1), axis=1)
+        index = index[inside]
+    rows = []
+    for region, cells in zip(data.regions, reached, strict=True):
+        row = {"name": region.name, "frames_recorded": region.frames_recorded, "frames_solved": region.frames_solved,
+               "stride": region.stride, "frames_kept": region.frames_kept, "samples": int(len(region.positions)),
+               "mapped_litres_reached": round(float(cells.sum() * cell_litres), 2),
+               "mapped_litres_reached_by_it_alone": round(float((cells & (total == 1)).sum() * cell_litres), 2)}
+        if inside is not None:
+            hit = np.zeros(len(inside), dtype=bool)
+            hit[inside] = cells[tuple(index.T)]
+            row["box_share_reached"] = round(float(hit.mean()), 4)
+        rows.append(row)
+    return rows
+
+
 def check_view(table: LookupTable, session: Session, check: Session | None, step: str,
                cube_centre: np.ndarray | None, source: str,
                progress: Progress = no_progress) -> tuple[CheckView | None, str | None]:
@@ -242,7 +323,7 @@ def gather(session: Session, table: LookupTable, check: Session | None = None, s
     if not lacks and not has_signals(session):
         lacks = (POSE_ONLY,)  # the cube, sweep and coverage sections are the signal path's: not rebuilt from poses
     if lacks:
-        model = sweep = counts = None
+        model = sweep = counts = regions = None
         vertices = declared_cube(session)
     else:
         fixtures = table.provenance.get("fixtures", {})
@@ -251,13 +332,14 @@ def gather(session: Session, table: LookupTable, check: Session | None = None, s
         model = FixtureModel.from_session(session, fixtures.get("vertices", "averaged"), interpolant)
         vertices = model.placement.positions
         sweep = solve_sweep(session, model, table, vertices.mean(axis=0), max_frames, progress)
-        counts = cell_counts(table, sweep.mapping.positions[sweep.mapping.keep])
+        regions = sweep_regions(session, model, table, field, sweep, progress)
+        counts = cell_counts(table, np.concatenate([r.positions for r in regions]))
     centre = None if vertices is None else vertices.mean(axis=0)
     view, missing = check_view(table, session, check, step, centre, check_source, progress)
     volume = working_volume(session.attrs)
     box = None if volume is None else box_coverage(field, *volume)
     return ReportData(table, model, slices(table, field, counts, centre), sweep, view, missing, thin, vertices,
-                      counts, field.valid_cells, lacks, box)
+                      counts, field.valid_cells, lacks, box, regions, volume)
 
 
 def figures_missing(data: ReportData) -> dict[str, str]:
@@ -267,7 +349,7 @@ def figures_missing(data: ReportData) -> dict[str, str]:
         out["error_histograms"] = data.check_missing
     if data.sweep is None:
         lacks = lacks_sentence(data.mapping_missing)
-        for name in ("lambda_vs_error", "cube_residuals", "coverage"):
+        for name in ("lambda_vs_error", "cube_residuals", "coverage", "sweep_regions"):
             out[name] = lacks
         if data.check is None:
             out["error_vs_distance"] = f"{lacks}, and {data.check_missing}"
@@ -336,12 +418,13 @@ def summary(data: ReportData) -> dict:
         }
         out["coverage"] = {
             "thin_threshold_samples": data.thin,
-            "samples_kept": int(mapping.kept),
+            "samples_kept": int(sum(len(r.positions) for r in data.regions)),  # every sweep's
             "samples_per_mapped_cell": _rounded(percentiles(counts[cells])),
             "thin_mapped_cells": int(np.sum(cells & (counts < data.thin))),
             "empty_mapped_cells": int(np.sum(cells & (counts == 0))),
             "sampled_cells_outside_mapped_volume": int(np.sum(~cells & (counts > 0))),
         }
+        out["sweep_regions"] = region_summary(data)
         out["sweep"] = {
             "frames_solved": int(len(mapping.inside)), "frames_recorded": sweep.recorded, "stride": sweep.stride,
             "gate_residual": sweep.gates.max_residual, "gate_error_mm": 1000 * sweep.gates.max_error,

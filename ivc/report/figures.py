@@ -11,10 +11,11 @@ from matplotlib import colormaps
 from matplotlib.collections import LineCollection
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
 from matplotlib.ticker import FuncFormatter, MaxNLocator
 from scipy.spatial import ConvexHull
 
-from ivc.report.compute import ReportData, Slices, cube_errors
+from ivc.report.compute import ReportData, Slices, cube_errors, region_cells
 
 _IVC, _DIPOLE, _CUBE = "tab:blue", "tab:orange", "tab:green"
 
@@ -102,6 +103,49 @@ def coverage(data: ReportData) -> Figure:
     fig.colorbar(mesh, ax=axes, label="kept wand samples per cell", shrink=0.9)
     fig.suptitle(f"Wand coverage: red line = edge of the mapped volume; x = thin (mapped, < {data.thin} samples "
                  "in the cell); white = no samples", fontsize=11)
+    return fig
+
+
+#: the three views of :func:`sweep_regions`: (title, horizontal axis, vertical axis); the third axis is projected
+_VIEWS = (("top (x-y)", 0, 1), ("front (x-z)", 0, 2), ("side (y-z)", 1, 2))
+
+
+def sweep_regions(data: ReportData) -> Figure:
+    """The region each sweep's kept samples reach, projected along each axis: one colour per sweep, the mapped
+    volume's outline in black, the declared working volume as a grey box, the cube in green."""
+    g = data.table.grid
+    centres = [1000 * (g.origin[a] + g.spacing * (np.arange(g.shape[a] - 1) + 0.5)) for a in range(3)]
+    reached = [region_cells(data.table, r.positions) & data.mapped_cells for r in data.regions]
+    # green is the cube's colour, grey the box's
+    colours = [c for n, c in enumerate(colormaps["tab10"].colors) if n not in (2, 7)]
+    fig = Figure(figsize=(15, 4.6), layout="constrained")
+    axes = list(fig.subplots(1, 3))
+    for ax, (title, h, v) in zip(axes, _VIEWS, strict=True):
+        axis = 3 - h - v  # the one projected away
+        for n, (region, cells) in enumerate(zip(data.regions, reached, strict=True)):
+            shown = cells.any(axis=axis).T.astype(float)
+            if shown.any():
+                colour = colours[n % len(colours)]
+                ax.contourf(centres[h], centres[v], shown, levels=[0.5, 1.5], colors=[colour], alpha=0.18)
+                ax.contour(centres[h], centres[v], shown, levels=[0.5], colors=[colour], linewidths=1.4)
+            if ax is axes[0]:
+                ax.plot([], [], color=colours[n % len(colours)], linewidth=3, label=region.name)
+        mapped = data.mapped_cells.any(axis=axis).T.astype(float)
+        if mapped.any():
+            ax.contour(centres[h], centres[v], mapped, levels=[0.5], colors="black", linewidths=1.0,
+                       linestyles="--")
+        if data.volume is not None:
+            low, size = 1000 * (data.volume[0] - data.volume[1] / 2), 1000 * data.volume[1]
+            ax.add_patch(Rectangle((low[h], low[v]), size[h], size[v], fill=False, edgecolor="0.45", linewidth=1.6))
+        if data.cube_vertices is not None:
+            corners = 1000 * data.cube_vertices[:, [h, v]]
+            hull = corners[ConvexHull(corners).vertices]
+            ax.fill(hull[:, 0], hull[:, 1], fill=False, edgecolor=_CUBE, linewidth=1.6)
+        names = "xyz"
+        ax.set(title=title, xlabel=f"{names[h]} (mm)", ylabel=f"{names[v]} (mm)", aspect="equal")
+    fig.legend(loc="outside right upper", fontsize=9)
+    fig.suptitle("Region each sweep's kept samples reach (projected); black dashed: the mapped volume; "
+                 "grey: the declared working volume; green: the cube", fontsize=11)
     return fig
 
 
@@ -278,4 +322,5 @@ FIGURES = {
     "cube_residuals": (cube_residuals, "Cube sensor position errors (Himberg 2010's Tables 20-21)"),
     "coverage": (coverage, "Wand coverage of the mapped volume"),
     "error_vs_distance": (error_vs_distance, "Error against distance from the cube"),
+    "sweep_regions": (sweep_regions, "Region mapped by each sweep"),
 }
