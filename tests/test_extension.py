@@ -168,7 +168,9 @@ def test_joint_fit_grows_the_map_and_reports_it(tmp_path):
     assert sum(r["mapped_litres_reached"] for r in regions) > 0.6 * joint.report["mapped_litres"]
     from ivc.lut.grid import Grid
 
-    coarse = Grid.around(joint.samples.positions, joint.grid.spacing * 2)
+    assert joint.report["table_subdivision"] == 2 and joint.report["sample_selection"] == "even"
+    assert joint.report["support_spacing_m"] == pytest.approx(2 * joint.grid.spacing)
+    coarse = Grid.around(joint.samples.positions, joint.report["support_spacing_m"])
     np.testing.assert_allclose(coarse.origin, joint.grid.origin)
     cells = np.floor((joint.samples.positions - coarse.origin) / coarse.spacing).astype(int)
     occupied = np.zeros(tuple(n - 1 for n in coarse.shape), dtype=bool)

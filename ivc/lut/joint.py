@@ -449,6 +449,8 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
               "error_by_distance": distance_profile(samples, centre),
               "cube_centre": centre.tolist(), "samples": {"anchor": len(anchor), "total": len(samples)},
               "valid_nodes": int(valid.sum()), "min_support": options.min_support,
+              "support_spacing_m": options.spacing, "table_subdivision": options.table_subdivision,
+              "sample_selection": "even" if options.even_cell is not None else "stride",
               "frames": {"recorded": mapping.keep.shape[0] * stride, "used": sweep.n_frames, "stride": stride}}
     return JointMap(field, grid, values, valid, support, samples, solutions, report)
 
