@@ -96,3 +96,29 @@ def test_normal_equations_solve_as_damped_least_squares_and_are_reused(rng):
     fresh, fresh_report = fit_sources(samples, sources, block_frames=50)
     np.testing.assert_array_equal(model.moments, fresh.moments)
     assert report == fresh_report
+
+
+def test_even_subset_thins_the_dense_region_first(rng):
+    """Beyond the cap the chosen samples are capped per cube: a dense ball gives up samples, a sparse shell keeps
+    all of its own; the total stays within the cap, and the model evaluates as its Jacobian form does."""
+    from ivc.lut.fit_sources import even_subset
+
+    dense = 0.05 * rng.standard_normal((20_000, 3))
+    sparse = rng.uniform(-0.5, 0.5, (2_000, 3))
+    sparse = sparse[np.abs(sparse).max(axis=1) > 0.3]
+    points = np.concatenate([dense, sparse])
+    chosen = even_subset(points, 4_000, 0.04)
+    assert len(chosen) == 4_000 and np.all(np.diff(chosen) > 0)
+    kept_sparse = np.sum(chosen >= len(dense))
+    assert kept_sparse == len(sparse)  # one or two per cube out there: under any cap
+    np.testing.assert_array_equal(even_subset(points, 4_000, 0.04), chosen)  # deterministic
+    np.testing.assert_array_equal(even_subset(points[:100], 4_000, 0.04), np.arange(100))
+    tiny = even_subset(points, 50, 0.04)  # fewer samples than occupied cubes: one each from an even draw
+    assert len(tiny) == 50 and len(np.unique(tiny)) == 50
+    with pytest.raises(InputError):
+        even_subset(points, 10, 0.0)
+    sources = shell(LOW, HIGH, 0.05, 0.25)
+    model = SourceModel(sources, rng.standard_normal((len(sources), 3, 3)))
+    at = LOW + (HIGH - LOW) * rng.random((2_500, 3))
+    np.testing.assert_allclose(model(at), model.value_and_jacobian(at, jacobian=False)[0], rtol=1e-12,
+                               atol=1e-14 * np.abs(model(at)).max())

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from ivc import rotations
+from ivc.errors import InputError
 from ivc.fixtures.wand import WandCalibration
 from ivc.lut.fit_sources import SourceModel
 from ivc.lut.joint import JointOptions, seed_from_sensors, solve_wand
@@ -127,3 +128,29 @@ def test_compiled_wand_solve_equals_the_numpy_form(simulated):
         solve_wand_table(S, use, wand, table.value_and_jacobian, start_r, start_T)
     with pytest.raises(Exception, match="starting poses"):
         solve_wand_table(S, use, wand, table, start_r[:-1], start_T)
+
+
+def test_the_table_is_finer_than_its_support_grid_and_maps_the_same_volume():
+    """A subdivided grid keeps the coarse nodes (same validity and support there); a fine node is valid when the
+    coarse nodes around it are, so the mapped volume is the coarse grid's; the default table is twice as fine."""
+    from ivc.lut.grid import Grid
+    from ivc.lut.joint import mapped_litres, subdivided
+
+    grid = Grid(np.array([0.1, -0.2, 0.0]), 0.04, (5, 4, 4))
+    valid = np.ones(grid.shape, dtype=bool)
+    valid[4, 3, 3] = valid[0, 0, 1] = False
+    support = np.arange(grid.size).reshape(grid.shape)
+    fine, fine_valid, fine_support = subdivided(grid, valid, support, 2)
+    assert fine.shape == (9, 7, 7) and fine.spacing == pytest.approx(0.02)
+    np.testing.assert_allclose(fine.nodes()[::2, ::2, ::2], grid.nodes())
+    np.testing.assert_array_equal(fine_valid[::2, ::2, ::2], valid)
+    np.testing.assert_array_equal(fine_support[::2, ::2, ::2], support)
+    assert not fine_valid[7, 5, 5] and fine_valid[6, 4, 4]  # the cell holding an invalid corner
+    assert fine_support[1, 1, 1] == support[:2, :2, :2].min()
+    assert mapped_litres(fine, fine_valid) == pytest.approx(mapped_litres(grid, valid))
+    assert subdivided(grid, valid, support, 1)[0] is grid
+    assert JointOptions().table_subdivision == 2
+    with pytest.raises(InputError):
+        JointOptions(table_subdivision=0)
+    with pytest.raises(InputError):
+        JointOptions(even_cell=-1.0)

@@ -76,8 +76,14 @@ class SourceModel:
     moments: np.ndarray
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
-        """G (..., 3, 3) at points r (..., 3), source frame."""
-        return self.value_and_jacobian(r, jacobian=False)[0]
+        """G (..., 3, 3) at points r (..., 3), source frame (the compiled design rows times the moments)."""
+        r = np.asarray(r, float)
+        flat = r.reshape(-1, 3)
+        coefficients = self.moments.reshape(-1, 3)
+        G = np.empty((len(flat), 3, 3))
+        for start in range(0, len(flat), CHUNK):
+            G[start : start + CHUNK] = design_rows(flat[start : start + CHUNK], self.positions) @ coefficients
+        return G.reshape(*r.shape[:-1], 3, 3)
 
     def value_and_jacobian(self, r: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """G (..., 3, 3) and ∂G_ij/∂r_k (..., 3, 3, 3) at r (..., 3)."""
@@ -159,15 +165,52 @@ class NormalEquations:
     nearest_source_mm: float
 
 
+def even_subset(positions: np.ndarray, max_samples: int, cell: float, seed: int = 0) -> np.ndarray:
+    """Indices (sorted) of at most ``max_samples`` of the points (N, 3) m spread evenly over space: the points
+    are binned in cubes of ``cell`` m and each cube keeps at most ``c`` of its points (in a fixed random
+    order), ``c`` the largest that keeps the total within ``max_samples``, the rest of the budget one more
+    from each of an even draw of the cubes holding more than ``c``: a dense region (the cube sweep's
+    ball) gives up samples before a sparse one (the far faces, reached by one sensor of the wand)."""
+    positions = np.asarray(positions, float)
+    if len(positions) <= max_samples:
+        return np.arange(len(positions))
+    if not (np.isfinite(cell) and cell > 0):
+        raise InputError(f"the selection's cell must be a positive number of metres, got {cell!r}")
+    keys = np.floor((positions - positions.min(axis=0)) / cell).astype(np.int64)
+    _, box, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    box = box.reshape(-1)
+    low, high = 0, int(counts.max())  # the largest cap c with sum(min(counts, c)) <= max_samples
+    while low < high:
+        middle = (low + high + 1) // 2
+        if np.minimum(counts, middle).sum() <= max_samples:
+            low = middle
+        else:
+            high = middle - 1
+    order = np.random.default_rng(seed).permutation(len(positions))
+    order = order[np.argsort(box[order], kind="stable")]  # by cube, random within it
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rank = np.arange(len(positions)) - starts[box[order]]
+    chosen = order[rank < low]
+    spare = max_samples - len(chosen)  # filled with one more from each of an even draw of the fuller cubes
+    more = order[rank == low]
+    if spare > 0 and len(more):
+        chosen = np.concatenate([chosen, more[np.linspace(0, len(more) - 1, min(spare, len(more))).astype(int)]])
+    return np.sort(chosen)
+
+
 def normal_equations(samples: FieldSamples, sources: np.ndarray | None = None, folds: int = 5,
                      max_samples: int = MAX_SAMPLES, progress: Callable[[int], None] | None = None,
-                     block_frames: int = 500) -> NormalEquations:
+                     block_frames: int = 500, even_cell: float | None = None) -> NormalEquations:
     """Accumulate the fold normal equations of :func:`fit_sources` (its arguments; the costly part of a fit:
-    samples x sources²). Solving them for any number of dampings is :func:`solve_normal_equations`."""
+    samples x sources²). Solving them for any number of dampings is :func:`solve_normal_equations`.
+    Beyond ``max_samples`` every k-th sample is fitted, or with ``even_cell`` (m) the samples of
+    :func:`even_subset` (``sample_stride`` is then 0 in the report)."""
     if len(samples) < 100:
         raise InputError(f"{len(samples)} samples are too few for an equivalent-source fit")
     stride = max(1, -(-len(samples) // max_samples))
-    if stride > 1:
+    if stride > 1 and even_cell is not None:
+        samples, stride = samples.subset(even_subset(samples.positions, max_samples, even_cell)), 0
+    elif stride > 1:
         samples = samples.subset(np.arange(0, len(samples), stride))
     if sources is None:
         sources = default_sources(samples.positions)
@@ -232,15 +275,15 @@ def solve_normal_equations(normal: NormalEquations, dampings=DAMPINGS) -> tuple[
 
 def fit_sources(samples: FieldSamples, sources: np.ndarray | None = None, dampings=DAMPINGS, folds: int = 5,
                 max_samples: int = MAX_SAMPLES, progress: Callable[[int], None] | None = None,
-                block_frames: int = 500) -> tuple[SourceModel, dict]:
+                block_frames: int = 500, even_cell: float | None = None) -> tuple[SourceModel, dict]:
     """Fit the dipole moments of ``sources`` (K, 3) m (default: :func:`default_sources` around the samples).
 
     Weighted damped least squares with the samples' pose-equivalent weights; the damping is the lowest-scoring
     of ``dampings`` in ``folds``-fold cross-validation over blocks of frames (held out together); a single
     damping is used as given, without cross-validation. At most
-    ``max_samples`` samples are used (every k-th). Returns the model and a report (sources, damping chosen,
-    CV score per damping, mm)."""
-    normal = normal_equations(samples, sources, folds, max_samples, progress, block_frames)
+    ``max_samples`` samples are used (every k-th, or with ``even_cell`` spread evenly over space:
+    :func:`even_subset`). Returns the model and a report (sources, damping chosen, CV score per damping, mm)."""
+    normal = normal_equations(samples, sources, folds, max_samples, progress, block_frames, even_cell)
     return solve_normal_equations(normal, dampings)
 
 

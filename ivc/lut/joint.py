@@ -50,6 +50,10 @@ SOURCE_STANDOFF = 0.09
 #: the Tikhonov dampings the joint map's cross-validation chooses from (on the cockpit scene the fit's own
 #: range, 1e-8 … 1e-5, chose its largest in every run)
 DAMPINGS = (1e-7, 1e-6, 1e-5, 1e-4)
+#: the joint map is tabulated this many times finer than its support grid (docs/lut.md, "Extension sweeps")
+TABLE_SUBDIVISION = 2
+#: the joint map's sources fit spreads its samples evenly over cubes this large (m), the support grid's cells
+EVEN_CELL = DEFAULT_SPACING
 #: frame numbers of extension sweep n's samples start at n * FRAME_OFFSET (folds never mix sweeps' blocks)
 FRAME_OFFSET = 10_000_000
 
@@ -197,7 +201,12 @@ class JointOptions:
     bounding box (m): farther out than the table's outermost nodes (up to 1.5 cells beyond the data), so
     that no node is tabulated next to a source, and about where the metal of a cockpit is. ``dampings``: the
     Tikhonov dampings the cross-validation of the first and the final fit chooses from (the rounds between
-    keep the first fit's)."""
+    keep the first fit's). ``table_subdivision``: the table is tabulated this many times finer than
+    ``spacing`` (support and validity stay those of the ``spacing`` cells, :func:`subdivided`): cubic
+    interpolation of the field between nodes 38 mm apart, 9 cm from a panel, costs more than the map's
+    own error at the box's faces. ``even_cell``: beyond the sources fit's sample cap, the samples fitted are
+    spread evenly over cubes of this size (m; :func:`ivc.lut.fit_sources.even_subset`), not every k-th
+    (None): every k-th keeps the cube sweep's dense ball and thins the far faces alike."""
 
     spacing: float = DEFAULT_SPACING
     min_support: int = MIN_SUPPORT
@@ -213,18 +222,23 @@ class JointOptions:
     source_standoff: float = SOURCE_STANDOFF
     source_spacing: float = SPACING
     dampings: tuple = DAMPINGS
+    table_subdivision: int = TABLE_SUBDIVISION
+    even_cell: float | None = EVEN_CELL
 
     def __post_init__(self):
         self.dampings = tuple(float(d) for d in self.dampings)
         if not self.dampings or not all(np.isfinite(d) and d > 0 for d in self.dampings):
             raise InputError(f"dampings must be positive numbers, got {self.dampings!r}")
+        if self.even_cell is not None and not (np.isfinite(self.even_cell) and self.even_cell > 0):
+            raise InputError(f"even_cell must be a positive number of metres or None, got {self.even_cell!r}")
         if not (np.isfinite(self.stall_growth) and self.stall_growth >= 0):
             raise InputError(f"stall_growth must be a fraction of at least 0, got {self.stall_growth}")
         for name in ("spacing", "tolerance", "max_residual", "max_error", "source_standoff", "source_spacing"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise InputError(f"{name} must be a positive number, got {value}")
-        for name in ("min_support", "max_iterations", "max_frames", "max_extension_frames", "min_sensors"):
+        for name in ("min_support", "max_iterations", "max_frames", "max_extension_frames", "min_sensors",
+                     "table_subdivision"):
             value = getattr(self, name)
             if not isinstance(value, int | np.integer) or value < 1:
                 raise InputError(f"{name} must be a whole number of at least 1, got {value!r}")
@@ -256,11 +270,36 @@ def _noop(desc: str, total: int) -> Callable[[int], None]:
     return lambda n: None
 
 
-def _tabulate(model: SourceModel, samples: FieldSamples, spacing: float, min_support: int):
+def subdivided(grid: Grid, valid: np.ndarray, support: np.ndarray, subdivision: int
+               ) -> tuple[Grid, np.ndarray, np.ndarray]:
+    """The grid with every cell cut into ``subdivision``³ cells, and each fine node's validity and support:
+    a fine node is valid when every coarse node of the smallest coarse cell, face, edge or node that holds
+    it is valid, and its support is the least of theirs. The mapped volume (cells whose eight corners are
+    valid) is the coarse one, so the validity stays the coarse cells' support test."""
+    if subdivision == 1:
+        return grid, valid, support
+    fine = Grid(grid.origin, grid.spacing / subdivision, tuple((n - 1) * subdivision + 1 for n in grid.shape))
+    lows = [np.arange(n) // subdivision for n in fine.shape]
+    highs = [-(-np.arange(n) // subdivision) for n in fine.shape]
+    fine_valid = np.ones(fine.shape, dtype=bool)
+    fine_support = np.full(fine.shape, np.iinfo(np.int64).max, dtype=np.int64)
+    for ix in (lows[0], highs[0]):
+        for iy in (lows[1], highs[1]):
+            for iz in (lows[2], highs[2]):
+                index = np.ix_(ix, iy, iz)
+                fine_valid &= valid[index]
+                fine_support = np.minimum(fine_support, support[index])
+    return fine, fine_valid, fine_support
+
+
+def _tabulate(model: SourceModel, samples: FieldSamples, spacing: float, min_support: int, subdivision: int = 1):
+    """The model on the grid around the samples: node support counted on the ``spacing`` grid, the table
+    ``subdivision`` times finer (:func:`subdivided`)."""
     grid = Grid.around(samples.positions, spacing)
-    values = model(grid.nodes())
     support = node_support(grid, samples.positions)
-    return grid, values, support >= min_support, support
+    grid, valid, support = subdivided(grid, support >= min_support, support, subdivision)
+    values = model(grid.nodes())
+    return grid, values, valid, support
 
 
 def mapped_litres(grid: Grid, valid: np.ndarray) -> float:
@@ -361,10 +400,12 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
         extensions[name] = (part.signal_matrices(), part.valid_mask, number * FRAME_OFFSET, every)
     centre = model.placement.positions.mean(axis=0)
     bar = progress("fitting equivalent sources (cross-validated)", len(anchor))
-    field, fit = fit_sources(anchor, _sources(anchor, options), options.dampings, progress=bar)
+    field, fit = fit_sources(anchor, _sources(anchor, options), options.dampings, progress=bar,
+                             even_cell=options.even_cell)
     damping = fit["damping"]
     samples = anchor
-    grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support)
+    grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support,
+                                               options.table_subdivision)
     history = [{"iteration": 0, "samples": len(samples), "mapped_litres": mapped_litres(grid, valid),
                 "map_change_mm": None, "frames_solved": {name: 0 for name in names}}]
     solutions, stopped, normal = {}, None, None
@@ -378,11 +419,12 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
             solutions[name] = (solution, kept)
         samples = _concatenate(parts)
         bar = progress(f"round {iteration}: refit", len(samples))
-        normal = normal_equations(samples, _sources(samples, options), progress=bar)
+        normal = normal_equations(samples, _sources(samples, options), progress=bar, even_cell=options.even_cell)
         field, _ = solve_normal_equations(normal, (damping,))
         change = _change(field, grid, values, valid)
         before = mapped_litres(grid, valid)
-        grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support)
+        grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support,
+                                               options.table_subdivision)
         litres = mapped_litres(grid, valid)
         history.append({"iteration": iteration, "samples": len(samples), "mapped_litres": litres,
                         "map_change_mm": 1000 * change, "frames_solved": solved})
@@ -396,7 +438,8 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
     stopped = stopped or f"max_iterations {options.max_iterations} reached"
     # the last round's samples: its normal equations, cross-validated
     field, fit = solve_normal_equations(normal, options.dampings)
-    grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support)
+    grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support,
+                                               options.table_subdivision)
     never = [name for name in names if all(step["frames_solved"].get(name, 0) == 0 for step in history)]
     report = {"method": "equivalent sources, joint", **fit, "rounds": history, "stopped": stopped,
               "extension_sweeps": {name: {"frames_used": len(extensions[name][0]), "stride": extensions[name][3],
@@ -406,6 +449,8 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
               "error_by_distance": distance_profile(samples, centre),
               "cube_centre": centre.tolist(), "samples": {"anchor": len(anchor), "total": len(samples)},
               "valid_nodes": int(valid.sum()), "min_support": options.min_support,
+              "support_spacing_m": options.spacing, "table_subdivision": options.table_subdivision,
+              "sample_selection": "even" if options.even_cell is not None else "stride",
               "frames": {"recorded": mapping.keep.shape[0] * stride, "used": sweep.n_frames, "stride": stride}}
     return JointMap(field, grid, values, valid, support, samples, solutions, report)
 
