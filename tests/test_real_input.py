@@ -124,10 +124,19 @@ def test_no_command_replaces_an_existing_output_without_force(lut_file, tmp_path
     assert taken.read_bytes() == b"precious"
 
 
+def _deliverable_sigint() -> None:
+    """In the child before it starts: SIGINT unblocked and at its default, as in a user's shell. An ignored or
+    blocked SIGINT is inherited across exec (a test worker or a background job may have one), and Python raises
+    no KeyboardInterrupt for a signal that never arrives: the 'interrupted' command would run to its end."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _interrupt(args, tmp_path, after_s, wait_for=None):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     process = subprocess.Popen([sys.executable, "-m", "ivc.cli", *map(str, args)], cwd=tmp_path, env=env,
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=_deliverable_sigint)
     time.sleep(after_s)
     process.send_signal(signal.SIGINT)
     _, err = process.communicate(timeout=60)
@@ -140,9 +149,10 @@ def test_an_interrupted_fit_or_collect_leaves_no_partial_output_and_the_input_in
     session_file = tmp_path / "in.h5"
     session_io.write(session, session_file)
     before = digest(session_file)
-    interrupted = False
+    interrupted, tries = False, []
     for delay in (4.0, 2.5, 1.5, 0.8, 0.3):  # a fast machine may finish the small fit before the first delays
         code, err = _interrupt(["fit", session_file, "-o", tmp_path / "lut.h5"], tmp_path, delay)
+        tries.append((delay, code, (tmp_path / "lut.h5").exists(), err[-300:]))
         if code != 0 and not (tmp_path / "lut.h5").exists():
             interrupted = True
             break
@@ -150,7 +160,7 @@ def test_an_interrupted_fit_or_collect_leaves_no_partial_output_and_the_input_in
         # interpreter exited): either way the table on disk must be whole.
         read_lut(tmp_path / "lut.h5")
         (tmp_path / "lut.h5").unlink()
-    assert interrupted
+    assert interrupted, f"no delay interrupted the fit: (delay s, exit code, table written, stderr) {tries}"
     code, err = _interrupt(["collect", "protocol", "-o", tmp_path / "new.h5", "--sweep-frames", "200000"], tmp_path,
                            4.0)
     assert code != 0 and not (tmp_path / "new.h5").exists(), err
