@@ -43,7 +43,7 @@ from ivc.lut.samples import FieldSamples, leverage
 from ivc.lut.support import MIN_SUPPORT, node_support
 from ivc.lut.table import LookupTable
 from ivc.pose import levenberg_marquardt, signal_residual
-from ivc.session import Session, SessionError, extension_steps
+from ivc.session import Session, SessionError, Step, extension_steps
 
 #: the joint map's inner shell of equivalent sources lies this far beyond the samples' bounding box (m)
 SOURCE_STANDOFF = 0.09
@@ -342,6 +342,18 @@ def extension_samples(S: np.ndarray, valid: np.ndarray, wand: WandCalibration, t
     return samples, solution, kept
 
 
+def extension_part(session: Session, name: str, wand: WandCalibration, max_frames: int,
+                   stride: int | None = None) -> tuple[Step, int]:
+    """Extension sweep ``name`` of ``session``, checked against the ``wand`` calibration, as solved: every
+    ``stride``-th frame (default: the fewest that keep at most ``max_frames``). Returns the frames and the stride."""
+    step = session.steps[name]
+    if step.n_sensors != len(wand.positions):
+        raise SessionError(f"/steps/{name}: {step.n_sensors} sensors but the wand calibration has "
+                           f"{len(wand.positions)}")
+    stride = max(1, int(stride or -(-step.n_frames // max_frames)))
+    return step.select(slice(None, None, stride)), stride
+
+
 def _concatenate(parts: list[FieldSamples]) -> FieldSamples:
     return FieldSamples(*(np.concatenate([getattr(p, k) for p in parts]) for k in
                           ("positions", "fields", "error", "frame", "sensor")))
@@ -391,12 +403,7 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
         raise SessionError(f"only {len(anchor)} cube-sweep samples passed the gates: check `ivc fixtures`")
     extensions = {}
     for number, name in enumerate(names, start=1):
-        step = session.steps[name]
-        if step.n_sensors != len(model.wand.positions):
-            raise SessionError(f"/steps/{name}: {step.n_sensors} sensors but the wand calibration has "
-                               f"{len(model.wand.positions)}")
-        every = max(1, -(-step.n_frames // options.max_extension_frames))
-        part = step.select(slice(None, None, every))
+        part, every = extension_part(session, name, model.wand, options.max_extension_frames)
         extensions[name] = (part.signal_matrices(), part.valid_mask, number * FRAME_OFFSET, every)
     centre = model.placement.positions.mean(axis=0)
     bar = progress("fitting equivalent sources (cross-validated)", len(anchor))

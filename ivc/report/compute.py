@@ -26,10 +26,10 @@ from ivc.fixtures.report import SweepErrors, sweep_errors
 from ivc.lut.build import FitOptions
 from ivc.lut.coverage import box_coverage, box_points
 from ivc.lut.grid import GridField
-from ivc.lut.joint import JointOptions, extension_samples
+from ivc.lut.joint import JointOptions, extension_part, extension_samples
 from ivc.lut.support import MIN_SUPPORT
 from ivc.lut.table import LookupTable
-from ivc.session import Session, SessionError, extension_steps, working_volume
+from ivc.session import Session, extension_steps, working_volume
 from ivc.truth import declared_frame_map, percentiles
 
 #: horizontal slices drawn at most
@@ -220,17 +220,13 @@ def sweep_regions(session: Session, model: FixtureModel, table: LookupTable, fie
     regions = [SweepRegion("wand_sweep", mapping.positions[mapping.keep], sweep.recorded, len(mapping.inside),
                            int(mapping.keep.any(axis=1).sum()), sweep.stride)]
     for name in extension_steps(session.steps):
-        step = session.steps[name]
-        if step.n_sensors != len(model.wand.positions):
-            raise SessionError(f"/steps/{name}: {step.n_sensors} sensors but the wand calibration has "
-                               f"{len(model.wand.positions)}")
-        stride = max(1, int(fitted.get(name, {}).get("stride") or -(-step.n_frames // options.max_extension_frames)))
-        part = step.select(slice(None, None, stride))
+        part, stride = extension_part(session, name, model.wand, options.max_extension_frames,
+                                      fitted.get(name, {}).get("stride"))
         update = progress(f"solving {name} against the table", 1)
-        samples, _, kept = extension_samples(part.signal_matrices(), part.valid_mask, model.wand, field,
-                                             session.hemisphere, options, 0)
+        samples, _, _ = extension_samples(part.signal_matrices(), part.valid_mask, model.wand, field,
+                                          session.hemisphere, options, 0)
         update(1)
-        regions.append(SweepRegion(name, samples.positions, step.n_frames, part.n_frames,
+        regions.append(SweepRegion(name, samples.positions, session.steps[name].n_frames, part.n_frames,
                                    int(np.unique(samples.frame).size), stride))
     return regions
 
