@@ -8,8 +8,10 @@ process wait for the first one's compilation and load it from numba's on-disk ca
 import contextlib
 import hashlib
 import os
+import shutil
 import tempfile
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -27,6 +29,26 @@ os.environ.setdefault("IVC_INTERPRETED_MAX", "0")
 #: test modules that run a live loop against sockets with a few seconds' timeouts: kept on one worker, one after
 #: the other (on a loaded machine, a sibling test's compilation or interpreted kernels starved them)
 LIVE_LOOP_MODULES = {"test_live.py", "test_live_robust.py", "test_live_startup.py", "test_pose_only.py"}
+
+
+def pytest_configure(config):
+    """One folder per run for the simulator's tabulated fields (``IVC_FIELD_CACHE``, ``ivc.sim.field``), made by
+    the controlling process before the xdist workers start: the workers and the CLI subprocesses of the tests
+    inherit it, so a scene simulated in several modules is tabulated once per run (5-14 CPU seconds each for
+    the built-in scenes), not once per module and process. Removed when the run ends; a run never reuses an
+    earlier run's tables, so a cold run stays cold."""
+    if os.environ.get("PYTEST_XDIST_WORKER") or os.environ.get("IVC_FIELD_CACHE"):
+        return
+    folder = tempfile.mkdtemp(prefix="ivc-field-cache-")
+    os.environ["IVC_FIELD_CACHE"] = folder
+    config._ivc_field_cache = folder
+
+
+def pytest_unconfigure(config):
+    folder = getattr(config, "_ivc_field_cache", None)
+    if folder:
+        shutil.rmtree(folder, ignore_errors=True)
+        os.environ.pop("IVC_FIELD_CACHE", None)
 
 
 def pytest_collection_modifyitems(config, items):
@@ -74,10 +96,12 @@ def _compile_once_across_workers(run_id: str) -> None:
     from numba.core import caching, dispatcher
     from numba.core.compiler_lock import global_compiler_lock
 
+    log = os.environ.get("IVC_TEST_COMPILE_LOG")  # a file: each compile's worker, CPU seconds and kernel
     folder = Path(tempfile.gettempdir()) / f"ivc-compile-locks-{run_id}"
     folder.mkdir(exist_ok=True)
     held: dict[str, int] = {}  # lock name -> depth (a kernel compiling for one signature inside another's)
     guard = threading.Lock()
+    nesting = threading.local()
     compile_ = dispatcher.Dispatcher.compile
 
     @contextlib.contextmanager
@@ -108,7 +132,20 @@ def _compile_once_across_workers(run_id: str) -> None:
         except AttributeError:  # another numba's internals: compile as numba would
             return compile_(self, sig)
         with global_compiler_lock, locked(hashlib.sha1(index.encode()).hexdigest()):
-            return compile_(self, sig)
+            if log is None:
+                return compile_(self, sig)
+            before, known = time.thread_time(), len(self.overloads)
+            nesting.depth = getattr(nesting, "depth", 0) + 1
+            try:
+                return compile_(self, sig)
+            finally:  # a line per compile or cache load: worker, nesting depth (1: called from Python), CPU
+                # seconds (those of the kernels it compiled on the way included), kernel
+                nesting.depth -= 1
+                if len(self.overloads) > known:
+                    with open(log, "a") as f:
+                        f.write(f"{os.environ.get('PYTEST_XDIST_WORKER', '-')}\t{nesting.depth + 1}\t"
+                                f"{time.thread_time() - before:.3f}\t"
+                                f"{self.py_func.__module__}.{self.py_func.__qualname__}\n")
 
     dispatcher.Dispatcher.compile = compile_once
 

@@ -29,6 +29,16 @@ def demo(tmp_path_factory):
     return result.session_file, result.table_file
 
 
+@pytest.fixture(scope="module")
+def demo_report(demo, tmp_path_factory):
+    """`ivc report` of the demo session and table: its folder and the command's result (built once, read by
+    the tests that need the whole session's report)."""
+    session_file, lut_file = demo
+    out = tmp_path_factory.mktemp("demo-report") / "report"
+    result = CliRunner().invoke(cli, ["report", str(session_file), str(lut_file), "-o", str(out), "--quiet"])
+    return out, result
+
+
 class _Images(HTMLParser):
     def __init__(self):
         super().__init__()
@@ -52,10 +62,9 @@ def _embedded(page: str) -> dict[str, bytes]:
 
 
 @pytest.mark.slow
-def test_report_builds_from_the_demo_session_with_every_figure(demo, tmp_path):
+def test_report_builds_from_the_demo_session_with_every_figure(demo, demo_report):
     session_file, lut_file = demo
-    out = tmp_path / "report"
-    result = CliRunner().invoke(cli, ["report", str(session_file), str(lut_file), "-o", str(out), "--quiet"])
+    out, result = demo_report
     assert result.exit_code == 0, result.output
     page = (out / "report.html").read_text()
     embedded = _embedded(page)
@@ -114,7 +123,7 @@ def test_a_check_file_without_the_step_is_named(demo, tmp_path):
 
 
 @pytest.mark.slow
-def test_a_session_without_its_sweep_reports_the_table_and_check_poses_only(demo, tmp_path):
+def test_a_session_without_its_sweep_reports_the_table_and_check_poses_only(demo, demo_report, tmp_path):
     session_file, lut_file = demo
     full = session_io.read(session_file)
     steps = {name: step for name, step in full.steps.items() if name not in ("wand_sweep", "wand_calibration")}
@@ -142,7 +151,9 @@ def test_a_session_without_its_sweep_reports_the_table_and_check_poses_only(demo
     np.testing.assert_allclose(declared_cube(full), ideal, atol=1e-12)
     assert numbers["cube"]["centre_mm"] == pytest.approx(1000 * ideal.mean(axis=0), abs=1e-3)
     assert numbers["cube"]["vertices"] == "the ideal cube at the declared pose"
-    whole = build_report(full, lut.read(lut_file), tmp_path / "whole").numbers
+    whole_out, whole_result = demo_report  # the whole session's report, as `ivc report` wrote it
+    assert whole_result.exit_code == 0, whole_result.output
+    whole = json.loads((whole_out / "report.json").read_text())
     assert numbers["check"]["distance_from_cube_mm"]["p50"] == pytest.approx(
         whole["check"]["distance_from_cube_mm"]["p50"], abs=5.0)
 

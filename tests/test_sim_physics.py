@@ -162,3 +162,35 @@ def test_box_mesh_is_closed_and_outward():
     assert len(desk.faces) > 0 and desk.bounds[1][2] == pytest.approx(0.0) and desk.bounds[0][2] == pytest.approx(-0.75)
     with pytest.raises(ValueError, match="unknown conductor shape"):
         meshes.build("sphere", (1, 1, 1), 0.1)
+
+
+def test_a_tabulation_kept_in_the_field_cache_is_the_same_tabulation(tmp_path, monkeypatch):
+    """IVC_FIELD_CACHE: the second tabulation of the same field loads the first one's bytes; a field that
+    differs in its dipoles, region or spacing gets its own file; without the variable nothing is written."""
+    from ivc.sim.eddy import FaceDipoles
+    from ivc.sim.field import SecondaryField
+
+    rng = np.random.default_rng(8)
+    dipoles = FaceDipoles(rng.uniform(0.6, 0.8, (20, 3)), 1e-4 * rng.standard_normal((20, 3, 3)))
+    roi = (np.array([0.2, -0.1, -0.1]), np.array([0.4, 0.1, 0.05]))
+    monkeypatch.delenv("IVC_FIELD_CACHE", raising=False)
+    plain = SecondaryField(dipoles, [], roi, spacing=0.02)
+    plain.tabulate()
+    monkeypatch.setenv("IVC_FIELD_CACHE", str(tmp_path))
+    first = SecondaryField(dipoles, [], roi, spacing=0.02)
+    first.tabulate()
+    assert len(list(tmp_path.glob("field-*.npy"))) == 1
+    calls = []
+    again = SecondaryField(dipoles, [], roi, spacing=0.02)
+    again.tabulate(progress=lambda done, total: calls.append((done, total)))
+    assert calls == [(calls[0][1], calls[0][1])]  # loaded: progress goes straight to the end
+    for field_ in (first, again):
+        np.testing.assert_array_equal(field_._coefficients, plain._coefficients)
+        np.testing.assert_array_equal(field_._origin, plain._origin)
+    points = rng.uniform(roi[0], roi[1], (50, 3))
+    np.testing.assert_array_equal(again(points), plain(points))
+    moved = FaceDipoles(dipoles.centres + [0.0, 0.0, 1e-9], dipoles.moments)
+    for other in (SecondaryField(moved, [], roi, 0.02), SecondaryField(dipoles, [], roi, 0.025),
+                  SecondaryField(dipoles, [], (roi[0], roi[1] + 0.01), 0.02)):
+        other.tabulate()
+    assert len(list(tmp_path.glob("field-*.npy"))) == 4 and not list(tmp_path.glob("*.tmp"))

@@ -5,11 +5,20 @@
 eddy-current part is tabulated once on a regular grid and interpolated with cubic
 splines (the direct sum over thousands of triangle dipoles costs ~30 µs a point);
 outside it, it is summed directly. The same point always gets the same value.
+
+With ``IVC_FIELD_CACHE`` set to a folder, a tabulation is kept there, named by a hash of everything it
+depends on (the face dipoles, the region, the spacing), and the next tabulation of the same field loads it
+instead of summing again (the same bytes: tabulating is deterministic). The test suite sets it to one folder
+per run, shared by its processes, because the same scenes are simulated in many test modules.
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
+import tempfile
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
@@ -68,6 +77,13 @@ class SecondaryField:
         # two extra nodes each side so the cubic spline is accurate up to the ROI's faces
         origin = lower - 2 * self.spacing
         shape = np.ceil((upper - lower) / self.spacing).astype(int) + 5
+        cached = _cache_file(self.dipoles, lower, upper, self.spacing)
+        if cached is not None and cached.exists():
+            self._coefficients = np.load(cached, allow_pickle=False)
+            self._origin = origin
+            if progress is not None:
+                progress(shape[0], shape[0])
+            return
         axes = [origin[i] + self.spacing * np.arange(shape[i]) for i in range(3)]
         nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
         values = np.empty(tuple(shape) + (3, 3))
@@ -79,6 +95,8 @@ class SecondaryField:
             [ndimage.spline_filter(values[..., a, b], order=3, mode="nearest") for a in range(3) for b in range(3)]
         )
         self._origin = origin
+        if cached is not None:
+            _store(cached, self._coefficients)
 
     def __call__(self, points) -> np.ndarray:
         points = np.asarray(points, float)
@@ -99,3 +117,32 @@ class SecondaryField:
         for sphere in self.spheres:
             G += sphere.field(flat)
         return G.reshape(points.shape[:-1] + (3, 3))
+
+
+CACHE_VARIABLE = "IVC_FIELD_CACHE"
+
+
+def _cache_file(dipoles: FaceDipoles, lower: np.ndarray, upper: np.ndarray, spacing: float) -> Path | None:
+    """Where the tabulation of these dipoles over [lower, upper] at ``spacing`` is kept (``IVC_FIELD_CACHE``),
+    or None when no folder is set."""
+    folder = os.environ.get(CACHE_VARIABLE)
+    if not folder:
+        return None
+    digest = hashlib.sha256(b"ivc-secondary-field-1")
+    for a in (dipoles.centres, dipoles.moments, lower, upper, np.array([spacing])):
+        a = np.ascontiguousarray(a, dtype=float)
+        digest.update(str(a.shape).encode())
+        digest.update(a.tobytes())
+    return Path(folder) / f"field-{digest.hexdigest()[:32]}.npy"
+
+
+def _store(path: Path, coefficients: np.ndarray) -> None:
+    """Write ``coefficients`` to ``path`` atomically (a reader sees the whole file or none); a folder that
+    cannot be written only costs the next run the tabulation."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as f:
+            np.save(f, coefficients, allow_pickle=False)
+        os.replace(f.name, path)
+    except OSError:
+        pass
