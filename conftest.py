@@ -37,11 +37,25 @@ def pytest_configure(config):
     inherit it, so a scene simulated in several modules is tabulated once per run (5-14 CPU seconds each for
     the built-in scenes), not once per module and process. Removed when the run ends; a run never reuses an
     earlier run's tables, so a cold run stays cold."""
-    if os.environ.get("PYTEST_XDIST_WORKER") or os.environ.get("IVC_FIELD_CACHE"):
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    if _parallel(config):
+        # one BLAS thread per worker: the workers already keep the cores busy, and OpenBLAS's own threads,
+        # two per worker on the 2-core machine, spun against each other (an 8000-sample sources fit of
+        # tests/test_fit_sources.py: 35 CPU s and 47 s with two, 14 CPU s and 22 s with one, under load).
+        # Set before the workers start, so it holds from their first import of numpy; numba's threads stay.
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    if os.environ.get("IVC_FIELD_CACHE"):
         return
     folder = tempfile.mkdtemp(prefix="ivc-field-cache-")
     os.environ["IVC_FIELD_CACHE"] = folder
     config._ivc_field_cache = folder
+
+
+def _parallel(config) -> bool:
+    """Whether this run spreads its tests over several xdist workers (``-n 2`` in pyproject.toml)."""
+    n = getattr(config.option, "numprocesses", None)
+    return bool(n) and (not isinstance(n, int) or n > 1) and config.getvalue("dist") != "no"
 
 
 def pytest_unconfigure(config):
