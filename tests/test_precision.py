@@ -98,6 +98,9 @@ def test_low_precision_flag_follows_the_limit_and_needs_a_noise(exact_table, rng
         Corrector(exact_table, precision=True)  # this table was not fitted from a session: no noise recorded
     with pytest.raises(InputError):
         Corrector(exact_table, max_precision=-1.0, signal_noise=1e-4)
+    live = Corrector(exact_table, max_precision=limit, signal_noise=1e-4)
+    streamed = np.concatenate([live.update(frame).flags for frame in S.reshape(100, 4, 3, 3)])
+    np.testing.assert_array_equal(streamed, out.flags)  # the live path (a few sensors, NumPy forms) agrees
     nan = S.copy()
     nan[0] = np.nan
     out = Corrector(exact_table, precision=True, signal_noise=1e-4).batch(nan)

@@ -222,8 +222,6 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         precision = {"precision": True, "signal_noise": signal_noise,
                      "max_precision": None if max_precision is None else max_precision / 1000}
     if live_url:
-        if precision:
-            raise click.UsageError("--precision and --max-precision apply to recorded input; not with --live")
         if tracker_file:
             raise click.UsageError("--tracker-model applies to recorded signals; a live stream must be in ideal units")
         if input_file or output:
@@ -235,7 +233,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         if tuning is not None:
             check_tuning_rate(tuning, rate_hz, "the live stream (--rate-hz)")
         _live(lut_file, live_url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor,
-              horizon, rate_hz, duration, tuning, tracker)
+              horizon, rate_hz, duration, tuning, tracker, precision)
         return
     if not input_file or not output:
         raise click.UsageError("give INPUT_FILE and -o OUTPUT (or --live igtl://HOST:PORT)")
@@ -350,14 +348,15 @@ def _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpol
 
 
 def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor, horizon,
-          rate_hz, duration, tuning=None, tracker=None) -> None:
+          rate_hz, duration, tuning=None, tracker=None, precision=None) -> None:
     import logging
 
     from ivc.live import LiveCorrector, parse_url
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     table = lut.read(lut_file)
-    corrector = Corrector(table, hemisphere or table.hemisphere, interpolation, max_residual)
+    # with --max-precision, signal samples whose predicted precision is over the limit are published flagged (16)
+    corrector = Corrector(table, hemisphere or table.hemisphere, interpolation, max_residual, **(precision or {}))
     poses = PoseCorrector(table, hemisphere or table.hemisphere, interpolation, tracker)
     source = parse_url(url)
     host, _, port = publish.rpartition(":")

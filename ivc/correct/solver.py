@@ -24,6 +24,7 @@ from ivc.dipole.pose import hemisphere_vector
 from ivc.errors import InputError
 from ivc.lut.grid import GridField
 from ivc.lut.table import LookupTable
+from ivc.pose.precision import SMALL as PRECISION_SMALL
 from ivc.pose.precision import pose_precision
 
 FLAG_NAMES = {OUTSIDE: "outside the mapped volume", NOT_CONVERGED: "not converged",
@@ -129,8 +130,13 @@ class Corrector:
         out_r, out_a = np.full(len(position), np.nan), np.full(len(position), np.nan)
         finite = np.all(np.isfinite(position), axis=1) & np.all(np.isfinite(quaternion), axis=1)
         if finite.any():
+            parallel = finite.sum() > PRECISION_SMALL
+
+            def secondary(r):
+                return self.field.value_and_jacobian(r, parallel)
+
             out_r[finite], out_a[finite] = pose_precision(position[finite], quaternion[finite], self.signal_noise,
-                                                          self.field.value_and_jacobian)
+                                                          secondary)
         return out_r, out_a
 
     def seed_map(self) -> GridField:

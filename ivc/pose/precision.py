@@ -21,10 +21,14 @@ from collections.abc import Callable
 import numpy as np
 
 from ivc import dipole, rotations
+from ivc.dipole import numpy_kernels
 from ivc.errors import InputError
 from ivc.pose.solver import signal_residual
 
 __all__ = ["pose_covariance", "pose_precision"]
+
+#: at most this many poses are evaluated in NumPy (a live frame's sensors)
+SMALL = 64
 
 SecondaryField = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -44,7 +48,12 @@ def pose_covariance(positions: np.ndarray, quaternions: np.ndarray, sigma: float
     if not (np.isfinite(sigma) and sigma > 0):
         raise InputError(f"the signal noise must be a positive number, got {sigma}")
     T = rotations.to_matrix(quaternions)
-    M, dM = dipole.field(positions), dipole.field_jacobian(positions)
+    if len(positions) > SMALL:
+        M = dipole.field(positions)
+    else:  # the NumPy form: a parallel kernel's thread start costs more than a few poses' work
+        M = np.empty((len(positions), 3, 3))
+        numpy_kernels.field_kernel(positions, M)
+    dM = dipole.field_jacobian(positions)
     if secondary is not None:
         G, dG = secondary(positions)
         M, dM = M + G, dM + dG
