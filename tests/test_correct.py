@@ -81,6 +81,7 @@ def test_cli_fit_correct_evaluate(small_session, tmp_path):
     result = runner.invoke(cli, ["fit", str(session_file), "-o", str(table_file), "--min-support", "5"])
     assert result.exit_code == 0, result.output
     assert "cross-validation RMS" in result.output and "wand samples kept" in result.output
+    assert "Signal noise" in result.output  # measured on the static steps, for --precision
     again = runner.invoke(cli, ["fit", str(session_file), "-o", str(table_file)])
     assert again.exit_code != 0 and "exists" in again.output
 
@@ -93,6 +94,9 @@ def test_cli_fit_correct_evaluate(small_session, tmp_path):
     assert report["ivc"]["position_mm"]["p50"] < 0.2 * report["dipole"]["position_mm"]["p50"]
     text = runner.invoke(cli, ["evaluate", str(table_file), str(session_file)]).output
     assert "IVC position" in text and "dipole position (uncorrected)" in text and "99%" in text
+    assert "predicted precision (noise)" in text and "error / predicted precision" in text
+    # a short sweep: the map adds error of its own above the noise (ratio 1.9 here), never far below it
+    assert 0.5 < report["predicted_precision"]["error_over_predicted_median"] < 5
 
     out_file = tmp_path / "corrected.h5"
     result = runner.invoke(cli, ["correct", str(table_file), str(session_file), "-o", str(out_file)])
@@ -106,6 +110,12 @@ def test_cli_fit_correct_evaluate(small_session, tmp_path):
     ok = flags == 0
     check_error = np.linalg.norm(corrected.steps["check"].position - session.truth["check"].position, axis=-1)
     assert np.median(check_error[ok]) < 0.01
+    precise = runner.invoke(cli, ["correct", str(table_file), str(session_file), "-o", str(tmp_path / "p.h5"),
+                                  "--step", "check", "--max-precision", "0.05"])
+    assert precise.exit_code == 0, precise.output
+    with h5py.File(tmp_path / "p.h5") as h5:
+        predicted, flagged = h5["steps/check/precision"][()], h5["steps/check/flags"][()]
+    assert h5py and np.all(((flagged & 16) != 0) == (predicted > 5e-5))
     refused = runner.invoke(cli, ["correct", str(table_file), str(session_file), "-o", str(session_file), "--force"])
     assert refused.exit_code != 0 and "never overwritten" in refused.output
 

@@ -19,7 +19,15 @@ from ivc.collect.plus import is_plus_sequence, read_plus, write_plus
 from ivc.collect.replay import read_csv_columns, write_csv
 from ivc.correct import Corrector, describe
 from ivc.correct.pose_domain import PoseCorrector
-from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, MAX_RESIDUAL, NOT_CONVERGED, OUTSIDE, Correction
+from ivc.correct.solver import (
+    HIGH_RESIDUAL,
+    INVALID_INPUT,
+    LOW_PRECISION,
+    MAX_RESIDUAL,
+    NOT_CONVERGED,
+    OUTSIDE,
+    Correction,
+)
 from ivc.dipole.tracker_solver import SOLVERS
 from ivc.lut.build import file_digest
 from ivc.lut.grid import INTERPOLATIONS
@@ -53,10 +61,15 @@ def _predicted(step: Step, out: Correction, name: str, horizon: float, tune: boo
 
 
 def _correct_step(table, step: Step, hemisphere: str, interpolation: str, max_residual: float,
-                  tracker: str | None) -> Correction:
-    """A step's corrections: from its signals when it has them, else from its reported poses."""
+                  tracker: str | None, precision: dict | None = None) -> Correction:
+    """A step's corrections: from its signals when it has them, else from its reported poses.
+    ``precision``: the Corrector's precision keywords (``precision``, ``max_precision``, ``signal_noise``)."""
     if step.signal is not None:
-        return Corrector(table, hemisphere, interpolation, max_residual).batch(step.signal, step.valid_mask)
+        return Corrector(table, hemisphere, interpolation, max_residual, **(precision or {})).batch(
+            step.signal, step.valid_mask)
+    if precision:
+        raise click.UsageError("--precision and --max-precision predict a pose's precision from its signal's "
+                               "noise: the input holds reported poses only")
     return PoseCorrector(table, hemisphere, interpolation, tracker).batch(step.position, step.quaternion,
                                                                          step.valid_mask)
 
@@ -75,11 +88,24 @@ def csv_output_columns(kept: dict[str, np.ndarray], added: dict[str, np.ndarray]
     return {**out, **added}, renamed
 
 
+def precision_columns(out: Correction) -> dict[str, np.ndarray]:
+    """The predicted-precision CSV columns of a correction (none when it was not predicted)."""
+    if out.precision is None:
+        return {}
+    return {"precision_mm": 1000 * out.precision, "orientation_precision_mrad": 1000 * out.orientation_precision}
+
+
 def _summary(name: str, out: Correction) -> str:
     flags = out.flags.reshape(-1)
     counts = {describe(int(v)): int(n) for v, n in zip(*np.unique(flags[flags != 0], return_counts=True), strict=True)}
     text = f"{name}: {flags.size} samples, {int(np.sum(flags == 0))} corrected"
-    return text + "".join(f"; {n} {k}" for k, n in counts.items())
+    text += "".join(f"; {n} {k}" for k, n in counts.items())
+    trusted = out.flags.reshape(-1) == 0
+    if out.precision is not None and trusted.any():
+        predicted = 1000 * out.precision.reshape(-1)[trusted]
+        text += (f"; predicted precision of the trusted poses {np.median(predicted):.3g} mm median, "
+                 f"{np.percentile(predicted, 95):.3g} mm p95")
+    return text
 
 
 def _warn(advice: str | None) -> None:
@@ -104,7 +130,8 @@ def correction_advice(out: Correction, max_residual: float, pose_only: bool = Fa
         return "every sample is marked invalid or is not finite in the input: nothing to correct"
     if np.mean(flags[valid] == 0) >= 0.5:
         return None
-    share = {bit: float(np.mean((flags[valid] & bit) != 0)) for bit in (OUTSIDE, HIGH_RESIDUAL, NOT_CONVERGED)}
+    share = {bit: float(np.mean((flags[valid] & bit) != 0))
+             for bit in (OUTSIDE, HIGH_RESIDUAL, NOT_CONVERGED, LOW_PRECISION)}
     bit = max(share, key=share.get)
     percent = f"{100 * share[bit]:.0f}% of the valid samples"
     if bit == OUTSIDE:
@@ -119,6 +146,9 @@ def correction_advice(out: Correction, max_residual: float, pose_only: bool = Fa
         return (f"{percent} do not fit the table's field (median residual {median:.2g}, gate --max-residual "
                 f"{max_residual:g}): was this recorded in the mapped room, with the source where it was when "
                 "the table was fitted, and in the table's hemisphere?")
+    if bit == LOW_PRECISION:
+        return (f"{percent} are predicted less precise than --max-precision: the tracker's noise allows no better "
+                "that far from the source; loosen the limit, or average frames of a static sensor")
     return (f"{percent} did not converge: check the hemisphere (--hemisphere for a CSV) and that the signals "
             "are in the tracker's units")
 
@@ -157,9 +187,17 @@ def correction_advice(out: Correction, max_residual: float, pose_only: bool = Fa
 @click.option("--rate-hz", type=POSITIVE, default=240.0, show_default=True,
               help="With --live --predict: the stream's sample rate.")
 @click.option("--duration", type=POSITIVE, help="With --live: stop after this many seconds (default: until Ctrl-C).")
+@click.option("--precision", "with_precision", is_flag=True,
+              help="Write each pose's predicted RMS position and orientation error (from the tracker's signal noise "
+                   "and the table's field; columns precision_mm, orientation_precision_mrad). Signal inputs only.")
+@click.option("--max-precision", type=POSITIVE, metavar="MM",
+              help="Flag (16) poses whose predicted RMS position error exceeds MM millimetres (implies --precision).")
+@click.option("--signal-noise", type=POSITIVE, help="The tracker's white noise per signal entry, in signal units "
+              "(default: what the table's fit measured on the session's static steps).")
 @tracker_option
 def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, tracker, force, predictor,
-            horizon, tune, tune_from, live_url, publish, length_unit, sensors, rate_hz, duration, tracker_file):
+            horizon, tune, tune_from, live_url, publish, length_unit, sensors, rate_hz, duration, with_precision,
+            max_precision, signal_noise, tracker_file):
     """Correct the poses in INPUT_FILE (session .h5, recording .csv or PLUS sequence .igs.mha) with LUT_FILE.
 
     A PLUS sequence (.igs.mha, .seq.mha, .igs.nrrd) is written back with each
@@ -167,7 +205,8 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     status (OK = trusted) and <Tool>To<Tracker>IvcFlags, for Slicer's Sequences module.
 
     Every output sample carries flags: 0 = trusted; 1 outside the mapped volume, 2 not
-    converged, 4 residual too high, 8 invalid input (bits combine). Signals are used when
+    converged, 4 residual too high, 8 invalid input, 16 predicted precision over --max-precision
+    (bits combine). Signals are used when
     the input has them; otherwise the reported poses are corrected directly, by inverting the
     tracker's pose-domain distortion (docs/lut.md): then 4 means a reported pose the map does
     not produce, or not uniquely. With --predict, the corrected orientations of trusted
@@ -178,6 +217,10 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     """
     if (tune or tune_from) and not predictor:
         raise click.UsageError("--tune and --tune-from tune a prediction filter: give --predict NAME too")
+    precision = None
+    if with_precision or max_precision or signal_noise:
+        precision = {"precision": True, "signal_noise": signal_noise,
+                     "max_precision": None if max_precision is None else max_precision / 1000}
     if live_url:
         if tracker_file:
             raise click.UsageError("--tracker-model applies to recorded signals; a live stream must be in ideal units")
@@ -190,7 +233,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         if tuning is not None:
             check_tuning_rate(tuning, rate_hz, "the live stream (--rate-hz)")
         _live(lut_file, live_url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor,
-              horizon, rate_hz, duration, tuning, tracker)
+              horizon, rate_hz, duration, tuning, tracker, precision)
         return
     if not input_file or not output:
         raise click.UsageError("give INPUT_FILE and -o OUTPUT (or --live igtl://HOST:PORT)")
@@ -202,6 +245,9 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     if is_plus_sequence(input_path):
         if tracker_file is not None:
             raise click.UsageError("--tracker-model applies to signal matrices; a PLUS sequence holds poses only")
+        if precision:
+            raise click.UsageError("--precision and --max-precision need signal matrices; a PLUS sequence holds "
+                                   "poses only")
         _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpolation, max_residual, predictor,
                       delta, tune, tuning, tune_from, tracker)
         return
@@ -213,13 +259,15 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
         if tracker_file is not None:
             step = with_tracker(Session(hemisphere or table.hemisphere, {"recording": step}), tracker_file
                                 ).steps["recording"]
-        out = _correct_step(table, step, hemisphere or table.hemisphere, interpolation, max_residual, tracker)
+        out = _correct_step(table, step, hemisphere or table.hemisphere, interpolation, max_residual, tracker,
+                            precision)
         fixed = corrected_step(step, out, lut_file)
         fixed.signal = None
         fixed.valid = out.flags == 0  # valid: the corrected pose is trusted (flags say why not)
         if predictor:
             fixed = _predicted(fixed, out, predictor, delta, tune, tuning, tune_from)
-        extra, renamed = csv_output_columns(columns.extra, {"flags": out.flags, "residual": out.residual})
+        extra, renamed = csv_output_columns(columns.extra, {"flags": out.flags, "residual": out.residual,
+                                                            **precision_columns(out)})
         for old, new in renamed.items():
             _warn(f"the input's column {old!r} is written as {new!r} (ivc writes its own {old!r})")
         with session_io.atomic_path(output_path) as tmp:
@@ -238,7 +286,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     results = {}
     for name in names:
         step = data.steps[name]
-        results[name] = _correct_step(table, step, data.hemisphere, interpolation, max_residual, tracker)
+        results[name] = _correct_step(table, step, data.hemisphere, interpolation, max_residual, tracker, precision)
         click.echo(_summary(name, results[name]))
         _warn(correction_advice(results[name], max_residual, step.signal is None))
     fixed = {n: corrected_step(data.steps[n], results[n], lut_file) for n in names}
@@ -254,8 +302,16 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
                 h5[f"steps/{name}/flags"] = out.flags
                 h5[f"steps/{name}/flags"].attrs["meaning"] = (
                     "0 trusted; bits: 1 outside the mapped volume, 2 not converged, 4 residual too high (reported "
-                    "poses: the map does not produce the pose, or not uniquely), 8 invalid input")
+                    "poses: the map does not produce the pose, or not uniquely), 8 invalid input, 16 predicted "
+                    "precision over the limit")
                 h5[f"steps/{name}/residual"] = out.residual
+                if out.precision is not None:
+                    for key, values, unit in (("precision", out.precision, "m"),
+                                              ("orientation_precision", out.orientation_precision, "rad")):
+                        h5[f"steps/{name}/{key}"] = values
+                        h5[f"steps/{name}/{key}"].attrs.update(
+                            unit=unit, meaning="predicted RMS error of the corrected pose from the tracker's "
+                                               "signal noise (Cramér-Rao bound of one frame)")
     click.echo(f"wrote {output_path}")
     _cold_note()
 
@@ -292,14 +348,15 @@ def _correct_plus(table, lut_file, input_path, output_path, hemisphere, interpol
 
 
 def _live(lut_file, url, publish, length_unit, sensors, interpolation, max_residual, hemisphere, predictor, horizon,
-          rate_hz, duration, tuning=None, tracker=None) -> None:
+          rate_hz, duration, tuning=None, tracker=None, precision=None) -> None:
     import logging
 
     from ivc.live import LiveCorrector, parse_url
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     table = lut.read(lut_file)
-    corrector = Corrector(table, hemisphere or table.hemisphere, interpolation, max_residual)
+    # with --max-precision, signal samples whose predicted precision is over the limit are published flagged (16)
+    corrector = Corrector(table, hemisphere or table.hemisphere, interpolation, max_residual, **(precision or {}))
     poses = PoseCorrector(table, hemisphere or table.hemisphere, interpolation, tracker)
     source = parse_url(url)
     host, _, port = publish.rpartition(":")

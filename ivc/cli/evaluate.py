@@ -44,9 +44,16 @@ def render_table(report: dict) -> str:
     if "ivc_aligned" in report:
         lines += [_row("IVC position, rigid fit", report["ivc_aligned"]["position_mm"], "mm"),
                   _row("IVC orientation, rigid fit", report["ivc_aligned"]["orientation_mrad"], "mrad")]
+    if "predicted_precision" in report:
+        lines.append(_row("predicted precision (noise)", report["predicted_precision"]["position_mm"], "mm"))
     source = "reported" if report.get("input") == "reported poses" else "dipole"
     lines += [_row(f"{source} position (uncorrected)", report["dipole"]["position_mm"], "mm"),
               _row(f"{source} orientation", report["dipole"]["orientation_mrad"], "mrad")]
+    if "predicted_precision" in report:
+        ratio = report["predicted_precision"]
+        lines += ["", f"error / predicted precision: {ratio['error_over_predicted_median']:.2f} median, "
+                      f"{ratio['error_over_predicted_p95']:.2f} p95 (the tracker's noise alone: 0.7-0.9 and 1.6-2.0; "
+                      "above: the map adds its own)"]
     return "\n".join(lines)
 
 
@@ -74,6 +81,8 @@ def evaluate(lut_file, check_file, step, interpolation, max_residual, tracker, a
     if step in check.steps and check.steps[step].signal is None:
         corrector = PoseCorrector(table, check.hemisphere, interpolation, tracker)
     else:
-        corrector = Corrector(table, check.hemisphere, interpolation, max_residual)
+        # the tracker's noise, when the table's fit measured it, gives each pose's predicted precision
+        corrector = Corrector(table, check.hemisphere, interpolation, max_residual,
+                              precision=bool(table.fit.get("signal_noise")))
     report = evaluate_table(corrector, check, step)
     click.echo(json.dumps(report, indent=2) if as_json else render_table(report))

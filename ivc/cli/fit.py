@@ -87,6 +87,11 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
                  f"({', '.join(f'{1000 * v:.1f}' for v in extent[1])}) mm; {fit['valid_nodes']} nodes mapped "
                  f"(support >= {fit['min_support']} samples), "
                  f"{int((table.field().valid_cells).sum()) * (1000 * grid.spacing) ** 3 / 1e6:.1f} litres mapped")
+    noise = fit.get("signal_noise")
+    if noise:
+        lines.append(f"Signal noise: {noise['sigma']:.3g} per entry, measured on {', '.join(noise['steps'])} "
+                     f"({noise['pairs']} frame pairs; per-sensor spread {noise['spread']:.2f}x): "
+                     "`ivc correct --precision` predicts each pose's precision from it")
     if seconds is not None:
         lines.append(f"Done in {seconds:.1f} s")
     return "\n".join(lines)

@@ -5,6 +5,7 @@ from ivc.correct.solver import (
     FLAG_NAMES,
     HIGH_RESIDUAL,
     INVALID_INPUT,
+    LOW_PRECISION,
     NOT_CONVERGED,
     OUTSIDE,
     Correction,
@@ -12,5 +13,5 @@ from ivc.correct.solver import (
     describe,
 )
 
-__all__ = ["FLAG_NAMES", "HIGH_RESIDUAL", "INVALID_INPUT", "NOT_CONVERGED", "OUTSIDE", "Correction", "Corrector",
-           "PoseCorrector", "describe"]
+__all__ = ["FLAG_NAMES", "HIGH_RESIDUAL", "INVALID_INPUT", "LOW_PRECISION", "NOT_CONVERGED", "OUTSIDE",
+           "Correction", "Corrector", "PoseCorrector", "describe"]

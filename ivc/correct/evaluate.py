@@ -35,7 +35,8 @@ class CheckErrors:
 
     ``ivc_*`` are judged in the declared cube frame when ``frame_map`` is known (else equal to
     ``ivc_raw_*``, against raw truth). ``true_position`` (F, N, 3) metres is in the frame the
-    IVC errors were judged in.
+    IVC errors were judged in. ``precision_mm`` (F, N): each corrected pose's predicted RMS position error
+    when the corrector predicted it (``Corrector(precision=True)``), else None.
     """
 
     valid: np.ndarray
@@ -54,6 +55,7 @@ class CheckErrors:
     aligned_position_mm: np.ndarray | None = None
     aligned_orientation_mrad: np.ndarray | None = None
     input: str = "signals"
+    precision_mm: np.ndarray | None = None
 
 
 #: refits of the rigid alignment without its outliers, and what counts as one (times the median error)
@@ -136,7 +138,8 @@ def check_errors(table: LookupTable | Corrector | PoseCorrector, check: Session,
         p, a = pose_errors(out.position, T_ivc, judged, D_R @ true_T)
         placement = float(1000 * np.linalg.norm(D_t + (D_R - np.eye(3)) @ np.mean(true_p[valid], axis=0)))
     return CheckErrors(valid, ok, out.flags, out.iterations, p, a, raw_p, raw_a, dip_p, dip_a, judged, frame_map,
-                       placement, aligned_p, aligned_a, "signals" if data.signal is not None else "reported poses")
+                       placement, aligned_p, aligned_a, "signals" if data.signal is not None else "reported poses",
+                       None if getattr(out, "precision", None) is None else 1000 * out.precision)
 
 
 def summarise(e: CheckErrors) -> dict:
@@ -163,6 +166,13 @@ def summarise(e: CheckErrors) -> dict:
     if e.aligned_position_mm is not None and ok.any():
         report["ivc_aligned"] = {"position_mm": percentiles(e.aligned_position_mm[ok]),
                                  "orientation_mrad": percentiles(e.aligned_orientation_mrad[ok])}
+    if e.precision_mm is not None and ok.any():
+        # errors that are the tracker's noise alone give a median ratio of 0.67-0.89 (a 3-D Gaussian error's
+        # median length over its RMS, from all variance on one axis to isotropic); map error raises it
+        ratio = e.ivc_position_mm[ok] / e.precision_mm[ok]
+        report["predicted_precision"] = {"position_mm": percentiles(e.precision_mm[ok]),
+                                         "error_over_predicted_median": float(np.median(ratio)),
+                                         "error_over_predicted_p95": float(np.percentile(ratio, 95))}
     report["input"] = e.input
     report["iterations_median"] = float(np.median(e.iterations[valid])) if valid.any() else 0.0
     return report

@@ -6,6 +6,7 @@ Every result carries per-sample flags; a pose is never returned without them:
 ``NOT_CONVERGED``  the solve did not converge
 ``HIGH_RESIDUAL``  the model explains the signal poorly: rms(M − T S)/rms(S) above the threshold
 ``INVALID_INPUT``  the signal (or reported pose) is not finite or is all zeros, or the sample was marked invalid
+``LOW_PRECISION``  asked for (``max_precision``): the pose's predicted precision is worse than the limit
 
 Flags combine bitwise; 0 means the pose is trusted.
 """
@@ -18,14 +19,17 @@ import numpy as np
 
 from ivc import compiled, dipole
 from ivc.correct import kernels as _kernels
-from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
+from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, LOW_PRECISION, NOT_CONVERGED, OUTSIDE
 from ivc.dipole.pose import hemisphere_vector
 from ivc.errors import InputError
 from ivc.lut.grid import GridField
 from ivc.lut.table import LookupTable
+from ivc.pose.precision import SMALL as PRECISION_SMALL
+from ivc.pose.precision import pose_precision
 
 FLAG_NAMES = {OUTSIDE: "outside the mapped volume", NOT_CONVERGED: "not converged",
-              HIGH_RESIDUAL: "residual too high", INVALID_INPUT: "invalid input"}
+              HIGH_RESIDUAL: "residual too high", INVALID_INPUT: "invalid input",
+              LOW_PRECISION: "predicted precision over the limit"}
 #: default residual threshold, rms(M − T S)/rms(S)
 MAX_RESIDUAL = 1e-3
 MAX_ITERATIONS = 50
@@ -33,6 +37,24 @@ STEP_TOLERANCE = 1e-7  # m: a tenth of a micrometre
 #: batches of at least this many frames start cold frames from the table's correction map
 #: (``ivc.correct.seed_map``, built once per corrector: about as long as correcting a few thousand frames)
 SEED_MAP_FRAMES = 4096
+
+
+def _positive(name: str, value: float | None) -> float | None:
+    if value is None:
+        return None
+    if not (np.isfinite(value) and value > 0):
+        raise InputError(f"{name} must be a positive number, got {value}")
+    return float(value)
+
+
+def _table_noise(table: LookupTable | GridField) -> float:
+    """The signal noise a table's fit measured (``ivc.lut.signal_noise``), or a clear error."""
+    noise = table.fit.get("signal_noise") if isinstance(table, LookupTable) else None
+    if not noise:
+        raise InputError("the table records no signal noise (fitted from reported poses, from a session without "
+                         "static steps of signals, or by an older ivc): give the tracker's noise per signal "
+                         "entry (signal_noise=, ivc correct --signal-noise) to predict precision")
+    return float(noise["sigma"])
 
 
 def describe(flags: int) -> str:
@@ -43,13 +65,18 @@ def describe(flags: int) -> str:
 @dataclass
 class Correction:
     """Corrected poses (..., 3) m and (..., 4) [w, x, y, z], with ``flags`` (...) uint8, the relative
-    ``residual`` and the solver's ``iterations``. Non-finite input gives NaN poses flagged INVALID_INPUT."""
+    ``residual`` and the solver's ``iterations``. Non-finite input gives NaN poses flagged INVALID_INPUT.
+    ``precision`` (...) m and ``orientation_precision`` (...) rad: each pose's predicted RMS error from the
+    tracker's signal noise (``ivc.pose.precision``; NaN where there is no pose), when the corrector was
+    asked for them, else None."""
 
     position: np.ndarray
     quaternion: np.ndarray
     flags: np.ndarray
     residual: np.ndarray
     iterations: np.ndarray
+    precision: np.ndarray | None = None
+    orientation_precision: np.ndarray | None = None
 
     @property
     def ok(self) -> np.ndarray:
@@ -67,10 +94,17 @@ class Corrector:
     (default: the table's). ``max_residual``: the HIGH_RESIDUAL threshold. ``seed_map``: whether cold
     frames of batches of at least :data:`SEED_MAP_FRAMES` start from the table's correction map
     (``ivc.correct.seed_map``; False: always from the fixed point, as smaller batches do).
+
+    Predicted precision (docs/correct.md, "Predicted precision"): with ``precision`` True or a
+    ``max_precision`` (m), every pose carries its predicted RMS position and orientation error, the
+    Cramér-Rao bound of a single frame from the table's field and the tracker's white signal noise
+    ``signal_noise`` (signal units; default: the noise the table's fit measured on the session's static
+    steps), and poses whose predicted position error exceeds ``max_precision`` are flagged LOW_PRECISION.
     """
 
     def __init__(self, table: LookupTable | GridField, hemisphere: str | None = None, interpolation: str = "cubic",
-                 max_residual: float = MAX_RESIDUAL, max_iterations: int = MAX_ITERATIONS, seed_map: bool = True):
+                 max_residual: float = MAX_RESIDUAL, max_iterations: int = MAX_ITERATIONS, seed_map: bool = True,
+                 precision: bool = False, max_precision: float | None = None, signal_noise: float | None = None):
         self.field = table.field(interpolation) if isinstance(table, LookupTable) else table
         hemisphere = hemisphere or (table.hemisphere if isinstance(table, LookupTable) else "+x")
         self.hemisphere = hemisphere
@@ -80,6 +114,30 @@ class Corrector:
         self._previous: dict = {}
         self._seed_map = None
         self.use_seed_map = bool(seed_map)
+        self.max_precision = _positive("max_precision", max_precision)
+        self.signal_noise = None
+        if precision or self.max_precision is not None:
+            self.signal_noise = _positive("signal_noise", signal_noise) or _table_noise(table)
+
+    def predict_precision(self, position: np.ndarray, quaternion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted RMS position error (N,) m and orientation error (N,) rad of single-frame poses at
+        ``position`` (N, 3) m, ``quaternion`` (N, 4), from the table's field and :attr:`signal_noise`
+        (``ivc.pose.precision``); NaN where the pose is not finite."""
+        if self.signal_noise is None:
+            raise InputError("this corrector knows no signal noise: create it with precision=True (and "
+                             "signal_noise= when the table records none)")
+        position, quaternion = np.asarray(position, float), np.asarray(quaternion, float)
+        out_r, out_a = np.full(len(position), np.nan), np.full(len(position), np.nan)
+        finite = np.all(np.isfinite(position), axis=1) & np.all(np.isfinite(quaternion), axis=1)
+        if finite.any():
+            parallel = finite.sum() > PRECISION_SMALL
+
+            def secondary(r):
+                return self.field.value_and_jacobian(r, parallel)
+
+            out_r[finite], out_a[finite] = pose_precision(position[finite], quaternion[finite], self.signal_noise,
+                                                          secondary)
+        return out_r, out_a
 
     def seed_map(self) -> GridField:
         """The correction map cold frames of a large batch start from (``ivc.correct.seed_map``), built on
@@ -110,7 +168,12 @@ class Corrector:
         flags[~finite] = INVALID_INPUT
         if not finite.all():
             r[~finite], q[~finite], residual[~finite] = np.nan, np.nan, np.nan
-        return Correction(r, q, flags, residual, iterations)
+        if self.signal_noise is None:
+            return Correction(r, q, flags, residual, iterations)
+        precision, orientation_precision = self.predict_precision(r, q)
+        if self.max_precision is not None:
+            flags[~(precision <= self.max_precision) & finite] |= LOW_PRECISION
+        return Correction(r, q, flags, residual, iterations, precision, orientation_precision)
 
     def batch(self, S: np.ndarray, valid: np.ndarray | None = None, seeds: np.ndarray | None = None) -> Correction:
         """Correct signal matrices ``S`` (..., 3, 3), each frame on its own (no warm start unless ``seeds``,
@@ -125,8 +188,9 @@ class Corrector:
         seed = np.full((len(flat), 3), np.nan) if seeds is None else np.ascontiguousarray(
             np.asarray(seeds, float).reshape(-1, 3))
         out = self._run(flat, seed, serial=len(flat) < 64)
+        shaped = (None if a is None else a.reshape(lead) for a in (out.precision, out.orientation_precision))
         return Correction(out.position.reshape(*lead, 3), out.quaternion.reshape(*lead, 4), out.flags.reshape(lead),
-                          out.residual.reshape(lead), out.iterations.reshape(lead))
+                          out.residual.reshape(lead), out.iterations.reshape(lead), *shaped)
 
     def batch_poses(self, position: np.ndarray, quaternion: np.ndarray, valid: np.ndarray | None = None) -> Correction:
         """Correct tracker-reported poses: the signal is rebuilt as ``S = Tᵀ f_D(r)`` (docs/math.md §9)."""

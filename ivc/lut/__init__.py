@@ -16,10 +16,11 @@ from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
 from ivc.lut.joint import JointMap, JointOptions, fit_joint, solve_wand, solve_wand_table
 from ivc.lut.refine import MapFit, fit_map, refine_map
 from ivc.lut.samples import FieldSamples
+from ivc.lut.signal_noise import SignalNoise, measure_signal_noise
 from ivc.lut.table import LookupTable, LutError, read, write
 
 __all__ = ["DEFAULT_SPACING", "FITTERS", "METHODS", "BlockedKFold", "FieldSamples", "FitOptions", "Fitter", "Grid",
            "GridField", "HarmonicFit", "HarmonicModel", "JointMap", "JointOptions", "LookupTable", "LutError",
-           "MapFit", "PolyFit", "SourceModel", "SourcesFit", "box_coverage", "cross_validate", "fit_joint", "fit_lut",
-           "fit_map", "fit_table", "held_out_score", "make_fitter", "read", "refine_map", "register", "solve_wand",
-           "solve_wand_table", "write"]
+           "MapFit", "PolyFit", "SignalNoise", "SourceModel", "SourcesFit", "box_coverage", "cross_validate",
+           "fit_joint", "fit_lut", "fit_map", "fit_table", "held_out_score", "make_fitter", "measure_signal_noise",
+           "read", "refine_map", "register", "solve_wand", "solve_wand_table", "write"]

@@ -25,6 +25,7 @@ from ivc.lut.fitter import FITTERS, Fitter, make_fitter
 from ivc.lut.grid import DEFAULT_SPACING, Grid
 from ivc.lut.refine import fit_map, refine_map
 from ivc.lut.samples import FieldSamples
+from ivc.lut.signal_noise import measure_signal_noise
 from ivc.lut.support import MIN_SUPPORT
 from ivc.lut.table import LookupTable
 from ivc.session import Session, SessionError, extension_steps
@@ -202,7 +203,7 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
     if extension_steps(session.steps):  # the whole working volume: the joint solve (ivc.lut.joint)
         from ivc.lut.joint import fit_joint_lut
 
-        return fit_joint_lut(session, options or FitOptions(), source, progress)
+        return _with_signal_noise(fit_joint_lut(session, options or FitOptions(), source, progress), session)
     options = options or FitOptions()
     progress = progress or _noop
     missing = session.missing_for_fit()
@@ -253,4 +254,13 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
     }
     if source is not None:
         provenance.update(input=str(source), input_sha256=file_digest(source))
-    return LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance)
+    return _with_signal_noise(LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance),
+                              session)
+
+
+def _with_signal_noise(table: LookupTable, session: Session) -> LookupTable:
+    """``table`` with the tracker's signal noise measured from ``session``'s static steps in its fit report
+    (``fit["signal_noise"]``, None when unmeasurable), from which ``ivc correct`` predicts each pose's precision."""
+    noise = measure_signal_noise(session)
+    table.fit["signal_noise"] = noise.as_dict() if noise is not None else None
+    return table

@@ -153,8 +153,10 @@ class GridField:
         return (self._padded, self.valid_cells, self._origin, float(self.grid.spacing), self._shape,
                 self.interpolation == "cubic")
 
-    def evaluate(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(g (..., *channels), ∂g/∂r (..., *channels, 3), mapped (...))`` at points r (..., 3), metres."""
+    def evaluate(self, r: np.ndarray, parallel: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(g (..., *channels), ∂g/∂r (..., *channels, 3), mapped (...))`` at points r (..., 3), metres.
+        ``parallel`` False: the NumPy form (equal to rounding), for a few points, where starting the parallel
+        kernel's threads costs more than the work (milliseconds on a loaded machine)."""
         r = np.asarray(r, float)
         lead = r.shape[:-1]
         points = np.ascontiguousarray(r.reshape(-1, 3))
@@ -162,7 +164,8 @@ class GridField:
         values = np.empty((len(points), C))
         gradients = np.empty((len(points), C, 3))
         mapped = np.empty(len(points), dtype=bool)
-        kernel = compiled.choose(_kernels.grid_kernel, len(points), compiled.VECTORISED, grid_numpy.grid_kernel)
+        kernel = (compiled.choose(_kernels.grid_kernel, len(points), compiled.VECTORISED, grid_numpy.grid_kernel)
+                  if parallel else grid_numpy.grid_kernel)
         kernel(self.kernel_grid, points, values, gradients, mapped)
         finite = np.all(np.isfinite(points), axis=1)
         mapped &= finite
@@ -172,8 +175,8 @@ class GridField:
     def __call__(self, r: np.ndarray) -> np.ndarray:
         return self.evaluate(r)[0]
 
-    def value_and_jacobian(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        g, dg, _ = self.evaluate(r)
+    def value_and_jacobian(self, r: np.ndarray, parallel: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        g, dg, _ = self.evaluate(r, parallel)
         return g, dg
 
     def mapped(self, r: np.ndarray) -> np.ndarray:

@@ -1,5 +1,6 @@
 """Stage 3: sensor pose with a known secondary field (inside the cube, or anywhere a LUT covers)."""
 
+from ivc.pose.precision import pose_covariance, pose_precision
 from ivc.pose.reported import Inversion, invert_distortion
 from ivc.pose.solver import (
     METHODS,
@@ -13,5 +14,6 @@ from ivc.pose.solver import (
 )
 from ivc.pose.tracker import tracker_pose
 
-__all__ = ["METHODS", "Inversion", "PoseSolution", "damped_step", "dipole_plus", "levenberg_marquardt",
-           "invert_distortion", "procrustes", "signal_residual", "solve_pose", "tracker_pose"]
+__all__ = ["METHODS", "Inversion", "PoseSolution", "damped_step", "dipole_plus", "invert_distortion",
+           "levenberg_marquardt", "pose_covariance", "pose_precision", "procrustes", "signal_residual", "solve_pose",
+           "tracker_pose"]

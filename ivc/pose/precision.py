@@ -1,0 +1,75 @@
+"""How precisely one frame's signal fixes a pose: the Cramér-Rao bound of a single-frame solve.
+
+With a measured signal ``S = Tᵀ M(r) + N``, ``M = f_D + G`` (free-space dipole plus the secondary
+field) and white noise ``N ~ N(0, σ² I₉)`` on the nine entries, the Fisher information of the pose
+``(r, ω)`` (position and a rotation increment ``T ← T exp([ω]×)``) is ``JᵀJ / σ²``, with ``J`` the
+9 x 6 Jacobian of ``Tᵀ M(r)`` (:func:`ivc.pose.signal_residual`). No unbiased estimate from that
+frame does better than the covariance ``σ² (JᵀJ)⁻¹``, and a converged least-squares solve reaches it
+(tests/test_noise_floor.py checks both against Monte Carlo solves).
+
+Used twice: by the simulator, to state the noise floor of its check poses against their true pose
+(``ivc.sim.noise_floor``), and by the correction, to predict each corrected pose's precision from
+the table's field and the tracker's measured signal noise (``ivc.correct``, ``--max-precision``).
+The noise is *absolute* (the same ``σ`` at every range, as a receiver's fixed noise floor gives), so
+the signal-to-noise ratio falls as ``r³`` and the pose precision faster still.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from ivc import dipole, rotations
+from ivc.dipole import numpy_kernels
+from ivc.errors import InputError
+from ivc.pose.solver import signal_residual
+
+__all__ = ["pose_covariance", "pose_precision"]
+
+#: at most this many poses are evaluated in NumPy (a live frame's sensors)
+SMALL = 64
+
+SecondaryField = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def pose_covariance(positions: np.ndarray, quaternions: np.ndarray, sigma: float,
+                    secondary: SecondaryField | None = None) -> np.ndarray:
+    """Cramér-Rao covariance (N, 6, 6) of single-frame poses at ``positions`` (N, 3) m with orientations
+    ``quaternions`` (N, 4) [w, x, y, z], for white noise ``sigma`` per signal entry (the signal's units:
+    normalised dipole units for calibrated signals). Rows/columns: position (m, source frame), then the
+    rotation increment (rad, sensor frame). ``secondary(r) -> (G (N, 3, 3), ∂G/∂r (N, 3, 3, 3))``: the
+    secondary field the signal carries (None: free space). A pose the signal cannot fix (a singular
+    information matrix) gets an infinite covariance."""
+    positions = np.asarray(positions, float).reshape(-1, 3)
+    quaternions = np.asarray(quaternions, float).reshape(-1, 4)
+    if len(positions) != len(quaternions):
+        raise InputError(f"{len(positions)} positions but {len(quaternions)} orientations")
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise InputError(f"the signal noise must be a positive number, got {sigma}")
+    T = rotations.to_matrix(quaternions)
+    if len(positions) > SMALL:
+        M = dipole.field(positions)
+    else:  # the NumPy form: a parallel kernel's thread start costs more than a few poses' work
+        M = np.empty((len(positions), 3, 3))
+        numpy_kernels.field_kernel(positions, M)
+    dM = dipole.field_jacobian(positions)
+    if secondary is not None:
+        G, dG = secondary(positions)
+        M, dM = M + G, dM + dG
+    _, J = signal_residual(np.swapaxes(T, -1, -2) @ M, M, dM, T)
+    information = np.swapaxes(J, -1, -2) @ J
+    covariance = np.full(information.shape, np.inf)
+    finite = np.all(np.isfinite(information), axis=(1, 2))
+    finite[finite] = np.linalg.cond(information[finite]) < 1e14
+    covariance[finite] = sigma**2 * np.linalg.inv(information[finite])
+    return covariance
+
+
+def pose_precision(positions: np.ndarray, quaternions: np.ndarray, sigma: float,
+                   secondary: SecondaryField | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The RMS position error (N,) m and RMS orientation error (N,) rad a single frame cannot beat:
+    ``sqrt(tr C_rr)`` and ``sqrt(tr C_ωω)`` of :func:`pose_covariance` (same arguments)."""
+    covariance = pose_covariance(positions, quaternions, sigma, secondary)
+    return (np.sqrt(np.trace(covariance[:, :3, :3], axis1=1, axis2=2)),
+            np.sqrt(np.trace(covariance[:, 3:, 3:], axis1=1, axis2=2)))
