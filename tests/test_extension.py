@@ -169,6 +169,7 @@ def test_joint_fit_grows_the_map_and_reports_it(tmp_path):
     from ivc.lut.grid import Grid
 
     assert joint.report["table_subdivision"] == 2 and joint.report["sample_selection"] == "even"
+    assert joint.report["error_floor_mm"] == pytest.approx(1000 * JointOptions().error_floor)  # the joint's ε₀
     assert joint.report["support_spacing_m"] == pytest.approx(2 * joint.grid.spacing)
     coarse = Grid.around(joint.samples.positions, joint.report["support_spacing_m"])
     np.testing.assert_allclose(coarse.origin, joint.grid.origin)

@@ -122,3 +122,31 @@ def test_even_subset_thins_the_dense_region_first(rng):
     at = LOW + (HIGH - LOW) * rng.random((2_500, 3))
     np.testing.assert_allclose(model(at), model.value_and_jacobian(at, jacobian=False)[0], rtol=1e-12,
                                atol=1e-14 * np.abs(model(at)).max())
+
+
+def test_error_floor_sets_the_weights_of_the_fit(rng):
+    """``error_floor`` is the ε₀ of the weights λ² / (ε² + ε₀²): the accumulated normal equations equal those
+    built from the weights with that floor, the report states it, and a floor that is not positive is refused."""
+    from ivc.lut.fit_sources import design_rows, normal_equations, solve_normal_equations
+    from ivc.lut.samples import ERROR_FLOOR
+
+    n = 600
+    points = LOW + (HIGH - LOW) * rng.random((n, 3))
+    error = 10 ** rng.uniform(-5.5, -3.5, n)  # 3 µm … 0.3 mm: precisions the default floor of 0.1 mm flattens
+    samples = FieldSamples(points, external(points), error, np.arange(n) // 3, np.zeros(n, int))
+    sources = shell(LOW, HIGH, 0.05, 0.3)
+    K = 3 * len(sources)
+    for floor in (ERROR_FLOOR, 2e-5):
+        lever = samples.leverage()
+        expected_weights = lever**2 / (error**2 + floor**2) * np.mean(1 / (error**2 + floor**2)) ** -1
+        np.testing.assert_allclose(samples.weights(floor), expected_weights, rtol=1e-12)
+        root = np.sqrt(expected_weights)
+        X = (design_rows(points, sources) * root[:, None, None]).reshape(-1, K)
+        normal = normal_equations(samples, sources, block_frames=50, error_floor=floor)
+        np.testing.assert_allclose(normal.gram.sum(axis=0), X.T @ X, rtol=1e-10, atol=1e-12 * np.abs(X.T @ X).max())
+        assert solve_normal_equations(normal, (1e-6,))[1]["error_floor_mm"] == pytest.approx(1000 * floor)
+    assert not np.allclose(samples.weights(), samples.weights(2e-5))
+    np.testing.assert_array_equal(samples.weights(), samples.weights(ERROR_FLOOR))  # the default is unchanged
+    for bad in (0.0, -1e-5, float("nan")):
+        with pytest.raises(InputError, match="error floor"):
+            normal_equations(samples, sources, error_floor=bad)

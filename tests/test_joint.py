@@ -89,6 +89,8 @@ def test_seed_from_a_corrected_sensor_inverts_the_wand_calibration(simulated):
 def test_options_and_sessions_are_checked():
     with pytest.raises(Exception, match="max_residual"):
         JointOptions(max_residual=float("nan"))
+    with pytest.raises(Exception, match="error_floor"):
+        JointOptions(error_floor=0.0)
     from ivc.lut.joint import fit_joint
     from ivc.session import Session
 

@@ -95,7 +95,7 @@ class Corrector:
     frames of batches of at least :data:`SEED_MAP_FRAMES` start from the table's correction map
     (``ivc.correct.seed_map``; False: always from the fixed point, as smaller batches do).
 
-    Predicted precision (docs/correct.md, "Predicted precision"): with ``precision`` True or a
+    Predicted precision (docs/lut.md, "Predicted precision"): with ``precision`` True or a
     ``max_precision`` (m), every pose carries its predicted RMS position and orientation error, the
     Cramér-Rao bound of a single frame from the table's field and the tracker's white signal noise
     ``signal_noise`` (signal units; default: the noise the table's fit measured on the session's static

@@ -35,7 +35,7 @@ from ivc.errors import InputError
 from ivc.lut.cross_validation import BlockedKFold
 from ivc.lut.fitter import Fitter, register
 from ivc.lut.grid import Grid
-from ivc.lut.samples import FieldSamples
+from ivc.lut.samples import ERROR_FLOOR, FieldSamples
 
 #: inner shell: distance beyond the data's bounding box and dipole spacing (m)
 STANDOFF = 0.05
@@ -152,8 +152,8 @@ def default_sources(positions: np.ndarray, standoff: float = STANDOFF, spacing: 
 class NormalEquations:
     """The fold normal equations of an equivalent-source fit (:func:`normal_equations`): per fold f,
     ``gram[f] = XᵀWX`` (3K, 3K), ``rhs[f] = XᵀWY`` (3K, 3), ``yy[f] = YᵀWY`` and ``count[f]`` (the CV
-    score's normaliser), for the ``sources`` (K, 3) m; ``samples_used``, ``sample_stride`` and
-    ``nearest_source_mm`` for the report."""
+    score's normaliser), for the ``sources`` (K, 3) m; ``samples_used``, ``sample_stride``,
+    ``nearest_source_mm`` and the weights' ``error_floor`` (m) for the report."""
 
     sources: np.ndarray
     gram: np.ndarray
@@ -163,6 +163,7 @@ class NormalEquations:
     samples_used: int
     sample_stride: int
     nearest_source_mm: float
+    error_floor: float = ERROR_FLOOR
 
 
 def even_subset(positions: np.ndarray, max_samples: int, cell: float, seed: int = 0) -> np.ndarray:
@@ -200,11 +201,15 @@ def even_subset(positions: np.ndarray, max_samples: int, cell: float, seed: int 
 
 def normal_equations(samples: FieldSamples, sources: np.ndarray | None = None, folds: int = 5,
                      max_samples: int = MAX_SAMPLES, progress: Callable[[int], None] | None = None,
-                     block_frames: int = 500, even_cell: float | None = None) -> NormalEquations:
+                     block_frames: int = 500, even_cell: float | None = None,
+                     error_floor: float = ERROR_FLOOR) -> NormalEquations:
     """Accumulate the fold normal equations of :func:`fit_sources` (its arguments; the costly part of a fit:
     samples x sources²). Solving them for any number of dampings is :func:`solve_normal_equations`.
     Beyond ``max_samples`` every k-th sample is fitted, or with ``even_cell`` (m) the samples of
-    :func:`even_subset` (``sample_stride`` is then 0 in the report)."""
+    :func:`even_subset` (``sample_stride`` is then 0 in the report). ``error_floor`` (m): the ``ε_0`` of the
+    samples' weights ``λ² / (ε² + ε_0²)`` (:meth:`~ivc.lut.samples.FieldSamples.weights`)."""
+    if not (np.isfinite(error_floor) and error_floor > 0):
+        raise InputError(f"the error floor must be a positive number of metres, got {error_floor!r}")
     if len(samples) < 100:
         raise InputError(f"{len(samples)} samples are too few for an equivalent-source fit")
     stride = max(1, -(-len(samples) // max_samples))
@@ -223,7 +228,7 @@ def normal_equations(samples: FieldSamples, sources: np.ndarray | None = None, f
                          "outside the mapped volume")
     K = 3 * len(sources)
     fold = samples.folds(folds, block_frames)
-    weight = samples.weights()
+    weight = samples.weights(error_floor)
     lever = samples.leverage()
     gram = np.zeros((folds, K, K))
     rhs = np.zeros((folds, K, 3))
@@ -243,7 +248,7 @@ def normal_equations(samples: FieldSamples, sources: np.ndarray | None = None, f
             if progress is not None:
                 progress(len(part))
         gram[f] += np.triu(gram[f], 1).T  # symmetrised once per fold, not per block
-    return NormalEquations(sources, gram, rhs, yy, count, len(samples), stride, 1000 * nearest)
+    return NormalEquations(sources, gram, rhs, yy, count, len(samples), stride, 1000 * nearest, error_floor)
 
 
 def solve_normal_equations(normal: NormalEquations, dampings=DAMPINGS) -> tuple[SourceModel, dict]:
@@ -269,21 +274,23 @@ def solve_normal_equations(normal: NormalEquations, dampings=DAMPINGS) -> tuple[
               "cv_rms_mm": 1000 * scores[chosen] if scores else None,
               "cv_rms_mm_by_damping": {f"{d:g}": 1000 * s for d, s in scores.items()},
               "cv_folds": len(gram), "samples_used": normal.samples_used, "sample_stride": normal.sample_stride,
-              "nearest_source_mm": normal.nearest_source_mm}
+              "nearest_source_mm": normal.nearest_source_mm, "error_floor_mm": 1000 * normal.error_floor}
     return model, report
 
 
 def fit_sources(samples: FieldSamples, sources: np.ndarray | None = None, dampings=DAMPINGS, folds: int = 5,
                 max_samples: int = MAX_SAMPLES, progress: Callable[[int], None] | None = None,
-                block_frames: int = 500, even_cell: float | None = None) -> tuple[SourceModel, dict]:
+                block_frames: int = 500, even_cell: float | None = None,
+                error_floor: float = ERROR_FLOOR) -> tuple[SourceModel, dict]:
     """Fit the dipole moments of ``sources`` (K, 3) m (default: :func:`default_sources` around the samples).
 
     Weighted damped least squares with the samples' pose-equivalent weights; the damping is the lowest-scoring
     of ``dampings`` in ``folds``-fold cross-validation over blocks of frames (held out together); a single
     damping is used as given, without cross-validation. At most
     ``max_samples`` samples are used (every k-th, or with ``even_cell`` spread evenly over space:
-    :func:`even_subset`). Returns the model and a report (sources, damping chosen, CV score per damping, mm)."""
-    normal = normal_equations(samples, sources, folds, max_samples, progress, block_frames, even_cell)
+    :func:`even_subset`); ``error_floor`` is the weights' ``ε_0`` (m, :func:`normal_equations`). Returns the
+    model and a report (sources, damping chosen, CV score per damping, mm)."""
+    normal = normal_equations(samples, sources, folds, max_samples, progress, block_frames, even_cell, error_floor)
     return solve_normal_equations(normal, dampings)
 
 

@@ -54,6 +54,11 @@ DAMPINGS = (1e-7, 1e-6, 1e-5, 1e-4)
 TABLE_SUBDIVISION = 2
 #: the joint map's sources fit spreads its samples evenly over cubes this large (m), the support grid's cells
 EVEN_CELL = DEFAULT_SPACING
+#: the joint map's samples count with weight ``λ² / (ε² + ε_0²)`` with this ``ε_0`` (m), not the single-sweep fits'
+#: 0.1 mm (``ivc.lut.samples.ERROR_FLOOR``): with the source near one face the samples' own estimated errors
+#: run from 0.01 to 0.2 mm and 84 % of them lie below 0.1 mm, so that floor flattened the precision of most
+#: of them (docs/lut.md, "Extension sweeps")
+ERROR_FLOOR = 2e-5
 #: frame numbers of extension sweep n's samples start at n * FRAME_OFFSET (folds never mix sweeps' blocks)
 FRAME_OFFSET = 10_000_000
 
@@ -206,7 +211,8 @@ class JointOptions:
     interpolation of the field between nodes 38 mm apart, 9 cm from a panel, costs more than the map's
     own error at the box's faces. ``even_cell``: beyond the sources fit's sample cap, the samples fitted are
     spread evenly over cubes of this size (m; :func:`ivc.lut.fit_sources.even_subset`), not every k-th
-    (None): every k-th keeps the cube sweep's dense ball and thins the far faces alike."""
+    (None): every k-th keeps the cube sweep's dense ball and thins the far faces alike. ``error_floor``: the
+    ``ε_0`` (m) of the samples' weights ``λ² / (ε² + ε_0²)`` in every sources fit of the joint solve."""
 
     spacing: float = DEFAULT_SPACING
     min_support: int = MIN_SUPPORT
@@ -224,6 +230,7 @@ class JointOptions:
     dampings: tuple = DAMPINGS
     table_subdivision: int = TABLE_SUBDIVISION
     even_cell: float | None = EVEN_CELL
+    error_floor: float = ERROR_FLOOR
 
     def __post_init__(self):
         self.dampings = tuple(float(d) for d in self.dampings)
@@ -233,7 +240,8 @@ class JointOptions:
             raise InputError(f"even_cell must be a positive number of metres or None, got {self.even_cell!r}")
         if not (np.isfinite(self.stall_growth) and self.stall_growth >= 0):
             raise InputError(f"stall_growth must be a fraction of at least 0, got {self.stall_growth}")
-        for name in ("spacing", "tolerance", "max_residual", "max_error", "source_standoff", "source_spacing"):
+        for name in ("spacing", "tolerance", "max_residual", "max_error", "source_standoff", "source_spacing",
+                     "error_floor"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise InputError(f"{name} must be a positive number, got {value}")
@@ -408,7 +416,7 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
     centre = model.placement.positions.mean(axis=0)
     bar = progress("fitting equivalent sources (cross-validated)", len(anchor))
     field, fit = fit_sources(anchor, _sources(anchor, options), options.dampings, progress=bar,
-                             even_cell=options.even_cell)
+                             even_cell=options.even_cell, error_floor=options.error_floor)
     damping = fit["damping"]
     samples = anchor
     grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support,
@@ -426,7 +434,8 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
             solutions[name] = (solution, kept)
         samples = _concatenate(parts)
         bar = progress(f"round {iteration}: refit", len(samples))
-        normal = normal_equations(samples, _sources(samples, options), progress=bar, even_cell=options.even_cell)
+        normal = normal_equations(samples, _sources(samples, options), progress=bar, even_cell=options.even_cell,
+                                  error_floor=options.error_floor)
         field, _ = solve_normal_equations(normal, (damping,))
         change = _change(field, grid, values, valid)
         before = mapped_litres(grid, valid)

@@ -66,9 +66,10 @@ class FieldSamples:
         """:meth:`leverage` of the samples selected by ``index`` (slice, mask or indices)."""
         return leverage(self.positions[index])
 
-    def weights(self) -> np.ndarray:
-        """Fit weights (N,): ``λ² / (ε² + ε_0²)``, scaled so the mean precision factor is 1."""
-        precision = 1.0 / (self.error**2 + ERROR_FLOOR**2)
+    def weights(self, error_floor: float = ERROR_FLOOR) -> np.ndarray:
+        """Fit weights (N,): ``λ² / (ε² + ε_0²)`` with ``ε_0 = error_floor`` (m), scaled so the mean precision
+        factor is 1."""
+        precision = 1.0 / (self.error**2 + error_floor**2)
         return self.leverage() ** 2 * precision / precision.mean()
 
     def folds(self, k: int = 5, block_frames: int = 500) -> np.ndarray:
