@@ -18,6 +18,7 @@ from pathlib import Path
 
 from ivc import lut
 from ivc import session as session_io
+from ivc.correct import Corrector
 from ivc.correct.evaluate import evaluate
 from ivc.lut.build import FitOptions, Progress
 from ivc.lut.table import LookupTable
@@ -100,5 +101,8 @@ def run(scene: str | Scene = "default", *, seed: int = 0, sweep_frames: int = 10
     if result.table_file is not None:
         lut.write(result.table, result.table_file, overwrite=force)
     stage("evaluate", result)
-    result.report = evaluate(result.table, result.session)
+    # with the signal noise the fit measured, each check pose's predicted precision is reported beside its error
+    corrector = Corrector(result.table, result.session.hemisphere,
+                          precision=bool(result.table.fit.get("signal_noise")))
+    result.report = evaluate(corrector, result.session)
     return result
