@@ -103,6 +103,6 @@ def run(scene: str | Scene = "default", *, seed: int = 0, sweep_frames: int = 10
     stage("evaluate", result)
     # with the signal noise the fit measured, each check pose's predicted precision is reported beside its error
     corrector = Corrector(result.table, result.session.hemisphere,
-                          precision=bool(result.table.fit.get("signal_noise")))
+                          precision=result.table.signal_noise is not None)
     result.report = evaluate(corrector, result.session)
     return result

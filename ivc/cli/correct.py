@@ -100,7 +100,7 @@ def _summary(name: str, out: Correction) -> str:
     counts = {describe(int(v)): int(n) for v, n in zip(*np.unique(flags[flags != 0], return_counts=True), strict=True)}
     text = f"{name}: {flags.size} samples, {int(np.sum(flags == 0))} corrected"
     text += "".join(f"; {n} {k}" for k, n in counts.items())
-    trusted = out.flags.reshape(-1) == 0
+    trusted = flags == 0
     if out.precision is not None and trusted.any():
         predicted = 1000 * out.precision.reshape(-1)[trusted]
         text += (f"; predicted precision of the trusted poses {np.median(predicted):.3g} mm median, "

@@ -83,6 +83,6 @@ def evaluate(lut_file, check_file, step, interpolation, max_residual, tracker, a
     else:
         # the tracker's noise, when the table's fit measured it, gives each pose's predicted precision
         corrector = Corrector(table, check.hemisphere, interpolation, max_residual,
-                              precision=bool(table.fit.get("signal_noise")))
+                              precision=table.signal_noise is not None)
     report = evaluate_table(corrector, check, step)
     click.echo(json.dumps(report, indent=2) if as_json else render_table(report))

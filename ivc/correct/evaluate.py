@@ -139,7 +139,7 @@ def check_errors(table: LookupTable | Corrector | PoseCorrector, check: Session,
         placement = float(1000 * np.linalg.norm(D_t + (D_R - np.eye(3)) @ np.mean(true_p[valid], axis=0)))
     return CheckErrors(valid, ok, out.flags, out.iterations, p, a, raw_p, raw_a, dip_p, dip_a, judged, frame_map,
                        placement, aligned_p, aligned_a, "signals" if data.signal is not None else "reported poses",
-                       None if getattr(out, "precision", None) is None else 1000 * out.precision)
+                       None if out.precision is None else 1000 * out.precision)
 
 
 def summarise(e: CheckErrors) -> dict:

@@ -49,12 +49,12 @@ def _positive(name: str, value: float | None) -> float | None:
 
 def _table_noise(table: LookupTable | GridField) -> float:
     """The signal noise a table's fit measured (``ivc.lut.signal_noise``), or a clear error."""
-    noise = table.fit.get("signal_noise") if isinstance(table, LookupTable) else None
-    if not noise:
+    noise = table.signal_noise if isinstance(table, LookupTable) else None
+    if noise is None:
         raise InputError("the table records no signal noise (fitted from reported poses, from a session without "
                          "static steps of signals, or by an older ivc): give the tracker's noise per signal "
                          "entry (signal_noise=, ivc correct --signal-noise) to predict precision")
-    return float(noise["sigma"])
+    return noise
 
 
 def describe(flags: int) -> str:

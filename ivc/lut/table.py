@@ -70,6 +70,13 @@ class LookupTable:
         if not np.all(np.isfinite(self.values[self.valid])):
             raise LutError("the table has non-finite values at valid nodes")
 
+    @property
+    def signal_noise(self) -> float | None:
+        """The tracker's white noise per signal entry that the fit measured on the session's static steps
+        (``fit["signal_noise"]``, ``ivc.lut.signal_noise``), or None when the table records none."""
+        noise = self.fit.get("signal_noise")
+        return float(noise["sigma"]) if noise else None
+
     def field(self, interpolation: str = "cubic") -> GridField:
         """The interpolated field ``g(r)`` with its Jacobian and the mapped-volume test."""
         return GridField(self.grid, self.values, self.valid, interpolation)
