@@ -113,9 +113,11 @@ def _run_live(table, payloads, names_wanted, caplog, sensors=None):
         for p in payloads:
             upstream.sendall(p)
         framer = Framer()
-        consumer.settimeout(5.0)
         deadline = time.monotonic() + 20
         while len(names) < names_wanted and time.monotonic() < deadline:
+            # each wait as long as the whole deadline allows: on a loaded machine the first frame (the pose path's
+            # probe map) can take more than a few seconds, which is no failure of the loop
+            consumer.settimeout(max(0.1, deadline - time.monotonic()))
             framer.feed(consumer.recv(1 << 16))
             names += [f.device_name for f in framer.messages() if f.message_type == "TRANSFORM"]
     finally:

@@ -304,7 +304,7 @@ def step(q, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R
 @numba.njit(cache=True, _nrt=False)
 def filter_sensor(s, qs, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R, cfg, work, q,
                   out_est, out_ok, out_mu, out_age):
-    """Every frame of sensor s (see :func:`run`), with thread-local state and scratch.
+    """Every frame of sensor s (see :func:`run`), with its own state and scratch.
 
     Compiled without reference counting (nothing here allocates or keeps an array): the
     counting of the views taken in each step otherwise costs more than the filter's arithmetic.
@@ -322,22 +322,22 @@ def filter_sensor(s, qs, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, k
             out_mu[s, k, j] = probs[0, j]
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def run(qs, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R, cfg, out_est, out_ok, out_mu,
         out_age):
-    """Filter frames (F, S, 4), dt (F,) s apart, for S sensors, parallel over sensors; writes ω̄, ᾱ per frame to
-    out_est (S, F, 6) and the age of the sample the prediction starts from to out_age (S, F).
+    """Filter frames (F, S, 4), dt (F,) s apart, for S sensors, one sensor after the other; writes ω̄, ᾱ per frame
+    to out_est (S, F, 6) and the age of the sample the prediction starts from to out_age (S, F) (out_ok (S, F),
+    out_mu (S, F, M)).
 
-    The outputs are sensor-major (out_ok (S, F), out_mu (S, F, M)) so that threads never write
-    to the same cache line. Each sensor's state and the configuration are copied to
-    thread-local arrays first.
+    Serial: the batch already runs at about a million sensor-frames a second, far beyond any recording, and
+    a parallel loop costs several seconds more to compile on first use (docs/kernels.md). Each sensor's
+    state is copied to contiguous arrays for :func:`filter_sensor` and written back after.
     """
-    for s in numba.prange(qs.shape[1]):
+    for s in range(qs.shape[1]):
         xs, Ps, pr, tp, qp, st, es, cl = (x[s].copy(), P[s].copy(), probs[s].copy(), tpm[s].copy(),
                                           q_prev[s].copy(), status[s].copy(), est[s].copy(), clock[s].copy())
-        # np.int64(s): the parallel loop's index is typed twice (int64, then uint64); one type, one compile
-        filter_sensor(np.int64(s), qs, ok, dt.copy(), xs, Ps, pr, tp, qp, st, es, cl, kinds.copy(), qvar.copy(),
-                      R.copy(), cfg.copy(), make_work(kinds.shape[0]), np.empty(4), out_est, out_ok, out_mu, out_age)
+        filter_sensor(np.int64(s), qs, ok, dt, xs, Ps, pr, tp, qp, st, es, cl, kinds, qvar, R, cfg,
+                      make_work(kinds.shape[0]), np.empty(4), out_est, out_ok, out_mu, out_age)
         x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s], clock[s] = xs, Ps, pr, tp, qp, st, es, cl
 
 

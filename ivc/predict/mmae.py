@@ -196,10 +196,10 @@ def _step(z, ok, x, P, logp, init, w, Phi, Qd, r, thr, log_pmin, prow, out_pos):
             out_pos[h, c] = acc
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def _run(vectors, ok, x, P, logp, init, w, Phi, Qd, r, thr, log_pmin, prow, out):
     """vectors (F, S, 2, 3) look vectors; out (F, S, H, 2, 3) blended predictions."""
-    for s in numba.prange(vectors.shape[1]):
+    for s in range(vectors.shape[1]):
         for k in range(vectors.shape[0]):
             for v in range(2):
                 _step(vectors[k, s, v], ok[k, s], x[s, v], P[s, v], logp[s, v], init[s, v], w[s, v], Phi, Qd, r, thr,

@@ -154,11 +154,11 @@ def _step(z_in, ok, x, P, status, W, V, h, p0, work, tau):
     return True
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def _run(qs, ok, use, restart, t, x, P, status, W, V, tau, p0, out_x, out_ok, out_t):
     """Every sensor through its frames: out_x the state at the latest usable sample, out_t that sample's time,
     out_ok where it is an estimate (and the frame valid)."""
-    for s in numba.prange(qs.shape[1]):
+    for s in range(qs.shape[1]):
         work = _work()
         ready = False
         last = 0.0

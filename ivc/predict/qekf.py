@@ -159,9 +159,9 @@ def _work():
             np.empty((7, 4)), np.empty((4, 4)))
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def _run(qs, ok, dt, x, P, status, clock, qvar, R, max_gap, p0w, out_x, out_ok, out_age):
-    for s in numba.prange(qs.shape[1]):
+    for s in range(qs.shape[1]):
         work = _work()
         for k in range(qs.shape[0]):
             good = _step(qs[k, s], ok[k, s], dt[k], x[s], P[s], status[s], clock[s], qvar, R, max_gap, p0w, work)
