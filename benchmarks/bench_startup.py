@@ -7,7 +7,8 @@ baseline is the same command run again on the cache that first run filled.
 Targets: the first ``ivc correct`` of a 10-row pose CSV <= 15 s; the first ``ivc correct --live``
 connected to its tracking server <= 5 s after start. Printed beside them: ``ivc warmup`` on an
 empty cache, and ``--live`` after it. The cold test suite (target <= 240 s) takes minutes and
-runs only with ``IVC_BENCH_SUITE=1``.
+runs only with ``IVC_BENCH_SUITE=1`` (the README's ``python -m pytest``, its baseline the same run again on the
+cache the first one filled).
 """
 
 from __future__ import annotations
@@ -84,6 +85,15 @@ def _warmup(cache: Path) -> float:
     return time.perf_counter() - start
 
 
+def _suite(cache: Path) -> tuple[float, bool]:
+    """The README's test command (``python -m pytest``: tests/ and the doctest, two workers) on ``cache``: its wall
+    time (s) and whether every test passed."""
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "pytest"], cwd=ROOT,
+                          env=_env(cache), check=False, capture_output=True)
+    return time.perf_counter() - start, done.returncode == 0
+
+
 def run() -> list[Figure]:
     figures = []
     with tempfile.TemporaryDirectory(prefix="ivc-bench-startup-") as scratch:
@@ -102,12 +112,11 @@ def run() -> list[Figure]:
         figures.append(Figure("ivc warmup, empty cache", warmup, "s", "--live after it, connected", live_after,
                               "(reference)", higher_is_better=False))
         if os.environ.get("IVC_BENCH_SUITE") == "1":
-            start = time.perf_counter()
-            subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", str(ROOT / "tests")], cwd=ROOT,
-                           env=_env(folder / "cache-suite"), check=False, capture_output=True)
-            suite = time.perf_counter() - start
-            figures.append(Figure("test suite, empty cache", suite, "s", "", float("nan"), "<= 240 s",
-                                  passed=suite <= 240, higher_is_better=False))
+            cold, cold_passed = _suite(folder / "cache-suite")
+            warm, warm_passed = _suite(folder / "cache-suite")  # again, on the cache the first run filled
+            passed = cold <= 240 and cold_passed and warm_passed
+            figures.append(Figure("test suite (README's command), empty cache", cold, "s", "the same, cache filled",
+                                  warm, "<= 240 s, all passing", passed=passed, higher_is_better=False))
         else:
             print("test suite on an empty cache: not run (set IVC_BENCH_SUITE=1; several minutes)")
     return figures
