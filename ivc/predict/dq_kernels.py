@@ -330,15 +330,12 @@ def run(qs, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R
     out_mu (S, F, M)).
 
     Serial: the batch already runs at about a million sensor-frames a second, far beyond any recording, and
-    a parallel loop costs several seconds more to compile on first use (docs/kernels.md). Each sensor's
-    state is copied to contiguous arrays for :func:`filter_sensor` and written back after.
+    a parallel loop costs several seconds more to compile on first use (docs/kernels.md). Sensor s's state
+    is its row of each state array, updated in place.
     """
     for s in range(qs.shape[1]):
-        xs, Ps, pr, tp, qp, st, es, cl = (x[s].copy(), P[s].copy(), probs[s].copy(), tpm[s].copy(),
-                                          q_prev[s].copy(), status[s].copy(), est[s].copy(), clock[s].copy())
-        filter_sensor(np.int64(s), qs, ok, dt, xs, Ps, pr, tp, qp, st, es, cl, kinds, qvar, R, cfg,
-                      make_work(kinds.shape[0]), np.empty(4), out_est, out_ok, out_mu, out_age)
-        x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s], clock[s] = xs, Ps, pr, tp, qp, st, es, cl
+        filter_sensor(s, qs, ok, dt, x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s], clock[s], kinds,
+                      qvar, R, cfg, make_work(kinds.shape[0]), np.empty(4), out_est, out_ok, out_mu, out_age)
 
 
 @numba.njit(cache=True)
