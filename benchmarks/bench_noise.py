@@ -23,21 +23,19 @@ import numpy as np
 from benchmarks.harness import Figure
 from ivc import rotations
 from ivc.collect import read_recording
+from ivc.lut.signal_noise import robust_sigma
 from ivc.pose.precision import pose_precision
 from ivc.sim import load_scene
 from ivc.sim.tracker import noise_sigma
 
 LIBERTY = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "polhemus_liberty"
 STATIC = 0  # sensor 1 of the files: static in every recording (shared/data/README.md)
-MAD = 1.4826  # the median absolute deviation of a normal variable, in standard deviations
 
 
 def _jitter(values: np.ndarray) -> float:
-    """Frame-to-frame white-noise estimate of (N, 3) samples: per-axis robust spread of successive differences
-    over sqrt(2), in quadrature."""
-    steps = np.diff(values, axis=0)
-    spread = MAD * np.median(np.abs(steps - np.median(steps, axis=0)), axis=0) / np.sqrt(2.0)
-    return float(np.sqrt(np.sum(spread**2)))
+    """Frame-to-frame white-noise estimate of (N, 3) samples: each axis's robust spread of successive differences
+    (the estimator `ivc fit` measures the signal noise with), in quadrature."""
+    return float(np.sqrt(np.sum(robust_sigma(np.diff(values, axis=0)) ** 2)))
 
 
 def _static_noise(position: np.ndarray, quaternion: np.ndarray) -> dict:

@@ -21,7 +21,7 @@ import numpy as np
 
 from ivc.session import Session
 
-__all__ = ["STATIC_STEPS", "SignalNoise", "measure_signal_noise"]
+__all__ = ["STATIC_STEPS", "SignalNoise", "measure_signal_noise", "robust_sigma"]
 
 #: the steps in which every sensor holds still
 STATIC_STEPS = ("cube_calibration", "cube_survey", "wand_calibration")
@@ -45,8 +45,9 @@ class SignalNoise:
         return {**asdict(self), "steps": list(self.steps), "method": "static steps, MAD of frame differences"}
 
 
-def _robust_sigma(d: np.ndarray) -> np.ndarray:
-    """Per-column ``1.4826 MAD / √2`` of frame differences ``d`` (pairs, columns)."""
+def robust_sigma(d: np.ndarray) -> np.ndarray:
+    """Per-column white-noise standard deviation from frame differences ``d`` (pairs, columns) of a static
+    stream: ``1.4826 MAD / √2`` (robust to a few jumps and to slow drift)."""
     mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
     return 1.4826 * mad / np.sqrt(2.0)
 
@@ -69,7 +70,7 @@ def measure_signal_noise(session: Session, steps: tuple[str, ...] = STATIC_STEPS
         for k in range(step.n_sensors):
             if both[:, k].sum() < MIN_PAIRS:
                 continue
-            sigma = float(np.median(_robust_sigma(d[both[:, k], k])))
+            sigma = float(np.median(robust_sigma(d[both[:, k], k])))
             if not sigma > 0:
                 continue
             per_sensor.append(sigma)
