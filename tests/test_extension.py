@@ -130,7 +130,8 @@ def test_joint_fit_grows_the_map_and_reports_it(tmp_path):
     session = Simulator(scene, seed=5).protocol(FRAMES)
     # sources 0.1 m apart, not the default 0.07 m: the same mapped volume and checks at half the fit's cost
     # (the cockpit benchmark runs the defaults)
-    joint = fit_joint(session, JointOptions(max_iterations=2, max_extension_frames=1500, source_spacing=0.1))
+    joint = fit_joint(session, JointOptions(max_iterations=2, max_extension_frames=1500, source_spacing=0.1,
+                                             max_samples=8000))
     rounds = joint.report["rounds"]
     assert [r["iteration"] for r in rounds] == [0, 1, 2]
     assert rounds[-1]["mapped_litres"] > 1.2 * rounds[0]["mapped_litres"]

@@ -30,6 +30,7 @@ from ivc.errors import InputError
 from ivc.fixtures.mapping import FixtureModel, Gates, map_sweep
 from ivc.fixtures.wand import WandCalibration
 from ivc.lut.fit_sources import (
+    MAX_SAMPLES,
     SPACING,
     SourceModel,
     default_sources,
@@ -212,7 +213,9 @@ class JointOptions:
     own error at the box's faces. ``even_cell``: beyond the sources fit's sample cap, the samples fitted are
     spread evenly over cubes of this size (m; :func:`ivc.lut.fit_sources.even_subset`), not every k-th
     (None): every k-th keeps the cube sweep's dense ball and thins the far faces alike. ``error_floor``: the
-    ``ε_0`` (m) of the samples' weights ``λ² / (ε² + ε_0²)`` in every sources fit of the joint solve."""
+    ``ε_0`` (m) of the samples' weights ``λ² / (ε² + ε_0²)`` in every sources fit of the joint solve.
+    ``max_samples``: the samples each sources fit uses at most (its cost grows with them; beyond it they are
+    thinned as ``even_cell`` says)."""
 
     spacing: float = DEFAULT_SPACING
     min_support: int = MIN_SUPPORT
@@ -231,6 +234,7 @@ class JointOptions:
     table_subdivision: int = TABLE_SUBDIVISION
     even_cell: float | None = EVEN_CELL
     error_floor: float = ERROR_FLOOR
+    max_samples: int = MAX_SAMPLES
 
     def __post_init__(self):
         self.dampings = tuple(float(d) for d in self.dampings)
@@ -246,7 +250,7 @@ class JointOptions:
             if not (np.isfinite(value) and value > 0):
                 raise InputError(f"{name} must be a positive number, got {value}")
         for name in ("min_support", "max_iterations", "max_frames", "max_extension_frames", "min_sensors",
-                     "table_subdivision"):
+                     "table_subdivision", "max_samples"):
             value = getattr(self, name)
             if not isinstance(value, int | np.integer) or value < 1:
                 raise InputError(f"{name} must be a whole number of at least 1, got {value!r}")
@@ -415,8 +419,8 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
         extensions[name] = (part.signal_matrices(), part.valid_mask, number * FRAME_OFFSET, every)
     centre = model.placement.positions.mean(axis=0)
     bar = progress("fitting equivalent sources (cross-validated)", len(anchor))
-    field, fit = fit_sources(anchor, _sources(anchor, options), options.dampings, progress=bar,
-                             even_cell=options.even_cell, error_floor=options.error_floor)
+    field, fit = fit_sources(anchor, _sources(anchor, options), options.dampings, max_samples=options.max_samples,
+                             progress=bar, even_cell=options.even_cell, error_floor=options.error_floor)
     damping = fit["damping"]
     samples = anchor
     grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support,
@@ -434,8 +438,8 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
             solutions[name] = (solution, kept)
         samples = _concatenate(parts)
         bar = progress(f"round {iteration}: refit", len(samples))
-        normal = normal_equations(samples, _sources(samples, options), progress=bar, even_cell=options.even_cell,
-                                  error_floor=options.error_floor)
+        normal = normal_equations(samples, _sources(samples, options), max_samples=options.max_samples, progress=bar,
+                                  even_cell=options.even_cell, error_floor=options.error_floor)
         field, _ = solve_normal_equations(normal, (damping,))
         change = _change(field, grid, values, valid)
         before = mapped_litres(grid, valid)

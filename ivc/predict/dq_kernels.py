@@ -187,7 +187,7 @@ def _update_tpm(probs, tpm, M):
             Pi[i, j] /= psum
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def step(q, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R, cfg, work):
     """Feed one measured orientation q (4,) of one sensor, dt s after the previous frame; ok = False skips it.
 
