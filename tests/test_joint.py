@@ -156,3 +156,5 @@ def test_the_table_is_finer_than_its_support_grid_and_maps_the_same_volume():
         JointOptions(table_subdivision=0)
     with pytest.raises(InputError):
         JointOptions(even_cell=-1.0)
+    with pytest.raises(InputError, match="max_samples"):
+        JointOptions(max_samples=0)
