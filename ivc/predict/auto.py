@@ -387,7 +387,9 @@ class AutoStream(Stream):
         if dt > 0:
             self.total *= np.exp(-dt / p.memory_s)
             if self.learning:
-                decay(self.A, self.b, np.exp(-dt / p.combination_memory_s))
+                # flattened over the sensors, as combine's batch passes them (3, C, C) and (3, C): one specialisation
+                C = self.A.shape[-1]
+                decay(self.A.reshape(-1, C, C), self.b.reshape(-1, C), np.exp(-dt / p.combination_memory_s))
         usable = ok & ~np.all(qs == self.previous, axis=1)
         self.previous = np.where(ok[:, None], qs, self.previous)
         if np.any(usable):

@@ -405,7 +405,7 @@ def _frame_steps(vectors, ok, use, restart, now, x, P, logp, init, w, last, F, G
     Phi = np.empty((J, 3, 3))
     Qd = np.empty((J, 3, 3))
     none = np.zeros((0, J, 3))
-    dummy = np.empty((0, 3))
+    dummy = np.empty((0, 2, 3))[:, 0]  # strided like the batch's out[k, s, :, v]: one specialisation of _step
     for s in range(S):
         if not ok[s]:
             continue

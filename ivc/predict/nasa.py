@@ -148,7 +148,7 @@ def _step(z_in, ok, x, P, status, W, V, h, p0, work, tau):
     congruence(Phi, P, N, tmp, Pp)
     for a in range(N):
         Pp[a, a] += W[a] * (h / tau)
-    if not quaternion_update(z, xp, Pp, V, N, x, P, S, L, nu, U):
+    if not quaternion_update(z, xp, Pp, V, np.int64(N), x, P, S, L, nu, U):  # one specialisation with qekf's
         status[0] = 0
         return False
     return True

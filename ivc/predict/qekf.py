@@ -121,7 +121,7 @@ def _step(z_in, ok, dt, x, P, status, clock, qvar, R, max_gap, p0w, work):
     qmul(dq, q, xp[:4])
     for i in range(4, 7):
         xp[i] = x[i]
-    if not quaternion_update(z, xp, Pp, R, 7, x, P, S, L, nu, U):
+    if not quaternion_update(z, xp, Pp, R, np.int64(7), x, P, S, L, nu, U):  # np.int64: nasa's n shares it
         status[0] = 0
         status[1] = 0
         return False
