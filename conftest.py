@@ -41,15 +41,18 @@ def pytest_configure(config):
         return
     if _parallel(config):
         # one BLAS thread per worker: the workers already keep the cores busy, and OpenBLAS's own threads,
-        # two per worker on the 2-core machine, spun against each other (an 8000-sample sources fit of
-        # tests/test_fit_sources.py: 35 CPU s and 47 s with two, 14 CPU s and 22 s with one, under load).
+        # two per worker on the 2-core machine, spun against each other (the 8000-sample sources fit
+        # tests/test_fit_sources.py had then: 35 CPU s and 47 s with two, 14 CPU s and 22 s with one, under load).
         # Set before the workers start, so it holds from their first import of numpy.
+        config._ivc_set_threads = [name for name in ("OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
+                                   if name not in os.environ]
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
         # the same for numba's threads: each worker's parallel kernels ran on two OpenMP threads, four on two cores,
         # and a parallel loop ends when its last thread does, which the other worker had often descheduled
         # (the cold suite back to back: 230 s and 436 CPU s with two, 205 s and 395 CPU s with one). The
         # kernels are the same compiled parallel code, run on one thread; results are within the tests' tolerances
-        # either way (docs/kernels.md).
+        # either way (docs/kernels.md). Both are removed again when the run ends (pytest_unconfigure): this process's
+        # numba, imported before this hook, must not see a thread count other than the one it started with.
         os.environ.setdefault("NUMBA_NUM_THREADS", "1")
     if os.environ.get("IVC_FIELD_CACHE"):
         return
@@ -65,6 +68,8 @@ def _parallel(config) -> bool:
 
 
 def pytest_unconfigure(config):
+    for name in getattr(config, "_ivc_set_threads", ()):
+        os.environ.pop(name, None)
     folder = getattr(config, "_ivc_field_cache", None)
     if folder:
         shutil.rmtree(folder, ignore_errors=True)

@@ -135,6 +135,7 @@ def test_joint_fit_grows_the_map_and_reports_it(tmp_path):
     rounds = joint.report["rounds"]
     assert [r["iteration"] for r in rounds] == [0, 1, 2]
     assert joint.report["samples_used"] <= 8000 < rounds[-1]["samples"]  # the cap holds: the sweeps found more
+    assert joint.report["max_samples"] == 8000
     assert rounds[-1]["mapped_litres"] > 1.2 * rounds[0]["mapped_litres"]
     assert all(n > 0 for n in rounds[-1]["frames_solved"].values())
     assert joint.report["never_touched_mapped_region"] == []

@@ -40,9 +40,11 @@ def test_model_is_curl_and_divergence_free_to_round_off(rng):
         np.testing.assert_allclose(dG[:20, ..., k], fd, rtol=1e-6, atol=1e-8 * size)
 
 
-@pytest.mark.slow  # a 6000-sample fit of 892 sources with cross-validated damping: 6-7 s, warm (8000: 9 s, the same
-# accuracy within the bounds below: median 5.7e-6 / 5.9e-6, p95 1.9e-4 / 2.8e-4 of the primary field)
+@pytest.mark.slow
 def test_recovers_an_external_field_inside_the_box(rng):
+    """A 6000-sample fit of 892 sources with cross-validated damping: 6-7 s, warm. With 8000 samples it took 9 s for
+    the same accuracy within the bounds below (median 5.7e-6 against 5.9e-6, p95 1.9e-4 against 2.8e-4 of the
+    primary field)."""
     n = 6000
     points = LOW + (HIGH - LOW) * rng.random((n, 3))
     samples = FieldSamples(points, external(points), np.full(n, 1e-4), np.arange(n) // 4, np.zeros(n, int))

@@ -91,6 +91,9 @@ def test_options_and_sessions_are_checked():
         JointOptions(max_residual=float("nan"))
     with pytest.raises(Exception, match="error_floor"):
         JointOptions(error_floor=0.0)
+    for few in (0, 99, 5000.0):  # below what a sources fit takes, or not a whole number
+        with pytest.raises(InputError, match="max_samples"):
+            JointOptions(max_samples=few)
     from ivc.lut.joint import fit_joint
     from ivc.session import Session
 
@@ -156,5 +159,3 @@ def test_the_table_is_finer_than_its_support_grid_and_maps_the_same_volume():
         JointOptions(table_subdivision=0)
     with pytest.raises(InputError):
         JointOptions(even_cell=-1.0)
-    with pytest.raises(InputError, match="max_samples"):
-        JointOptions(max_samples=0)

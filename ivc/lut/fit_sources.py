@@ -48,6 +48,8 @@ DAMPINGS = (1e-8, 1e-7, 1e-6, 1e-5)
 CHUNK = 1_000
 #: largest number of samples fitted (every k-th beyond it): the cost is samples x sources²
 MAX_SAMPLES = 20_000
+#: the fewest samples an equivalent-source fit takes
+MIN_FIT_SAMPLES = 100
 
 
 def shell(low: np.ndarray, high: np.ndarray, standoff: float, spacing: float) -> np.ndarray:
@@ -210,7 +212,7 @@ def normal_equations(samples: FieldSamples, sources: np.ndarray | None = None, f
     samples' weights ``λ² / (ε² + ε_0²)`` (:meth:`~ivc.lut.samples.FieldSamples.weights`)."""
     if not (np.isfinite(error_floor) and error_floor > 0):
         raise InputError(f"the error floor must be a positive number of metres, got {error_floor!r}")
-    if len(samples) < 100:
+    if len(samples) < MIN_FIT_SAMPLES:
         raise InputError(f"{len(samples)} samples are too few for an equivalent-source fit")
     stride = max(1, -(-len(samples) // max_samples))
     if stride > 1 and even_cell is not None:
@@ -323,7 +325,7 @@ class SourcesFit(Fitter):
         dampings = tuple(float(d) for d in dampings)
         if not dampings or not all(np.isfinite(d) and d > 0 for d in dampings):
             raise InputError(f"dampings must be positive numbers, got {dampings!r}")
-        if not isinstance(max_samples, int | np.integer) or max_samples < 100:
+        if not isinstance(max_samples, int | np.integer) or max_samples < MIN_FIT_SAMPLES:
             raise InputError(f"max_samples must be a whole number of at least 100, got {max_samples!r}")
         self.standoff, self.spacing = standoff, spacing
         self.outer_standoff, self.outer_spacing = outer_standoff, outer_spacing

@@ -31,6 +31,7 @@ from ivc.fixtures.mapping import FixtureModel, Gates, map_sweep
 from ivc.fixtures.wand import WandCalibration
 from ivc.lut.fit_sources import (
     MAX_SAMPLES,
+    MIN_FIT_SAMPLES,
     SPACING,
     SourceModel,
     default_sources,
@@ -237,6 +238,9 @@ class JointOptions:
     max_samples: int = MAX_SAMPLES
 
     def __post_init__(self):
+        if not isinstance(self.max_samples, int | np.integer) or self.max_samples < MIN_FIT_SAMPLES:
+            raise InputError(f"max_samples must be a whole number of at least {MIN_FIT_SAMPLES} (the fewest samples an "
+                             f"equivalent-source fit takes), got {self.max_samples!r}")
         self.dampings = tuple(float(d) for d in self.dampings)
         if not self.dampings or not all(np.isfinite(d) and d > 0 for d in self.dampings):
             raise InputError(f"dampings must be positive numbers, got {self.dampings!r}")
@@ -250,7 +254,7 @@ class JointOptions:
             if not (np.isfinite(value) and value > 0):
                 raise InputError(f"{name} must be a positive number, got {value}")
         for name in ("min_support", "max_iterations", "max_frames", "max_extension_frames", "min_sensors",
-                     "table_subdivision", "max_samples"):
+                     "table_subdivision"):
             value = getattr(self, name)
             if not isinstance(value, int | np.integer) or value < 1:
                 raise InputError(f"{name} must be a whole number of at least 1, got {value!r}")
@@ -471,6 +475,7 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
               "valid_nodes": int(valid.sum()), "min_support": options.min_support,
               "support_spacing_m": options.spacing, "table_subdivision": options.table_subdivision,
               "sample_selection": "even" if options.even_cell is not None else "stride",
+              "max_samples": options.max_samples,
               "frames": {"recorded": mapping.keep.shape[0] * stride, "used": sweep.n_frames, "stride": stride}}
     return JointMap(field, grid, values, valid, support, samples, solutions, report)
 
