@@ -52,6 +52,13 @@ MAX_SAMPLES = 20_000
 MIN_FIT_SAMPLES = 100
 
 
+def check_max_samples(max_samples) -> None:
+    """Refuse a sample cap that is not a whole number of at least :data:`MIN_FIT_SAMPLES`."""
+    if not isinstance(max_samples, int | np.integer) or max_samples < MIN_FIT_SAMPLES:
+        raise InputError(f"max_samples must be a whole number of at least {MIN_FIT_SAMPLES} (the fewest samples an "
+                         f"equivalent-source fit takes), got {max_samples!r}")
+
+
 def shell(low: np.ndarray, high: np.ndarray, standoff: float, spacing: float) -> np.ndarray:
     """Points (K, 3) on the six faces of the box ``[low − standoff, high + standoff]``, about ``spacing``
     apart (a regular grid on each face, edges and corners shared once)."""
@@ -325,8 +332,7 @@ class SourcesFit(Fitter):
         dampings = tuple(float(d) for d in dampings)
         if not dampings or not all(np.isfinite(d) and d > 0 for d in dampings):
             raise InputError(f"dampings must be positive numbers, got {dampings!r}")
-        if not isinstance(max_samples, int | np.integer) or max_samples < MIN_FIT_SAMPLES:
-            raise InputError(f"max_samples must be a whole number of at least 100, got {max_samples!r}")
+        check_max_samples(max_samples)
         self.standoff, self.spacing = standoff, spacing
         self.outer_standoff, self.outer_spacing = outer_standoff, outer_spacing
         self.dampings, self.max_samples = dampings, max_samples

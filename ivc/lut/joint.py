@@ -31,9 +31,9 @@ from ivc.fixtures.mapping import FixtureModel, Gates, map_sweep
 from ivc.fixtures.wand import WandCalibration
 from ivc.lut.fit_sources import (
     MAX_SAMPLES,
-    MIN_FIT_SAMPLES,
     SPACING,
     SourceModel,
+    check_max_samples,
     default_sources,
     fit_sources,
     normal_equations,
@@ -238,9 +238,7 @@ class JointOptions:
     max_samples: int = MAX_SAMPLES
 
     def __post_init__(self):
-        if not isinstance(self.max_samples, int | np.integer) or self.max_samples < MIN_FIT_SAMPLES:
-            raise InputError(f"max_samples must be a whole number of at least {MIN_FIT_SAMPLES} (the fewest samples an "
-                             f"equivalent-source fit takes), got {self.max_samples!r}")
+        check_max_samples(self.max_samples)
         self.dampings = tuple(float(d) for d in self.dampings)
         if not self.dampings or not all(np.isfinite(d) and d > 0 for d in self.dampings):
             raise InputError(f"dampings must be positive numbers, got {self.dampings!r}")
