@@ -45,6 +45,9 @@ class Sample:
     signal: NDArray[np.float64] | None = None
     frame: int | None = None
     host_time: float | None = None
+    #: the protocol step this frame belongs to, where the source knows it: only rehearsal sources (a replayed
+    #: session, ``ivc serve sim``) label their frames; a real tracker never does
+    step: str | None = None
 
     def __post_init__(self) -> None:
         n = np.shape(self.valid)[0] if np.ndim(self.valid) == 1 else -1
@@ -172,3 +175,175 @@ class StepRecorder:
             description=description or describe_step(name),
             attrs=dict(attrs or {}),
         )
+
+
+@dataclass
+class StaleWatch:
+    """Tells when a sensor goes stale (its pose repeats exactly, or it stops arriving valid) and when it resumes.
+
+    Feed it every sample with :meth:`update`; it returns the events for that sample. A sensor is stale once its
+    last change (or its last valid sample) is at least ``after_s`` seconds old on the source's clock. Exact
+    repeats are a tracker's sign that it re-sent an old frame (a real sensor's pose always carries noise);
+    :meth:`idle` reports sensors whose samples stopped arriving altogether, by the host clock."""
+
+    n_sensors: int
+    after_s: float = 0.5
+    names: Sequence[str] | None = None
+    _changed: NDArray[np.float64] | None = None
+    _last: NDArray[np.float64] | None = None
+    _stale: NDArray[np.bool_] | None = None
+
+    def _name(self, sensor: int) -> str:
+        return f"sensor {sensor}" + (f" ({self.names[sensor]})" if self.names is not None else "")
+
+    def update(self, sample: Sample) -> list[SourceEvent]:
+        """The stale / resumed events this sample causes (source clock)."""
+        values = sample.position if sample.position is not None else sample.signal
+        flat = np.asarray(values, dtype=float).reshape(self.n_sensors, -1)
+        if sample.quaternion is not None:
+            flat = np.concatenate([flat, np.asarray(sample.quaternion, dtype=float)], axis=1)
+        if self._changed is None:
+            self._changed = np.full(self.n_sensors, float(sample.time))
+            self._last = flat.copy()
+            self._stale = np.zeros(self.n_sensors, dtype=bool)
+        moved = np.asarray(sample.valid, dtype=bool) & np.any(flat != self._last, axis=1)
+        self._changed[moved] = sample.time
+        self._last = flat.copy()
+        age = float(sample.time) - self._changed
+        stale = age >= self.after_s
+        events = []
+        for sensor in np.flatnonzero(stale & ~self._stale):
+            events.append(SourceEvent("stale", f"{self._name(sensor)} stale: no new valid pose for "
+                                      f"{age[sensor]:.1f} s", sensor=int(sensor), time=float(sample.time)))
+        for sensor in np.flatnonzero(~stale & self._stale):
+            events.append(SourceEvent("resumed", f"{self._name(sensor)} is reporting again", sensor=int(sensor),
+                                      time=float(sample.time)))
+        self._stale = stale
+        return events
+
+    @property
+    def stale(self) -> NDArray[np.bool_]:
+        """(N,) True for the sensors stale as of the last sample."""
+        return np.zeros(self.n_sensors, dtype=bool) if self._stale is None else self._stale.copy()
+
+
+class SessionSource:
+    """A live source that streams a session's steps as a tracker would: the rehearsal and test source.
+
+    Streams ``steps`` (default: all of the session's steps in recording order) frame by frame, each
+    :class:`Sample` labelled with its step (``Sample.step``) and timed on one continuous clock: each step's
+    frames keep their spacing, and ``pause_s`` seconds of tracker time separate two steps (the person moving
+    the fixtures; nothing is streamed then). ``realtime`` paces :meth:`read` by the host clock at ``speed``
+    times the tracker's rate (``speed = inf`` streams as fast as it is read); without it every read returns
+    ``chunk`` frames at once. Signals and/or poses are streamed as the session holds them; ``poses_only``
+    drops the signals (what a PLUS user receives)."""
+
+    def __init__(self, session, steps: Sequence[str] | None = None, *, pause_s: float = 0.0,
+                 realtime: bool = False, speed: float = 1.0, chunk: int = 256, poses_only: bool = False,
+                 clock=None):
+        import time as _time
+
+        from ivc.session import step_order
+
+        names = list(steps) if steps is not None else sorted(session.steps, key=step_order)
+        missing = [n for n in names if n not in session.steps]
+        if missing:
+            raise SessionError(f"the session has no step {missing[0]!r}; it holds {sorted(session.steps)}")
+        if not names:
+            raise SessionError("nothing to stream: the session holds no step")
+        counts = {session.steps[n].n_sensors for n in names}
+        self.session = session
+        self.steps = names
+        self.hemisphere = session.hemisphere
+        self.poses_only = poses_only
+        self.pause_s = float(pause_s)
+        self.realtime = realtime
+        self.speed = float(speed)
+        self.chunk = int(chunk)
+        self._clock = clock or _time.monotonic
+        self.n_sensors_by_step = {n: session.steps[n].n_sensors for n in names}
+        first = session.steps[names[0]]
+        self.sensor_names = tuple(first.names) if len(counts) == 1 else tuple(str(i) for i in range(max(counts)))
+        self.sample_rate_hz = float(first.sample_rate_hz)
+        self._items: list[tuple[str, int, float]] | None = None
+        self._at = 0
+        self._start: float | None = None
+
+    def open(self) -> None:
+        items = []
+        offset = 0.0
+        for number, name in enumerate(self.steps):
+            step = self.session.steps[name]
+            time = np.asarray(step.time, dtype=float)
+            if number:
+                offset += self.pause_s - float(time[0])
+            items.extend((name, f, offset + float(time[f])) for f in range(step.n_frames))
+            offset = items[-1][2] + 1.0 / float(step.sample_rate_hz)
+        self._items = items
+        self._at = 0
+        self._start = None
+
+    def __len__(self) -> int:
+        return sum(self.session.steps[n].n_frames for n in self.steps)
+
+    def _sample(self, name: str, f: int, t: float) -> Sample:
+        step = self.session.steps[name]
+        valid = step.valid_mask[f]
+        signal = None if self.poses_only or step.signal is None else step.signal[f]
+        position = quaternion = None
+        if step.position is not None:
+            position, quaternion = step.position[f], step.quaternion[f]
+        elif self.poses_only:
+            positions, quaternions = step.poses(self.hemisphere)
+            position, quaternion = positions[f], quaternions[f]
+        return Sample(time=t, valid=valid, position=position, quaternion=quaternion, signal=signal, frame=None,
+                      host_time=self._clock(), step=name)
+
+    def read(self, timeout_s: float) -> list[Sample | SourceEvent]:
+        """The next frames: ``chunk`` of them, or in real time those due by now (waiting up to ``timeout_s``
+        for the next one)."""
+        import time as _time
+
+        if self._items is None:
+            raise SessionError("open the source before reading it (use it in a with statement)")
+        if self._at >= len(self._items):
+            return []
+        if not self.realtime or not np.isfinite(self.speed):
+            stop = min(self._at + self.chunk, len(self._items))
+        else:
+            if self._start is None:
+                self._start = self._clock() - self._items[self._at][2] / self.speed
+            due = (self._clock() - self._start) * self.speed
+            wait = self._items[self._at][2] - due
+            if wait > 0:
+                _time.sleep(min(wait / self.speed, timeout_s))
+                due = (self._clock() - self._start) * self.speed
+            stop = self._at
+            while stop < len(self._items) and self._items[stop][2] <= due and stop - self._at < 100_000:
+                stop += 1
+        out = [self._sample(*self._items[i]) for i in range(self._at, stop)]
+        self._at = stop
+        return out
+
+    @property
+    def finished(self) -> bool:
+        return self._items is not None and self._at >= len(self._items)
+
+    def close(self) -> None:
+        self._items = None
+
+    @classmethod
+    def from_spec(cls, argument: str, *, sensors: Sequence[str] | None = None, hemisphere: str = "+x",
+                  **options) -> SessionSource:
+        """``replay:FILE``: a session file streamed as fast as it is read (``sensors`` and ``hemisphere`` are the
+        file's own)."""
+        from ivc.session import read
+
+        return cls(read(argument), **options)
+
+    def __enter__(self) -> SessionSource:
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
