@@ -313,7 +313,18 @@ def builtin_scenes() -> list[str]:
 
 
 def load_scene(name_or_path: str | Path | None = None) -> Scene:
-    """A built-in scene by name (``None`` = ``default``), or a scene TOML file by path."""
+    """A built-in scene by name (``None`` = ``default``), or a scene TOML file by path.
+
+    Example:
+        >>> import ivc
+        >>> scene = ivc.load_scene("cockpit")
+        >>> scene.name
+        'cockpit'
+        >>> ivc.load_scene("no such room")
+        Traceback (most recent call last):
+        ...
+        ivc.errors.SceneError: no scene 'no such room': not a file, and the built-in scenes are ...
+    """
     if name_or_path is None:
         name_or_path = "default"
     path = Path(name_or_path)
