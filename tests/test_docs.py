@@ -34,8 +34,14 @@ def _files():
                     yield file
 
 
+#: the pages the documentation build makes itself (docs/hooks/generated.py)
+GENERATED_PAGES = {"api.md", "gallery.md"}
+
+
 def _exists(name: str, near: Path) -> bool:
     name = name.rstrip(".,:;")
+    if name in GENERATED_PAGES:
+        return True
     candidates = [ROOT / name, near.parent / name, ROOT / "docs" / name]
     return any(c.exists() for c in candidates) or any(c.with_suffix("").exists() for c in candidates)
 
