@@ -193,7 +193,7 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
             from ivc.collect.tracker_units import apply_tracker_to_session
 
             collected = apply_tracker_to_session(collected, *device)
-        session_io.write(collected, output, overwrite=force)
+        session_io.write(collected, output, overwrite=force, on_wait=lambda m: click.echo(m, err=True))
         for name in sim.simulator.steps:
             click.echo(summary(name, collected.steps[name], collected.truth.get(name)))
         click.echo(f"wrote {output}")
@@ -206,7 +206,8 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
     for warning in check_step(step, new, existing or Session(hemisphere=hemisphere), hemisphere):
         click.echo(f"warning: {warning}", err=True)
     try:
-        session_io.add_step(output, step, new, truth, hemisphere=hemisphere, force=force)
+        session_io.add_step(output, step, new, truth, hemisphere=hemisphere, force=force,
+                            on_wait=lambda m: click.echo(m, err=True))
     except SessionError as error:
         raise SessionError(f"{error} (nothing was written)") from None
     click.echo(summary(step, new, truth))

@@ -1,6 +1,6 @@
 """The HDF5 session file every command reads and writes (docs/session-format.md)."""
 
-from ivc.session.io import add_step, atomic_path, is_recording_csv, read, write
+from ivc.session.io import add_step, atomic_path, is_recording_csv, read, write, writer_lock
 from ivc.session.model import (
     CUBE_SENSORS,
     DECLARED_POSE_ATTRS,
@@ -39,6 +39,7 @@ __all__ = [
     "Step",
     "Truth",
     "add_step",
+    "writer_lock",
     "describe_step",
     "extension_step",
     "extension_steps",

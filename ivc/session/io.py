@@ -12,7 +12,8 @@ import contextlib
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import h5py
@@ -57,6 +58,60 @@ def atomic_path(path: str | os.PathLike, copy_existing: bool = False) -> Iterato
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+try:
+    import fcntl
+except ImportError:  # Windows: no advisory locks; one writer at a time is then the user's to keep
+    fcntl = None
+
+#: how long a writer waits for another to finish with the same session file before giving up, seconds
+LOCK_WAIT_S = 600.0
+
+
+@contextlib.contextmanager
+def writer_lock(path: str | os.PathLike, *, wait_s: float = LOCK_WAIT_S,
+                on_wait: Callable[[str], None] | None = None) -> Iterator[None]:
+    """Hold the one-writer lock of the file ``path`` (an advisory ``flock`` on ``.NAME.lock`` beside it).
+
+    Read-modify-write of a session (:func:`add_step`) happens under it, so that several ``ivc collect`` writing
+    steps into one session at once each add theirs instead of replacing the others'. A second writer waits for
+    the first, telling ``on_wait`` once why it waits; after ``wait_s`` seconds it raises SessionError naming
+    the process that holds the lock. The lock file is left in place (removing it would race with a waiter)."""
+    if fcntl is None:
+        yield
+        return
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lock_path = path.with_name(f".{path.name}.lock")
+    with open(lock_path, "a+") as handle:
+        deadline = time.monotonic() + wait_s
+        told = False
+        while True:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                handle.seek(0)
+                holder = handle.read().strip() or "another process"
+                if time.monotonic() >= deadline:
+                    raise SessionError(f"{path}: {holder} has been writing this file for over {wait_s:.0f} s; "
+                                       "wait for it to finish, or stop it, then try again") from None
+                if on_wait is not None and not told:
+                    on_wait(f"{path}: waiting for {holder}, which is writing this file")
+                    told = True
+                time.sleep(0.05)
+        try:
+            handle.seek(0)
+            handle.truncate()
+            handle.write(f"ivc process {os.getpid()}")
+            handle.flush()
+            yield
+        finally:
+            handle.seek(0)
+            handle.truncate()
+            handle.flush()
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def _decode(value):
@@ -206,9 +261,16 @@ def _write_header(h5: h5py.File, session: Session) -> None:
         h5.attrs[key] = value
 
 
-def write(session: Session, path: str | os.PathLike, *, overwrite: bool = False) -> None:
-    """Write a whole session atomically; refuse to replace an existing file unless ``overwrite``."""
+def write(session: Session, path: str | os.PathLike, *, overwrite: bool = False,
+          on_wait: Callable[[str], None] | None = None) -> None:
+    """Write a whole session atomically; refuse to replace an existing file unless ``overwrite``.
+    One writer at a time (:func:`writer_lock`; ``on_wait`` is told when this one waits for another)."""
     path = Path(path)
+    with writer_lock(path, on_wait=on_wait):
+        _write(session, path, overwrite)
+
+
+def _write(session: Session, path: Path, overwrite: bool) -> None:
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path}: exists; add steps to it with add_step, or pass overwrite=True (--force)")
     session.validate()
@@ -232,17 +294,25 @@ def add_step(
     *,
     hemisphere: str = "+x",
     force: bool = False,
+    on_wait: Callable[[str], None] | None = None,
 ) -> None:
     """Add one step (and its truth) to a session file, creating the file if needed.
 
     Everything already in the file is kept as it is. A step that already exists is
     replaced only with ``force``. The hemisphere of an existing file must match.
+    One writer at a time (:func:`writer_lock`): a concurrent writer of the same file
+    waits, and ``on_wait`` is told why.
     """
     path = Path(path)
     validate_step(name, step)
+    with writer_lock(path, on_wait=on_wait):
+        _add_step(path, name, step, truth, hemisphere, force)
+
+
+def _add_step(path: Path, name: str, step: Step, truth: Truth | None, hemisphere: str, force: bool) -> None:
     if not path.exists():
         session = Session(hemisphere=hemisphere, steps={name: step}, truth={name: truth} if truth else {})
-        write(session, path)
+        _write(session, path, overwrite=False)
         return
     existing = read(path)
     if existing.hemisphere != hemisphere:
@@ -250,7 +320,7 @@ def add_step(
             f"{path}: / attribute hemisphere = {existing.hemisphere!r} but this step was solved in {hemisphere!r}"
         )
     if name in existing.steps and not force:
-        raise FileExistsError(f"{path}: step {name!r} is already recorded; pass --force to replace it")
+        raise FileExistsError(f"{path}: step {name!r} is already recorded; pass force=True (--force) to replace it")
     existing.steps[name] = step
     existing.truth.pop(name, None)
     if truth is not None:
