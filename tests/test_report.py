@@ -3,6 +3,7 @@
 import base64
 import json
 from html.parser import HTMLParser
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -206,3 +207,61 @@ def test_mapped_volume_outline_and_slice_choice():
     cells[:, :, 3:17] = True
     layers = mapped_layers(cells, keep=9)
     assert len(layers) == 6 and 9 in layers and layers[0] == 3 and layers[-1] == 16
+
+
+SAMPLES = Path(__file__).resolve().parents[1] / "sample_data" / "recordings"
+
+
+@pytest.fixture(scope="module")
+def sample_report(tmp_path_factory):
+    """A report of the sample data's check poses (three figures): the folder and a copy of every file's bytes."""
+    out = tmp_path_factory.mktemp("sample-report")
+    build_report(session_io.read(SAMPLES / "default_room_check.h5"), lut.read(SAMPLES / "default_room_lut.h5"),
+                 out)
+    return out, {path.name: path.read_bytes() for path in out.iterdir()}
+
+
+@pytest.mark.parametrize("fail_at", ["drawing", "writing", "swapping"])
+def test_an_interrupted_report_leaves_the_old_one_whole(sample_report, monkeypatch, fail_at):
+    import ivc.report as report_module
+
+    out, before = sample_report
+    (out / "notes.txt").write_text("mine")  # a file of the user's in the same folder is never touched
+    calls = {"n": 0}
+
+    def interrupt_on_second(real):
+        def wrapped(*args, **kwargs):
+            calls["n"] += 1
+            if calls["n"] == 2:
+                raise KeyboardInterrupt
+            return real(*args, **kwargs)
+        return wrapped
+
+    if fail_at == "drawing":
+        monkeypatch.setattr(report_module, "_png", interrupt_on_second(report_module._png))
+    elif fail_at == "writing":  # a full disk while the new files are written
+        real_write = Path.write_bytes
+
+        def full_disk(self, data):
+            calls["n"] += 1
+            if calls["n"] == 2:
+                raise OSError(28, "No space left on device")
+            return real_write(self, data)
+        monkeypatch.setattr(Path, "write_bytes", full_disk)
+    else:  # between moving the old files aside and the new ones in
+        monkeypatch.setattr(report_module.os, "replace", interrupt_on_second(report_module.os.replace))
+    with pytest.raises((KeyboardInterrupt, OSError)):
+        build_report(session_io.read(SAMPLES / "default_room_check.h5"),
+                     lut.read(SAMPLES / "default_room_lut.h5"), out, overwrite=True)
+    monkeypatch.undo()
+    after = {path.name: path.read_bytes() for path in out.iterdir()}
+    assert after.pop("notes.txt") == b"mine"
+    assert after == before, "the old report is whole, with no new or hidden file beside it"
+
+
+def test_a_report_into_a_folder_it_cannot_write_is_refused_before_the_work(tmp_path):
+    blocker = tmp_path / "results"
+    blocker.write_text("a file where the report's parent folder should be")
+    with pytest.raises(PermissionError, match="not a writable folder"):
+        build_report(Session(), None, blocker / "report")  # refused before the session is even looked at
+    assert blocker.read_text().startswith("a file")

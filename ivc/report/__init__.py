@@ -4,6 +4,11 @@
 does before refining), corrects the check poses, draws the figures of
 :mod:`ivc.report.figures`, and writes ``report.html`` (figures embedded), ``report.json``
 (every number on the page) and one PNG per figure into a directory.
+
+A report replaces an earlier one in the same directory as a whole or not at all: the new files are written
+into a hidden folder beside them first, and only then swapped in (the old report's files moved aside, the new
+ones moved in, the old ones deleted); an interruption or a full disk at any point leaves the old report as it
+was, and no new file beside it.
 """
 
 from __future__ import annotations
@@ -11,6 +16,8 @@ from __future__ import annotations
 import io
 import json
 import os
+import shutil
+import tempfile
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -30,7 +37,7 @@ from ivc.report.compute import (
     summary,
 )
 from ivc.report.figures import FIGURES
-from ivc.session import Session, atomic_path
+from ivc.session import Session
 
 __all__ = ["FIGURES", "REPORT_FILES", "Report", "box_section", "build_report", "gather", "summary"]
 
@@ -78,9 +85,46 @@ def _png(figure) -> bytes:
     return buffer.getvalue()
 
 
-def _write(path: Path, content: bytes) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(content)
+def _check_writable(directory: Path) -> None:
+    """Refuse, before any work, a directory the report could not be written into."""
+    folder = directory
+    while not folder.exists() and folder.parent != folder:
+        folder = folder.parent
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise PermissionError(f"{directory}: cannot write the report there ({folder} is not a writable folder); "
+                              "choose another directory")
+
+
+def _install(directory: Path, contents: dict[str, bytes]) -> list[Path]:
+    """Write ``contents`` (file name -> bytes) into ``directory`` as one report, replacing the report files
+    already there all together or not at all (module docstring). Files that are not a report's are left alone."""
+    directory.mkdir(parents=True, exist_ok=True)
+    staged = Path(tempfile.mkdtemp(prefix=".report-new-", dir=directory))
+    backup = None
+    try:
+        for name, content in contents.items():
+            (staged / name).write_bytes(content)
+        backup = Path(tempfile.mkdtemp(prefix=".report-old-", dir=directory))
+        moved_old, moved_new = [], []
+        try:
+            for name in REPORT_FILES:
+                if (directory / name).exists():
+                    os.replace(directory / name, backup / name)
+                    moved_old.append(name)
+            for name in contents:
+                os.replace(staged / name, directory / name)
+                moved_new.append(name)
+        except BaseException:
+            for name in moved_new:
+                (directory / name).unlink(missing_ok=True)
+            for name in moved_old:
+                os.replace(backup / name, directory / name)
+            raise
+    finally:
+        shutil.rmtree(staged, ignore_errors=True)
+        if backup is not None:
+            shutil.rmtree(backup, ignore_errors=True)
+    return [directory / name for name in contents]
 
 
 def build_report(session: Session, table: LookupTable, directory: str | os.PathLike, *, check: Session | None = None,
@@ -95,7 +139,9 @@ def build_report(session: Session, table: LookupTable, directory: str | os.PathL
     directory = Path(directory)
     existing = [directory / name for name in REPORT_FILES if (directory / name).exists()]
     if existing and not overwrite:
-        raise FileExistsError(f"{existing[0]} exists; pass --force to replace the report, or choose another -o")
+        raise FileExistsError(f"{existing[0]} exists; pass overwrite=True (--force) to replace the report, or "
+                              "choose another directory")
+    _check_writable(directory)
     names = names or {}
     data = gather(session, table, check, step, thin, max_frames,
                   names.get("check", "the session") if check is not None else "the session", progress)
@@ -110,14 +156,10 @@ def build_report(session: Session, table: LookupTable, directory: str | os.PathL
     numbers["warnings"] = warnings
     numbers["figures_missing"] = missing
     numbers["inputs"] = dict(names)
-    files = []
-    for name, png in images.items():
-        _write(directory / f"{name}.png", png)
-        files.append(directory / f"{name}.png")
-    _write(directory / "report.json", (json.dumps(numbers, indent=2) + "\n").encode())
-    _write(directory / "report.html", _page(data, numbers, images, missing, warnings, names).encode())
-    files += [directory / "report.json", directory / "report.html"]
-    return Report(directory, files, numbers, missing)
+    contents = {f"{name}.png": png for name, png in images.items()}
+    contents["report.json"] = (json.dumps(numbers, indent=2) + "\n").encode()
+    contents["report.html"] = _page(data, numbers, images, missing, warnings, names).encode()
+    return Report(directory, _install(directory, contents), numbers, missing)
 
 
 def _warnings(data: ReportData, names: dict[str, str]) -> list[str]:
