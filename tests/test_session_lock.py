@@ -23,19 +23,18 @@ def _step(name: str, seed: int):
     return step
 
 
-def _writer(path, name, seed, barrier):
-    step = _step(name, seed)
+def _writer(path, name, step, barrier):
     barrier.wait()  # all eight start together
     session_io.add_step(path, name, step)
 
 
 def test_eight_concurrent_writers_keep_all_eight_steps(tmp_path):
     context = multiprocessing.get_context("fork" if sys.platform.startswith("linux") else "spawn")
+    steps = {name: _step(name, i) for i, name in enumerate(STEPS)}  # made once, before the workers start
     for trial in range(20):
         path = tmp_path / f"race{trial}.h5"
         barrier = context.Barrier(len(STEPS))
-        workers = [context.Process(target=_writer, args=(path, name, trial * 10 + i, barrier))
-                   for i, name in enumerate(STEPS)]
+        workers = [context.Process(target=_writer, args=(path, name, steps[name], barrier)) for name in STEPS]
         for worker in workers:
             worker.start()
         for worker in workers:

@@ -16,6 +16,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from ivc.dipole import HEMISPHERES
 from ivc.errors import IvcError, LutError
 from ivc.lut.grid import Grid, GridField
 from ivc.session import atomic_path
@@ -110,11 +111,23 @@ def read(path: str | os.PathLike) -> LookupTable:
     path = Path(path)
     with open_ivc_file(path, FORMAT_NAME, FORMAT_VERSION, "look-up table", LutError,
                        "; make one with `ivc fit`") as (h5, attrs):
+        lacking = [name for name in ("grid", "values", "valid", "support", "fit", "provenance") if name not in h5]
+        if lacking:
+            raise LutError(f"{path}: no /{lacking[0]} in the file: an incomplete look-up table (interrupted or "
+                           "written by something else); make a new one with `ivc fit`")
+        hemisphere = str(attrs.get("hemisphere", "+x"))
+        if hemisphere not in HEMISPHERES:
+            raise LutError(f"{path}: / attribute hemisphere = {hemisphere!r}: must be one of {', '.join(HEMISPHERES)} "
+                           "(docs/conventions.md); make a new table with `ivc fit`")
+        unit = str(attrs.get("length_unit", "m"))
+        if unit != "m":
+            raise LutError(f"{path}: / attribute length_unit = {unit!r}: ivc tables are in metres; a table in other "
+                           "units is not ivc's (convert it, or make a new one with `ivc fit`)")
         try:
             g = h5["grid"].attrs
             grid = Grid(np.asarray(g["origin"]), float(g["spacing"]), tuple(np.asarray(g["shape"])))
             return LookupTable(grid, h5["values"][()], h5["valid"][()], h5["support"][()],
-                               str(attrs.get("hemisphere", "+x")), json.loads(h5["fit"].attrs["json"]),
+                               hemisphere, json.loads(h5["fit"].attrs["json"]),
                                json.loads(h5["provenance"].attrs["json"]))
         except KeyError as error:
             raise LutError(f"{path}: missing {error.args[0]}") from None

@@ -77,41 +77,51 @@ def writer_lock(path: str | os.PathLike, *, wait_s: float = LOCK_WAIT_S,
     Read-modify-write of a session (:func:`add_step`) happens under it, so that several ``ivc collect`` writing
     steps into one session at once each add theirs instead of replacing the others'. A second writer waits for
     the first, telling ``on_wait`` once why it waits; after ``wait_s`` seconds it raises SessionError naming
-    the process that holds the lock. The lock file is left in place (removing it would race with a waiter)."""
+    the process that holds the lock. The lock file exists only while a writer holds it (a writer that finds
+    the file it locked already removed by the previous holder starts again)."""
     if fcntl is None:
         yield
         return
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     lock_path = path.with_name(f".{path.name}.lock")
-    with open(lock_path, "a+") as handle:
-        deadline = time.monotonic() + wait_s
-        told = False
-        while True:
-            try:
-                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                handle.seek(0)
-                holder = handle.read().strip() or "another process"
-                if time.monotonic() >= deadline:
-                    raise SessionError(f"{path}: {holder} has been writing this file for over {wait_s:.0f} s; "
-                                       "wait for it to finish, or stop it, then try again") from None
-                if on_wait is not None and not told:
-                    on_wait(f"{path}: waiting for {holder}, which is writing this file")
-                    told = True
-                time.sleep(0.05)
+    deadline = time.monotonic() + wait_s
+    told = False
+    while True:
+        handle = open(lock_path, "a+")  # noqa: SIM115 (held across the yield below)
         try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
             handle.seek(0)
-            handle.truncate()
-            handle.write(f"ivc process {os.getpid()}")
-            handle.flush()
-            yield
-        finally:
-            handle.seek(0)
-            handle.truncate()
-            handle.flush()
-            fcntl.flock(handle, fcntl.LOCK_UN)
+            holder = handle.read().strip() or "another process"
+            handle.close()
+            if time.monotonic() >= deadline:
+                raise SessionError(f"{path}: {holder} has been writing this file for over {wait_s:.0f} s; "
+                                   "wait for it to finish, or stop it, then try again") from None
+            if on_wait is not None and not told:
+                on_wait(f"{path}: waiting for {holder}, which is writing this file")
+                told = True
+            time.sleep(0.05)
+            continue
+        try:
+            current = os.stat(lock_path)
+        except FileNotFoundError:
+            current = None
+        held = os.fstat(handle.fileno())
+        if current is not None and (current.st_ino, current.st_dev) == (held.st_ino, held.st_dev):
+            break
+        handle.close()  # the previous holder removed the file we locked: lock the new one
+    try:
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"ivc process {os.getpid()}")
+        handle.flush()
+        yield
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(lock_path)
+        fcntl.flock(handle, fcntl.LOCK_UN)
+        handle.close()
 
 
 def _decode(value):

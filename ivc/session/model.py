@@ -96,6 +96,10 @@ def describe_step(name: str) -> str:
     return EXTENSION_DESCRIPTION if is_extension_step(name) else STEP_DESCRIPTIONS[name]
 
 
+#: no AC electromagnetic tracker measures farther from its source than this, metres (long-range Polhemus
+#: sources reach about 4.5 m): a position beyond it is in the wrong unit
+PLAUSIBLE_RANGE_M = 5.0
+
 #: unit quaternions are accepted within this much of norm 1
 QUATERNION_NORM_TOLERANCE = 1e-6
 
@@ -335,6 +339,12 @@ def _validate_declared_pose(base: str, attrs: dict) -> None:
             raise SessionError(f"{base} attribute {key}: expected {size} finite numbers, got {value}")
     if abs(np.linalg.norm(attrs["declared_quaternion"]) - 1.0) > QUATERNION_NORM_TOLERANCE:
         raise SessionError(f"{base} attribute declared_quaternion: not a unit quaternion")
+    distance = float(np.linalg.norm(attrs["declared_position"]))
+    if distance > PLAUSIBLE_RANGE_M:
+        position = np.asarray(attrs["declared_position"], dtype=float)
+        raise SessionError(f"{base} attribute declared_position: {distance:.3g} m from the source, beyond any AC "
+                           f"tracker's range ({PLAUSIBLE_RANGE_M:g} m); it is in metres: if these are millimetres, "
+                           f"use {', '.join(f'{v / 1000:g}' for v in position)}")
 
 
 def validate_truth(name: str, truth: Truth, step: Step) -> None:
