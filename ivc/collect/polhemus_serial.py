@@ -77,8 +77,10 @@ def parse_records(buffer: bytes | bytearray, preambles: Sequence[bytes]) -> tupl
         count = (size - pos) // RECORD.itemsize
         if count:
             run = np.frombuffer(data, dtype=RECORD, count=count, offset=pos)
-            ok = (np.isin(run["preamble"], codes) & (run["size"] == PAYLOAD_SIZE) & (run["station"] >= 1)
-                  & np.isin(run["command"], POSE_COMMANDS))
+            head, command = run["preamble"], run["command"]
+            ok = ((head == codes[0]) if len(codes) == 1 else np.isin(head, codes))
+            ok &= (run["size"] == PAYLOAD_SIZE) & (run["station"] >= 1)
+            ok &= (command == POSE_COMMANDS[0]) | (command == POSE_COMMANDS[1])
             good = count if ok.all() else int(np.argmin(ok))
             if good:
                 runs.append(run[:good])
@@ -109,6 +111,16 @@ def parse_records(buffer: bytes | bytearray, preambles: Sequence[bytes]) -> tupl
         pos = step
     records = np.concatenate(runs) if runs else np.zeros(0, RECORD)
     return records, responses, garbage, pos
+
+
+def _group(frame: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The distinct frame counts (sorted) and each record's index among them; a linear pass when the records
+    arrive in frame order, as they do."""
+    change = frame[1:] != frame[:-1]
+    if frame.size and np.all(frame[1:] >= frame[:-1]):
+        index = np.concatenate([[0], np.cumsum(change)])
+        return frame[np.concatenate([[0], np.flatnonzero(change) + 1])], index
+    return np.unique(frame, return_inverse=True)
 
 
 def _positive(value) -> bool:
@@ -257,6 +269,10 @@ class PolhemusSource:
         try:
             self.configure()
             self._discover()
+        except OSError as error:  # pyserial's SerialException is an OSError
+            self.close()
+            raise LiveError(f"the Polhemus port {self.port} failed while ivc configured the tracker ({error}): "
+                            "check the cable and the port, then try again") from None
         except BaseException:
             self.close()
             raise
@@ -383,7 +399,10 @@ class PolhemusSource:
         self._events.append(SourceEvent("reset", f"the tracker sent nothing for {self.stall_s:g} s (reset or power "
                                         "glitch?); it was configured again (binary, cm, hemisphere "
                                         f"{self.hemisphere}, continuous)", time=self._last_time))
-        self.configure()
+        try:
+            self.configure()
+        except OSError as error:  # the port went away while silent
+            self._reconnect(error)
 
     def read(self, timeout_s: float) -> list[Sample | SourceEvent]:
         """The frames (and events) that arrived, waiting at most ``timeout_s`` for the first bytes."""
@@ -456,24 +475,28 @@ class PolhemusSource:
             self._epoch = (int(frame[0]), start)
             self._last_frame = int(frame[0]) - 1
             self._new_epoch = False
+        n = len(self.stations)
         fresh = frame > self._last_frame
-        repeated = int(np.count_nonzero(~fresh))
+        repeated = 0
+        if not fresh.all():  # frames already delivered, sent again
+            repeated = int(np.count_nonzero(~fresh))
+            records, frame = records[fresh], frame[fresh]
         sensor = self._lookup[records["station"]]
-        key = frame * 256 + sensor
-        _, first = np.unique(key, return_index=True)
-        keep = np.zeros(frame.size, bool)
-        keep[first] = True
-        repeated += int(np.count_nonzero(fresh & ~keep))
-        keep &= fresh
-        records, frame, sensor = records[keep], frame[keep], sensor[keep]
+        frames, index = _group(frame)
+        slot = index * n + sensor
+        count = np.bincount(slot, minlength=frames.size * n)
+        if count.size and count.max() > 1:  # a frame's record sent twice: keep the first
+            _, first = np.unique(slot, return_index=True)
+            first.sort()
+            repeated += frame.size - first.size
+            records, frame, sensor = records[first], frame[first], sensor[first]
+            frames, index = _group(frame)
+            count = np.bincount(index * n + sensor, minlength=frames.size * n)
         if repeated:
             self.counts["repeated"] += repeated
         if not records.size:
             return []
-        frames, index = np.unique(frame, return_inverse=True)
-        n = len(self.stations)
-        present = np.zeros((frames.size, n), bool)
-        present[index, sensor] = True
+        present = count.reshape(frames.size, n) > 0
         if not final and not present[-1].all():
             hold = index == frames.size - 1
             self._pending = records[hold]
@@ -488,16 +511,17 @@ class PolhemusSource:
         error = np.zeros((frames.size, n), np.uint8)
         error[index, sensor] = records["error"]
         norm = np.linalg.norm(quaternion, axis=-1)
-        valid = (present & np.isin(error, NO_ERROR) & np.all(np.isfinite(position), axis=-1)
+        flagged = (error != NO_ERROR[0]) & (error != NO_ERROR[1])
+        valid = (present & ~flagged & np.all(np.isfinite(position), axis=-1)
                  & np.any(position != 0.0, axis=-1) & (np.abs(norm - 1.0) <= NORM_TOLERANCE))
         position[~valid] = np.nan
         quaternion[~valid] = np.nan
         events: list[Sample | SourceEvent] = []
-        coded = np.unique(error[present & np.isin(error, NO_ERROR, invert=True)])
-        if coded.size:
+        if flagged.any():
+            coded = np.unique(error[present & flagged])
             names = ", ".join(repr(chr(c)) if 32 < c < 127 else str(int(c)) for c in coded)
-            events.append(SourceEvent("info", f"the tracker flagged samples with error code(s) {names} (distortion or "
-                                      "a real-time error): stored as invalid"))
+            events.append(SourceEvent("info", f"the tracker flagged samples with error code(s) {names} (distortion "
+                                      "or a real-time error): stored as invalid"))
         lost = int(np.sum(np.diff(np.concatenate([[self._last_frame], frames])) - 1))
         if lost > 0 and self._last_frame is not None:
             self.counts["lost"] += lost
