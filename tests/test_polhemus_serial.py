@@ -208,6 +208,23 @@ def test_a_vanished_port_is_retried_then_reported_with_what_to_do():
     assert any(e.kind == "disconnected" for e in events) and source.counts["reconnects"] == 0
 
 
+def test_a_tracker_that_stays_silent_is_configured_again_then_refused():
+    positions, quaternions = smooth_poses(300, 2, seed=9)
+    with PolhemusEmulator(positions, quaternions) as emulator:
+        source = PolhemusSource(emulator.path, stall_s=0.2, reconfigure_limit=2)
+        source.open()
+        samples, events = [], []
+        with pytest.raises(LiveError, match="sent no frame for .* despite 2 re-configurations: check"):
+            deadline = time.monotonic() + DEADLINE_S
+            while time.monotonic() < deadline:
+                for item in source.read(0.1):
+                    (samples if isinstance(item, Sample) else events).append(item)
+        source.close()
+    assert len(samples) == 300
+    assert [e.kind for e in events].count("reset") == 2
+    assert emulator.commands.count(b"C") == 3
+
+
 def test_a_port_that_does_not_exist_is_refused_clearly():
     with pytest.raises(LiveError, match="cannot open the Polhemus serial port /dev/no-such-tty.*dialout"):
         PolhemusSource("/dev/no-such-tty").open()

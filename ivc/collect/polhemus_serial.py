@@ -278,17 +278,20 @@ class PolhemusSource:
             raise
 
     def _discover(self) -> None:
-        """Read until one whole frame has arrived; set the model, rate and stations from it."""
+        """Read until one frame has arrived whole (its records between two other frames'); set the model, rate and
+        stations from it."""
         deadline = _time.monotonic() + self.open_timeout_s
         records = np.zeros(0, RECORD)
         while _time.monotonic() < deadline:
             new = self._receive(min(0.1, max(deadline - _time.monotonic(), 0.001)))
+            if self._failure is not None:
+                raise self._failure
             if new.size:
                 records = np.concatenate([records, new])
-                if np.unique(records["frame"]).size >= 2:
+                if np.unique(records["frame"]).size >= 3:
                     break
         frames = np.unique(records["frame"])
-        if frames.size < 2:
+        if frames.size < 3:
             raise LiveError(f"no frame from the Polhemus tracker on {self.port} within {self.open_timeout_s:g} s of "
                             "configuring it: check that it is switched on with its source and a sensor plugged in, "
                             f"that the port and baud rate are right (baudrate={self.baudrate}), then try again")
@@ -298,7 +301,7 @@ class PolhemusSource:
             self.model = model
         if self.sample_rate_hz is None:
             self.sample_rate_hz = MODELS[self.model][1]
-        first = records[records["frame"] == frames[0]]
+        first = records[records["frame"] == frames[1]]  # the first frame seen whole, from its start to its end
         present = sorted(set(int(s) for s in first["station"]))
         limit = MODELS[self.model][2]
         if self._wanted is not None:
