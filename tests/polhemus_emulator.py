@@ -16,9 +16,10 @@ int16 payload size, then the output list's items, little-endian (float32 values,
 
 Quirks, keyed by the index of the truth frame they hit: ``repeat`` (frame sent twice), ``dropouts`` ((frame,
 sensor) pairs reported at (0, 0, 0)), ``errors`` ({(frame, sensor): error byte}, e.g. a distortion flag),
-``garbage`` ({frame: bytes written before it}), ``reset_at`` (before that frame the tracker reboots: it prints a
-line of text, forgets its configuration and stops until configured again; its frame count restarts at 0) and
-``close_at`` (before that frame the port vanishes).
+``garbage`` ({frame: bytes written before it}), ``pauses`` ({frame: seconds} the line stalls before it, the frame
+count running on), ``reset_at`` (before that frame the tracker reboots: it prints a line of text, forgets its
+configuration and stops until configured again; its frame count restarts at 0) and ``close_at`` (before that frame
+the port vanishes).
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ class PolhemusEmulator:
     def __init__(self, positions, quaternions, valid=None, *, model: str = "liberty", stations=None,
                  rate_hz: float | None = None, loop: bool = False, max_frames: int | None = None, chunk: int = 64,
                  first_frame: int = 1000, repeat=(), dropouts=(), errors=None, garbage=None, reset_at=None,
-                 close_at=None):
+                 close_at=None, pauses=None):
         self.positions = np.asarray(positions, dtype=float)
         self.quaternions = np.asarray(quaternions, dtype=float)
         frames, n = self.positions.shape[:2]
@@ -88,6 +89,8 @@ class PolhemusEmulator:
         self.repeats = np.ones(frames, np.int64)
         self.repeats[list(repeat)] = 2
         self.garbage = dict(garbage or {})
+        self.pauses = dict(pauses or {})
+        self._paused_until: float | None = None
         self.reset_at = reset_at
         self.close_at = close_at
         self.master, self.slave = os.openpty()
@@ -317,7 +320,8 @@ class PolhemusEmulator:
         return self._vanish_by
 
     def _next_special(self) -> int | None:
-        marks = [m for m in (self.reset_at, self.close_at, *self.garbage) if m is not None and m >= self.index]
+        marks = [m for m in (self.reset_at, self.close_at, *self.garbage, *self.pauses)
+                 if m is not None and m >= self.index]
         return min(marks) if marks else None
 
     def _generate(self) -> None:
@@ -331,6 +335,14 @@ class PolhemusEmulator:
         if special == self.index:
             if self._out:
                 return  # finish the transmission under way first
+            if self.index in self.pauses:
+                if self._paused_until is None:
+                    self._paused_until = time.monotonic() + self.pauses[self.index]
+                if time.monotonic() < self._paused_until:
+                    return  # the line stalls (the counter runs on: frames of the pause are never sent)
+                self.frame_count += int(round(self.pauses.pop(self.index) * self.nominal_rate))
+                self._paused_until = None
+                return
             if self.index in self.garbage:
                 self._out += self.garbage.pop(self.index)
                 return

@@ -156,6 +156,20 @@ def test_a_reset_mid_stream_is_survived_reported_and_the_time_line_continues():
     assert BANNER  # the emulator printed it
 
 
+def test_a_stalled_line_is_configured_again_without_losing_a_frame_or_the_time_line():
+    positions, quaternions = smooth_poses(600, 3, seed=10)
+    with PolhemusEmulator(positions, quaternions, pauses={300: 0.6}) as emulator:
+        with PolhemusSource(emulator.path, stall_s=0.2) as source:
+            samples, events = collect(source, emulator)
+        sent, p, _ = expected(emulator, positions, quaternions)
+    assert emulator.commands.count(b"C") >= 2 and any(e.kind == "reset" for e in events)
+    frames = np.array([s.frame for s in samples])
+    np.testing.assert_array_equal(frames, [c for _, c, _ in sent])  # every frame sent, the stalled ones never were
+    assert frames[300] - frames[299] > 1
+    np.testing.assert_allclose([s.time for s in samples], frames / 240.0, rtol=0, atol=1e-9)  # one time line
+    np.testing.assert_allclose(np.stack([s.position for s in samples]), p, rtol=1e-12, atol=1e-15)
+
+
 def test_a_counter_restart_without_silence_is_a_reset_too():
     """Frame counts far behind the last are a new time line, never repeats or a negative time step."""
     source = PolhemusSource("/dev/null-polhemus")

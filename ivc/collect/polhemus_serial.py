@@ -237,19 +237,29 @@ class PolhemusSource:
             return b""
         return self._serial.read(max(1, self._serial.in_waiting))
 
-    def _drain(self, quiet_s: float = 0.05, limit_s: float = 1.0) -> None:
-        """Discard what the tracker sends until it has been quiet ``quiet_s`` (at most ``limit_s``)."""
+    def _drain(self, quiet_s: float = 0.05, limit_s: float = 1.0) -> bytes:
+        """What the tracker sends until it has been quiet ``quiet_s`` (at most ``limit_s``); the rest is dropped."""
         start = _time.monotonic()
-        while self._wait(quiet_s) and _time.monotonic() - start < limit_s:
-            pass
+        data = bytearray()
+        while (chunk := self._wait(quiet_s)) and _time.monotonic() - start < limit_s:
+            data += chunk
         self._serial.reset_input_buffer()
+        return bytes(data)
 
-    def configure(self) -> None:
+    def configure(self, keep: bool = False) -> None:
         """Stop any output, set binary, centimetres, the hemisphere and the output list, then start continuous
-        output (the commands of docs/polhemus.md)."""
+        output (the commands of docs/polhemus.md). ``keep``: the frames still arriving after the stop belong to
+        the stream being read (a re-configuration mid-stream) and are delivered, not dropped."""
         x, y, z = (int(v) for v in hemisphere_vector(self.hemisphere))
         self._write(b"P")
-        self._drain()
+        tail = self._drain()
+        if keep:
+            self._buffer += tail
+            records, _, _, used = parse_records(self._buffer, self._preambles())
+            del self._buffer[:used]
+            records = np.concatenate([self._pending, records]) if self._pending.size else records
+            self._pending = np.zeros(0, RECORD)
+            self._events.extend(self._frames(records, final=True))
         self._write(b"F1\rU1\r" + f"H*,{x},{y},{z}\r".encode() + f"O*,{OUTPUT_LIST}\r".encode())
         self._drain()
         self._buffer.clear()
@@ -397,13 +407,12 @@ class PolhemusSource:
                             f"{self._silent_rounds * self.stall_s:.1f} s despite {self.reconfigure_limit} "
                             "re-configurations: check that it is on, its source and sensors plugged in, then record "
                             "the step again")
-        self._flush_pending()
         self.counts["resets"] += 1
         self._events.append(SourceEvent("reset", f"the tracker sent nothing for {self.stall_s:g} s (reset or power "
                                         "glitch?); it was configured again (binary, cm, hemisphere "
                                         f"{self.hemisphere}, continuous)", time=self._last_time))
         try:
-            self.configure()
+            self.configure(keep=True)
         except OSError as error:  # the port went away while silent
             self._reconnect(error)
 
@@ -468,15 +477,17 @@ class PolhemusSource:
         rate = float(self.sample_rate_hz)
         frame = records["frame"].astype(np.int64)
         if self._new_epoch:
-            # the first time line starts at the frame count itself; a later one just after the last frame, by the
-            # whole frames the host saw pass (the tracker's own clock restarted and cannot say)
-            if self._last_time is None:
-                start = float(frame[0]) / rate
-            else:
-                gap = _time.monotonic() - self._last_host
-                start = self._last_time + max(1.0, round(gap * rate)) / rate
-            self._epoch = (int(frame[0]), start)
-            self._last_frame = int(frame[0]) - 1
+            # after a re-configuration a counter that ran on keeps the time line; the first time line starts at the
+            # frame count itself, and one after a restarted counter just after the last frame, by the whole frames
+            # the host saw pass (the tracker's own clock restarted and cannot say)
+            if self._last_frame is None or frame[0] <= self._last_frame:
+                if self._last_time is None:
+                    start = float(frame[0]) / rate
+                else:
+                    gap = _time.monotonic() - self._last_host
+                    start = self._last_time + max(1.0, round(gap * rate)) / rate
+                self._epoch = (int(frame[0]), start)
+                self._last_frame = int(frame[0]) - 1
             self._new_epoch = False
         n = len(self.stations)
         fresh = frame > self._last_frame
