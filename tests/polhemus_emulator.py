@@ -19,7 +19,7 @@ sensor) pairs reported at (0, 0, 0)), ``errors`` ({(frame, sensor): error byte},
 ``garbage`` ({frame: bytes written before it}), ``pauses`` ({frame: seconds} the line stalls before it, the frame
 count running on), ``reset_at`` (before that frame the tracker reboots: it prints a line of text, forgets its
 configuration and stops until configured again; its frame count restarts at 0) and ``close_at`` (before that frame
-the port vanishes).
+the port vanishes; with ``close_when``, once that event is set).
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ class PolhemusEmulator:
     def __init__(self, positions, quaternions, valid=None, *, model: str = "liberty", stations=None,
                  rate_hz: float | None = None, loop: bool = False, max_frames: int | None = None, chunk: int = 64,
                  first_frame: int = 1000, repeat=(), dropouts=(), errors=None, garbage=None, reset_at=None,
-                 close_at=None, pauses=None):
+                 close_at=None, close_when: threading.Event | None = None, pauses=None):
         self.positions = np.asarray(positions, dtype=float)
         self.quaternions = np.asarray(quaternions, dtype=float)
         frames, n = self.positions.shape[:2]
@@ -93,6 +93,7 @@ class PolhemusEmulator:
         self._paused_until: float | None = None
         self.reset_at = reset_at
         self.close_at = close_at
+        self.close_when = close_when
         self.master, self.slave = os.openpty()
         tty.setraw(self.slave)
         os.set_blocking(self.master, False)
@@ -351,8 +352,10 @@ class PolhemusEmulator:
                 self._reset()
                 return
             if self.index == self.close_at:
+                if self.close_when is not None and not self.close_when.is_set():
+                    return  # the test says when
                 if self._unread() and time.monotonic() < self._vanish_deadline():
-                    return  # let the reader take what is on the line (the test counts it), then vanish
+                    return  # let the reader take what is on the line, then vanish
                 self.close_at = None
                 raise _Vanish
         stop = self.index + due

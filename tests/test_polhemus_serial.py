@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import struct
 import sys
+import threading
 import time
 
 import numpy as np
@@ -206,10 +207,12 @@ def test_sensors_select_and_order_stations_and_hemisphere_is_sent():
 
 def test_a_vanished_port_is_retried_then_reported_with_what_to_do():
     positions, quaternions = smooth_poses(2000, 2, seed=8)
-    with PolhemusEmulator(positions, quaternions, close_at=500) as emulator:
+    pulled = threading.Event()
+    with PolhemusEmulator(positions, quaternions, close_at=500, close_when=pulled) as emulator:
         source = PolhemusSource(emulator.path, retries=2, retry_wait_s=0.05)
         source.open()
-        samples, events = [], []
+        samples, events = collect(source, emulator, frames=500)
+        pulled.set()  # the cable is pulled once the first 500 frames are in
         with pytest.raises(LiveError, match="could not be reopened in 2 tries.*reconnect the tracker") as raised:
             deadline = time.monotonic() + DEADLINE_S
             while time.monotonic() < deadline:
