@@ -377,7 +377,7 @@ class PolhemusSource:
                 self._serial = self._open_port()
                 self._buffer.clear()
                 self.configure()
-            except (LiveError, OSError, Exception) as again:  # noqa: BLE001 - any failure here is one more try
+            except Exception as again:  # noqa: BLE001 - any failure here (LiveError, OSError, ...) is one more try
                 last = again
                 if self._serial is not None:
                     try:
