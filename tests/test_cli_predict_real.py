@@ -69,6 +69,8 @@ def test_info_reports_rate_jitter_and_import_quirks(tmp_path):
     assert result.exit_code == 0, result.output
     assert "imported" in result.output and "Hz (median step" in result.output and "jitter" in result.output
     assert "repeated samples dropped: 6" in result.output
+    # `ivc correct` refuses a tracker's own log, so info does not send the user there; it names the way in
+    assert "ivc correct LUT FILE" not in result.output and "--source replay:FILE" in result.output
 
 
 def test_correct_predict_alone_uses_the_default(tmp_path):

@@ -123,6 +123,9 @@ def render_recording(path: str, summary: dict) -> str:
             "for a session")
     if summary["data"] == "pose":
         uses = "`ivc predict FILE ...`; without signal matrices, `ivc correct` solves from the reported poses"
+    if "import_report" in summary:  # a tracker's own log (Liberty logger CSV, head trace): `ivc correct` refuses it
+        uses = ("`ivc predict FILE ...`, or `ivc collect STEP --source replay:FILE` to make it a session step, "
+                "which `ivc correct` then takes")
     lines = [
         f"{path}: {'PLUS sequence' if is_plus_sequence(path) else 'recording CSV'}, {summary['frames']} frames x "
         f"{count} sensors ({named})",
