@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -109,3 +110,17 @@ def test_real_liberty_dropouts_flagged():
     assert len(bad) == 6 and step.valid_mask[:, 0].all()  # the six dropouts of sensor 2, nothing else
     assert np.all(np.linalg.norm(step.position[step.valid_mask], axis=-1) > 0.4)  # no (0, 0, 0) kept valid
     assert "flagged invalid" in report.text()
+
+
+def test_liberty_positions_read_in_the_wrong_unit_are_refused_with_the_likely_one(tmp_path):
+    path, _ = _liberty(tmp_path / "p.csv", 20)  # positions in inches, 20-30 in from the source
+    with pytest.raises(CsvError, match=r"read as m, the sensors are .* m from the source.*likely in"):
+        read_recording(path, unit="m")
+
+
+def test_a_liberty_file_of_one_repeated_frame_is_refused_plainly(tmp_path):
+    path, _ = _liberty(tmp_path / "p.csv", 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no NumPy warning on the way to the refusal
+        with pytest.raises(CsvError, match="holds one tracker frame"):
+            read_recording(path)

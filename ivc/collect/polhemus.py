@@ -31,6 +31,7 @@ from scipy.ndimage import median_filter
 from ivc.collect.imports import MAX_REPORTED, ImportReport, refuse_malformed
 from ivc.errors import CsvError
 from ivc.session import Step
+from ivc.session.model import PLAUSIBLE_RANGE_M
 from ivc.units import LENGTH_UNITS
 
 #: a position nearer the source than this share of the sensor's running median distance is a dropout
@@ -145,12 +146,24 @@ def read_liberty_csv(path: str | Path, unit: str = "in") -> tuple[Step, ImportRe
         report.add(f"frame times: a straight line through the host's times ({1.0 / slope:.6g} Hz); the host's "
                    f"clock deviates from it by up to {1e3 * np.max(np.abs(time - fitted)):.3g} ms")
         time = fitted
+    if F < 2:
+        raise CsvError(f"{path}: every row repeats the first one's values: the file holds one tracker frame, and a "
+                       "recording needs at least two (was the tracker streaming, and the sensors connected?)")
     q = sample[..., :4] / np.linalg.norm(sample[..., :4], axis=-1, keepdims=True)
     flips = np.zeros((F, S), bool)
     flips[1:] = np.sum(q[1:] * q[:-1], axis=-1) < 0
     q = q * np.where(np.cumsum(flips, axis=0) % 2 == 1, -1.0, 1.0)[..., None]
     position = sample[..., 4:] * LENGTH_UNITS[unit]
     distance = np.linalg.norm(position, axis=-1)
+    typical = float(np.median(distance))
+    if typical > PLAUSIBLE_RANGE_M:
+        # the unit that puts the sensors nearest a typical working distance (half a metre)
+        raw = typical / LENGTH_UNITS[unit]
+        likely = min(LENGTH_UNITS, key=lambda name: abs(np.log(raw * LENGTH_UNITS[name] / 0.5)))
+        raise CsvError(f"{path}: read as {unit}, the sensors are {typical:.3g} m from the source at the median, "
+                       f"beyond any AC tracker's range ({PLAUSIBLE_RANGE_M:g} m). The file does not state its unit: "
+                       f"pass the one the tracker was set to as unit= (--import-unit), likely "
+                       f"{likely} (a Liberty reports inches by default)")
     local = median_filter(distance, size=(DROPOUT_WINDOW, 1), mode="nearest")
     dropout = distance < DROPOUT_FRACTION * local
     for s, (name, _) in enumerate(sensors):

@@ -296,6 +296,11 @@ def validate_step(name: str, step: Step) -> None:
     if (step.position is None) != (step.quaternion is None):
         missing = "quaternion" if step.quaternion is None else "position"
         raise SessionError(f"{base}/{missing}: missing; a reported pose needs both position and quaternion")
+    for dataset, tail in (("signal", (3, 3)), ("position", (3,)), ("quaternion", (4,))):
+        value = getattr(step, dataset)
+        if value is not None and np.ndim(value) != 2 + len(tail):
+            wanted = ", ".join(["frames", "sensors", *map(str, tail)])
+            raise SessionError(f"{base}/{dataset}: shape {np.shape(value)}, expected ({wanted})")
     sensors = step.n_sensors
     if step.valid is None:
         valid = np.ones((frames, sensors), dtype=bool)
@@ -318,6 +323,8 @@ def validate_step(name: str, step: Step) -> None:
         _check_finite(f"{base}/{dataset}", a, valid)
     if step.quaternion is not None:
         _check_unit_quaternions(f"{base}/quaternion", np.asarray(step.quaternion), valid)
+    if step.position is not None:
+        _check_range(f"{base}/position", np.asarray(step.position), valid)
     if name.startswith("cube_") and sensors != CUBE_SENSORS:
         raise SessionError(f"{base}: {sensors} sensors; the interpolation cube has {CUBE_SENSORS}")
     if not (np.isfinite(step.sample_rate_hz) and step.sample_rate_hz > 0):
@@ -326,6 +333,17 @@ def validate_step(name: str, step: Step) -> None:
         raise SessionError(f"{base} attribute sensor_ids: needs {sensors} distinct names, got {list(step.sensor_ids)}")
     if name == "cube_survey":
         _validate_declared_pose(base, step.attrs)
+
+
+def _check_range(path: str, position: np.ndarray, valid: np.ndarray) -> None:
+    """Refuse valid positions beyond any AC tracker's range: a length unit read wrong (inches or millimetres
+    taken for metres)."""
+    distance = np.where(valid, np.linalg.norm(position, axis=-1), 0.0)
+    if distance.max(initial=0.0) > PLAUSIBLE_RANGE_M:
+        frame, sensor = np.unravel_index(int(np.argmax(distance)), distance.shape)
+        raise SessionError(f"{path}: frame {frame}, sensor {sensor} is {distance[frame, sensor]:.3g} m from the "
+                           f"source, beyond any AC tracker's range ({PLAUSIBLE_RANGE_M:g} m): positions are in "
+                           "metres; were they read in another unit (inches, centimetres, millimetres)?")
 
 
 def _validate_declared_pose(base: str, attrs: dict) -> None:
