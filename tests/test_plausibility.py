@@ -47,3 +47,18 @@ def test_a_table_without_its_fit_group_says_it_is_incomplete(tmp_path):
         lut.read(table)
     assert "Unable to" not in str(error.value) and "object" not in str(error.value)  # none of h5py's own text
     assert lut.read(TABLE).hemisphere == "+x"  # the intact table still reads
+
+
+def test_a_scalar_signal_dataset_is_named_not_valid(rng):
+    step = make_step(rng, with_pose=False)
+    step.signal = np.float64(1.0)
+    with pytest.raises(SessionError, match=r"/signal: shape \(\), expected \(frames, sensors, 3, 3\)"):
+        validate_step("check", step)
+
+
+def test_positions_in_another_unit_are_refused_by_frame_and_sensor(rng):
+    step = make_step(rng, with_signal=False)
+    step.valid[:] = True
+    step.position[3, 2] *= 1000  # millimetres in a file of metres
+    with pytest.raises(SessionError, match=r"frame 3, sensor 2 is .* m from the source"):
+        validate_step("check", step)
