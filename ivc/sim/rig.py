@@ -14,6 +14,7 @@ import numpy as np
 
 from ivc import rotations
 from ivc.fixtures.cube import CUBE_BITS
+from ivc.fixtures.geometry import FixtureGeometry
 from ivc.sim.scene import CubeSpec, Scene, WandSpec
 
 
@@ -32,6 +33,44 @@ class RigidFixture:
         positions = position[:, None, :] + np.einsum("fij,nj->fni", R, self.body_positions)
         quaternions = rotations.canonical(rotations.multiply(quaternion[:, None, :], self.body_quaternions[None]))
         return positions, quaternions
+
+
+#: a correct print's errors, 1 sigma per axis: a sensor's position (m; an FDM printer's 0.2-0.3 mm and the
+#: pocket's clearance) and orientation (rad) in its pocket (docs/printing.md)
+PRINT_POSITION_SIGMA = 0.1e-3
+PRINT_ANGLE_SIGMA = float(np.radians(0.25))
+
+
+def build_fixture(geometry: FixtureGeometry, rng: np.random.Generator, *, origin: np.ndarray | None = None,
+                  position_sigma: float = PRINT_POSITION_SIGMA, angle_sigma: float = PRINT_ANGLE_SIGMA,
+                  swaps: tuple[tuple[int, int], ...] = (), turns: dict[int, np.ndarray] | None = None,
+                  lifts: dict[int, np.ndarray] | None = None) -> RigidFixture:
+    """A fixture printed from ``geometry`` and assembled, with a correct print's random errors and build faults.
+
+    The body frame has the part frame's axes and its origin at ``origin`` (part frame, m; default the part
+    frame's own). Faults: ``swaps`` (pairs of sensors that sit in each other's pockets), ``turns`` (sensor
+    -> rotation vector, rad, in the sensor's own axes), ``lifts`` (sensor -> offset, m, part frame).
+    """
+    n = geometry.n_sensors
+    positions = geometry.positions - (np.zeros(3) if origin is None else np.asarray(origin, float))
+    positions = positions + position_sigma * rng.standard_normal((n, 3))
+    errors = rotations.from_rotvec(angle_sigma * rng.standard_normal((n, 3)))
+    quaternions = rotations.multiply(geometry.quaternions, errors)
+    for a, b in swaps:
+        positions[[a, b]] = positions[[b, a]]
+        quaternions[[a, b]] = quaternions[[b, a]]
+    for k, turn in (turns or {}).items():
+        quaternions[k] = rotations.multiply(quaternions[k], rotations.from_rotvec(np.asarray(turn, float)))
+    for k, lift in (lifts or {}).items():
+        positions[k] = positions[k] + np.asarray(lift, float)
+    return RigidFixture(positions, rotations.canonical(quaternions))
+
+
+def geometry_body_pose(geometry: FixtureGeometry, spec: CubeSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Part-frame pose that puts the printed cube's nominal sensor centroid at ``spec.center``, turned by
+    ``spec.quaternion``: where the simulator places a cube built from ``geometry``."""
+    R = rotations.to_matrix(spec.quaternion)
+    return spec.center - R @ geometry.positions.mean(axis=0), spec.quaternion.copy()
 
 
 def make_cube(spec: CubeSpec, rng: np.random.Generator) -> RigidFixture:
