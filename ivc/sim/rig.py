@@ -66,6 +66,45 @@ def build_fixture(geometry: FixtureGeometry, rng: np.random.Generator, *, origin
     return RigidFixture(positions, rotations.canonical(quaternions))
 
 
+def random_build(geometry: FixtureGeometry, rng: np.random.Generator, *, origin: np.ndarray | None = None,
+                 fault_probability: float = 0.5) -> tuple[RigidFixture, dict]:
+    """A random build of ``geometry`` for testing the build check: with probability ``1 − fault_probability``
+    a correct print (:func:`build_fixture`'s errors only); else each of these faults with probability 1/2
+    (at least one), on distinct sensors: two sensors swapped, a sensor turned by 2-90° about a random axis,
+    a sensor moved by 1-4 mm in a random direction. Returns the fixture and its faults (``build_fixture``'s
+    keyword arguments)."""
+    n = geometry.n_sensors
+    faults: dict = {"swaps": (), "turns": {}, "lifts": {}}
+    if rng.random() < fault_probability:
+        chosen = [False, False, False]
+        while not any(chosen):
+            chosen = list(rng.random(3) < 0.5)
+        order = rng.permutation(n)
+        if chosen[0]:
+            faults["swaps"] = ((int(order[0]), int(order[1])),)
+        if chosen[1]:
+            axis = rng.standard_normal(3)
+            faults["turns"] = {int(order[2]): np.radians(rng.uniform(2, 90)) * axis / np.linalg.norm(axis)}
+        if chosen[2]:
+            direction = rng.standard_normal(3)
+            faults["lifts"] = {int(order[3]): rng.uniform(1e-3, 4e-3) * direction / np.linalg.norm(direction)}
+    return build_fixture(geometry, rng, origin=origin, **faults), faults
+
+
+def build_deviations(geometry: FixtureGeometry, fixture: RigidFixture, origin: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """How far each built sensor sits from its own pocket's nominal pose: position (N,) m and angle (N,) rad
+    (for a 5-DOF sensor, of its measured axis). ``origin``: as for :func:`build_fixture`."""
+    shift = np.zeros(3) if origin is None else np.asarray(origin, float)
+    position = np.linalg.norm(fixture.body_positions + shift - geometry.positions, axis=1)
+    if geometry.sensor.dof == 5:
+        k = geometry.sensor.axis
+        built = rotations.to_matrix(fixture.body_quaternions)[:, :, k]
+        cos = np.einsum("ni,ni->n", built, geometry.matrices[:, :, k])
+        return position, np.arccos(np.clip(cos, -1.0, 1.0))
+    return position, rotations.angle_between(fixture.body_quaternions, geometry.quaternions)
+
+
 def geometry_body_pose(geometry: FixtureGeometry, spec: CubeSpec) -> tuple[np.ndarray, np.ndarray]:
     """Part-frame pose that puts the printed cube's nominal sensor centroid at ``spec.center``, turned by
     ``spec.quaternion``: where the simulator places a cube built from ``geometry``."""
