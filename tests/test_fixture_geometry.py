@@ -219,3 +219,20 @@ def test_check_session_checks_the_calibrations_a_session_has():
     reports = check_session(session, {"cube": CUBE, "wand": WAND})
     assert [r.kind for r in reports] == ["cube", "wand"] and all(r.ok for r in reports)
     assert check_session(session, {}) == []
+
+
+def test_the_cube_file_is_the_ideal_cube_of_the_fixture_model():
+    from ivc.fixtures.cube import placed_vertices
+    from ivc.fixtures.mapping import FixtureModel
+
+    printed = cube_layout("liberty-rx2", 0.06)
+    simulator = Simulator(_free_scene(), seed=1, cube_geometry=printed)
+    session = simulator.protocol({"cube_calibration": 100, "cube_survey": 20, "wand_calibration": 100},
+                                 steps=["cube_calibration", "cube_survey", "wand_calibration"])
+    nominal = printed.in_declared_frame()[0]
+    model = FixtureModel.from_session(session, "ideal", nominal=nominal)
+    survey = session.steps["cube_survey"].attrs
+    declared = survey["declared_position"], survey["declared_quaternion"]
+    assert np.allclose(model.placement.positions, placed_vertices(nominal, declared))
+    assert np.allclose(model.cube.vertices("ideal")[7], [0.06, 0.06, 0.06])
+    assert np.allclose(FixtureModel.from_session(session, "ideal").cube.vertices("ideal")[7], 0.0508)

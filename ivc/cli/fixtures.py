@@ -127,7 +127,7 @@ def fixtures():
               help="For a session of reported poses only: the tracker's own pose solver (docs/lut.md).")
 @click.option("--geometry", "geometry_files", multiple=True, type=click.Path(dir_okay=False),
               help="The printed cube's and/or wand's geometry file (repeat for both): check the calibrated "
-                   "sensors against it (docs/printing.md).")
+                   "sensors against it; the cube's is the ideal cube of --vertices ideal (docs/printing.md).")
 @tracker_option
 def report(session_file, vertices, interpolant, method, max_residual, max_error_mm, compare_cubes, as_json,
            tracker_solver, geometry_files, tracker_file):
@@ -138,6 +138,7 @@ def report(session_file, vertices, interpolant, method, max_residual, max_error_
     geometries = load_geometries(geometry_files)
     data = with_tracker(session_io.read(session_file), tracker_file)
     checks = check_session(data, geometries)
+    nominal = geometries["cube"].in_declared_frame()[0] if "cube" in geometries else None
     frames = data.steps["wand_sweep"].n_frames if "wand_sweep" in data.steps else 0
     gates = Gates(max_residual=max_residual, max_error=max_error_mm / 1000)
     pose_only = not has_signals(data)
@@ -151,10 +152,10 @@ def report(session_file, vertices, interpolant, method, max_residual, max_error_
     with tqdm(total=frames, desc="solving the sweep", unit="frame", leave=False,
               disable=True if as_json else ON_TERMINAL) as bar:
         if pose_only:
-            report = pose_fixture_report(data, vertices, tracker_solver, progress=bar.update)
+            report = pose_fixture_report(data, vertices, tracker_solver, progress=bar.update, nominal=nominal)
         else:
             report = fixture_report(data, vertices, method, gates, compare_cubes, progress=bar.update,
-                                    interpolant=interpolant)
+                                    interpolant=interpolant, nominal=nominal)
     if geometry_files:
         report["build_checks"] = [check.to_dict() for check in checks]
     click.echo(json.dumps(report, indent=2) if as_json else "\n\n".join([render(report)]
