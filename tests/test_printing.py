@@ -196,3 +196,11 @@ def test_the_fixtures_command_keeps_its_session_form_beside_print(tmp_path):
     assert checks["cube"]["ok"]
     # the scene's hand-built wand is not the printed one the file describes
     assert not checks["wand"]["ok"] and checks["wand"]["findings"][0]["kind"] == "wrong fixture"
+
+
+def test_without_manifold3d_the_error_names_the_extra(monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "manifold3d", None)  # an import of it now raises ImportError
+    with pytest.raises(FixtureError, match=r"pip install 'ivc\[print\]'"):
+        build_part(cube_layout())
