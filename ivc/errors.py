@@ -14,13 +14,14 @@ written against earlier versions (``except ValueError``) still catches it.
     ├── SceneError        a simulator scene file is malformed
     ├── PredictorError    bad input to a head-motion predictor
     ├── LiveError         a live stream cannot be set up
-    └── TrackerError      a tracker model file is malformed, or a tracker calibration cannot run
+    ├── TrackerError      a tracker model file is malformed, or a tracker calibration cannot run
+    └── FixtureError      a fixture geometry file is malformed, or a printable fixture does not fit
 """
 
 from __future__ import annotations
 
 __all__ = ["IvcError", "InputError", "SessionError", "CsvError", "LutError", "ExportError", "SceneError",
-           "PredictorError", "LiveError", "TrackerError"]
+           "PredictorError", "LiveError", "TrackerError", "FixtureError"]
 
 
 class IvcError(Exception):
@@ -61,3 +62,7 @@ class LiveError(IvcError, ValueError):
 
 class TrackerError(IvcError, ValueError):
     """A tracker model file is malformed, or a tracker calibration cannot run on the data given."""
+
+
+class FixtureError(IvcError, ValueError):
+    """A fixture geometry file is malformed, or a printable fixture does not fit (the message gives the numbers)."""

@@ -17,6 +17,7 @@ from ivc.cli.paths import refuse_inputs_as_outputs
 from ivc.cli.progress import ON_TERMINAL
 from ivc.cli.tracker import tracker_option
 from ivc.collect import check_step, replay
+from ivc.fixtures.geometry import load_geometries, part_declared_pose
 from ivc.session import STEPS, Session, SessionError, Step, Truth, is_extension_step
 from ivc.sim import Simulator, load_scene
 
@@ -49,9 +50,11 @@ def _parse_source(source: str) -> tuple[str, str | None]:
 class SimulatorProgress:
     """Builds the simulator once and shows what the slow parts are doing."""
 
-    def __init__(self, scene_name: str | None, seed: int, tracker=None):
+    def __init__(self, scene_name: str | None, seed: int, tracker=None, geometries=None):
         self.scene = load_scene(scene_name)
-        self.simulator = Simulator(self.scene, seed, tracker)
+        geometries = geometries or {}
+        self.simulator = Simulator(self.scene, seed, tracker, cube_geometry=geometries.get("cube"),
+                                   wand_geometry=geometries.get("wand"))
         self.prepared = False
 
     def prepare(self, distorted: bool) -> None:
@@ -155,9 +158,13 @@ def _step_name(ctx, param, value: str) -> str:
 @click.option("--declared-position", callback=_floats(3), help="cube_survey: declared cube position x,y,z in m.")
 @click.option("--declared-quaternion", callback=_floats(4), help="cube_survey: declared cube orientation w,x,y,z.")
 @click.option("--force", is_flag=True, help="Replace a step that is already in the session file.")
+@click.option("--geometry", "geometry_files", multiple=True, type=click.Path(dir_okay=False),
+              help="A printed cube's and/or wand's geometry file (repeat for both; docs/printing.md): the simulator "
+                   "builds that fixture, and --declared-position/--declared-quaternion give the cube's part frame "
+                   "(its corner mark), from which the declared frame follows.")
 @tracker_option
 def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemisphere, rate, declared_position,
-            declared_quaternion, force, tracker_file):
+            declared_quaternion, force, geometry_files, tracker_file):
     """Record protocol STEP (or the whole `protocol`) into the session file OUTPUT.
 
     The protocol (Himberg 2010, ch. 4.4.3): cube_calibration (free space), cube_survey (cube at
@@ -169,6 +176,10 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
     records with that coil model first).
     """
     kind, argument = _parse_source(source)
+    geometries = load_geometries(geometry_files)
+    if "cube" in geometries and (declared_position is not None or declared_quaternion is not None):
+        declared_position, declared_quaternion = part_declared_pose(geometries["cube"], declared_position,
+                                                                    declared_quaternion)
     if kind == "replay" or argument is not None:
         refuse_inputs_as_outputs({"--output": output}, {"the --source file": argument})
     device = None
@@ -176,7 +187,7 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
         from ivc.collect.tracker_units import load_labelled_tracker
 
         device = load_labelled_tracker(tracker_file)
-    sim = SimulatorProgress(argument, seed, device[0] if device else None) if kind == "sim" else None
+    sim = SimulatorProgress(argument, seed, device[0] if device else None, geometries) if kind == "sim" else None
     hemisphere = hemisphere or (sim.scene.hemisphere if sim else "+x")
     output = Path(output)
     if step == "protocol":

@@ -1,4 +1,4 @@
-"""``ivc fixtures SESSION``: the fixture calibration report."""
+"""``ivc fixtures SESSION``: the fixture calibration report; ``ivc fixtures print``: a printable cube or wand."""
 
 from __future__ import annotations
 
@@ -13,6 +13,8 @@ from ivc.cli.progress import ON_TERMINAL
 from ivc.cli.tracker import tracker_option, with_tracker
 from ivc.dipole.tracker_solver import SOLVERS
 from ivc.fixtures import VERTEX_CHOICES
+from ivc.fixtures.build_check import check_session
+from ivc.fixtures.geometry import load_geometries
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import Gates
 from ivc.fixtures.pose_mapping import has_signals
@@ -87,7 +89,25 @@ def render(report: dict) -> str:
     return "\n".join(lines)
 
 
-@click.command()
+class _FixturesGroup(click.Group):
+    """``ivc fixtures SESSION [OPTIONS]`` (the report, as before) beside ``ivc fixtures print ...``: an
+    argument that is not a sub-command's name goes to ``report``."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        if args and args[0] not in self.commands and args[0] not in ctx.help_option_names:
+            args = ["report", *args]
+        elif not args:
+            args = ["report"]
+        return super().parse_args(ctx, args)
+
+
+@click.group(cls=_FixturesGroup)
+def fixtures():
+    """The fixture calibration report of a session (`ivc fixtures SESSION`, the same as `ivc fixtures report
+    SESSION`), or a printable cube or wand and its geometry file (`ivc fixtures print cube|wand -o PART.stl`)."""
+
+
+@fixtures.command("report")
 @click.argument("session_file", type=click.Path(dir_okay=False))
 @click.option("--vertices", type=click.Choice(VERTEX_CHOICES), default="averaged", show_default=True,
               help="Cube vertex positions: the sensors' averaged ones, the optimised perfect cube, or the ideal cube.")
@@ -105,14 +125,20 @@ def render(report: dict) -> str:
 @click.option("--tracker", "tracker_solver", type=click.Choice(SOLVERS),
               default="closed-form", show_default=True,
               help="For a session of reported poses only: the tracker's own pose solver (docs/lut.md).")
+@click.option("--geometry", "geometry_files", multiple=True, type=click.Path(dir_okay=False),
+              help="The printed cube's and/or wand's geometry file (repeat for both): check the calibrated "
+                   "sensors against it; the cube's is the ideal cube of --vertices ideal (docs/printing.md).")
 @tracker_option
-def fixtures(session_file, vertices, interpolant, method, max_residual, max_error_mm, compare_cubes, as_json,
-             tracker_solver, tracker_file):
+def report(session_file, vertices, interpolant, method, max_residual, max_error_mm, compare_cubes, as_json,
+           tracker_solver, geometry_files, tracker_file):
     """Calibrate the cube and wand of SESSION_FILE, solve the sweep, and report what a map would be built from.
 
     A session of reported poses only (no signals) goes through the pose path: the cube's field fitted
     through the tracker model, sensor 0 traced back into the cube by inverting it (docs/fixtures.md)."""
+    geometries = load_geometries(geometry_files)
     data = with_tracker(session_io.read(session_file), tracker_file)
+    checks = check_session(data, geometries)
+    nominal = geometries["cube"].in_declared_frame()[0] if "cube" in geometries else None
     frames = data.steps["wand_sweep"].n_frames if "wand_sweep" in data.steps else 0
     gates = Gates(max_residual=max_residual, max_error=max_error_mm / 1000)
     pose_only = not has_signals(data)
@@ -126,8 +152,75 @@ def fixtures(session_file, vertices, interpolant, method, max_residual, max_erro
     with tqdm(total=frames, desc="solving the sweep", unit="frame", leave=False,
               disable=True if as_json else ON_TERMINAL) as bar:
         if pose_only:
-            report = pose_fixture_report(data, vertices, tracker_solver, progress=bar.update)
+            report = pose_fixture_report(data, vertices, tracker_solver, progress=bar.update, nominal=nominal)
         else:
             report = fixture_report(data, vertices, method, gates, compare_cubes, progress=bar.update,
-                                    interpolant=interpolant)
-    click.echo(json.dumps(report, indent=2) if as_json else render(report))
+                                    interpolant=interpolant, nominal=nominal)
+    if geometry_files:
+        report["build_checks"] = [check.to_dict() for check in checks]
+    click.echo(json.dumps(report, indent=2) if as_json else "\n\n".join([render(report)]
+                                                                         + [check.render() for check in checks]))
+
+
+_UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "in": 0.0254}
+
+
+class Length(click.ParamType):
+    """A positive length: ``50.8mm``, ``2in``, ``5.08cm``, ``0.0508m``, or a bare number of millimetres; metres."""
+
+    name = "LENGTH"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, float):
+            return value
+        text = str(value).strip().lower()
+        unit = next((u for u in sorted(_UNITS, key=len, reverse=True) if text.endswith(u)), None)
+        try:
+            number = float(text[: -len(unit)] if unit else text)
+        except ValueError:
+            self.fail(f"{value!r}: give a length such as 50.8mm, 2in or 5.08cm (a bare number is mm)", param, ctx)
+        if not number > 0:
+            self.fail(f"{value!r}: must be positive", param, ctx)
+        return number * _UNITS[unit or "mm"]
+
+
+LENGTH = Length()
+
+
+@fixtures.command("print")
+@click.argument("kind", type=click.Choice(["cube", "wand"]))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="The part: PART.stl or PART.3mf.")
+@click.option("--sensor", default="liberty-rx2", show_default=True,
+              help="Sensor model: liberty-rx2, liberty-micro, ndi-8mm, aurora-6dof, aurora-5dof, or "
+                   "custom:LxW (a tube) / custom:LxWxH (a box), in mm.")
+@click.option("--edge", type=LENGTH, default="50.8mm", show_default=True, help="Cube: distance between sensors.")
+@click.option("--sensors", type=click.IntRange(2, 64), default=8, show_default=True, help="Wand: number of sensors.")
+@click.option("--pitch", type=LENGTH, help="Wand: distance between sensors (default 25.4mm, or the smallest that "
+              "fits the sensor).")
+@click.option("--clearance", type=LENGTH, default="0.2mm", show_default=True,
+              help="Gap round each sensor in its pocket (a printer's tolerance).")
+@click.option("--wall", type=LENGTH, default="3mm", show_default=True, help="Wall round the pockets (>= 1.5mm).")
+@click.option("--geometry", "geometry_path", type=click.Path(dir_okay=False),
+              help="Geometry file to write (default: PART.json).")
+@click.option("--preview", "preview_path", type=click.Path(dir_okay=False), help="PNG preview (default: PART.png).")
+@click.option("--force", is_flag=True, help="Replace files that exist.")
+def print_part(kind, output, sensor, edge, sensors, pitch, clearance, wall, geometry_path, preview_path, force):
+    """Write a printable cube or wand (KIND), its geometry file and a PNG preview (docs/printing.md).
+
+    Needs manifold3d: pip install 'ivc[print]'."""
+    from ivc.fixtures.geometry import PartOptions
+    from ivc.fixtures.printing import print_fixture
+
+    part, paths = print_fixture(kind, output, sensor=sensor, edge=edge, sensors=sensors, pitch=pitch,
+                                options=PartOptions(clearance=clearance, wall=wall), geometry_path=geometry_path,
+                                preview_path=preview_path, force=force)
+    g = part.geometry
+    size = (f"edge {1000 * g.parameters['edge']:.2f} mm" if kind == "cube"
+            else f"{g.n_sensors} sensors at {1000 * g.parameters['pitch']:.2f} mm")
+    if kind == "wand" and pitch is None and abs(g.parameters["pitch"] - 0.0254) > 1e-9:
+        click.echo(f"note: {g.sensor.name} does not fit at 25.4 mm; pitch {1000 * g.parameters['pitch']:.1f} mm "
+                   "(the smallest with 1.5 mm walls)", err=True)
+    low, high = 1000 * g.extent
+    click.echo(f"{kind} for {g.sensor.name}, {size}: {high[0] - low[0]:.1f} x {high[1] - low[1]:.1f} x "
+               f"{high[2] - low[2]:.1f} mm, {1e6 * part.assembled.volume:.1f} cm3 of plastic")
+    click.echo(f"wrote {paths[0]} (print as laid out: no supports), {paths[1]} (geometry), {paths[2]} (preview)")

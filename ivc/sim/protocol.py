@@ -17,6 +17,7 @@ from ivc import rotations
 from ivc.dipole.tracker import Tracker
 from ivc.errors import InputError
 from ivc.fixtures import fixture_frame
+from ivc.fixtures.geometry import FixtureGeometry
 from ivc.session import STEPS, Session, Step, Truth, describe_step, extension_step, is_extension_step, step_order
 from ivc.sim import rig, tracker
 from ivc.sim.field import SecondaryField
@@ -40,12 +41,22 @@ EXTENSION_STREAM = 100
 class Simulator:
     """A simulated tracker, fixtures and room for one scene and seed; ``tracker``: an imperfect device."""
 
-    def __init__(self, scene: Scene, seed: int = 0, tracker: Tracker | None = None):
+    def __init__(self, scene: Scene, seed: int = 0, tracker: Tracker | None = None, *,
+                 cube_geometry: FixtureGeometry | None = None, wand_geometry: FixtureGeometry | None = None):
+        """``cube_geometry``, ``wand_geometry``: fixtures printed from geometry files (docs/printing.md) in place
+        of the scene's hand-built ones; the cube's declared pose then comes from its file. ``cube`` and
+        ``wand`` are attributes: replace one (``rig.build_fixture``) to simulate a faulty build."""
         self.scene = scene
         self.seed = int(seed)
         self.tracker = tracker  # the device's own coil model (None: ideal)
-        self.cube = rig.make_cube(scene.cube, self._rng("cube"))
-        self.wand = rig.make_wand(scene.wand, self._rng("wand"))
+        for geometry, kind in ((cube_geometry, "cube"), (wand_geometry, "wand")):
+            if geometry is not None and geometry.kind != kind:
+                raise InputError(f"the {kind}'s geometry file describes a {geometry.kind}")
+        self.cube_geometry, self.wand_geometry = cube_geometry, wand_geometry
+        self.cube = (rig.make_cube(scene.cube, self._rng("cube")) if cube_geometry is None
+                     else rig.build_fixture(cube_geometry, self._rng("cube")))
+        self.wand = (rig.make_wand(scene.wand, self._rng("wand")) if wand_geometry is None
+                     else rig.build_fixture(wand_geometry, self._rng("wand"), origin=wand_geometry.positions[0]))
 
     def _rng(self, purpose: str) -> np.random.Generator:
         if is_extension_step(purpose):
@@ -76,9 +87,15 @@ class Simulator:
         field.tabulate(progress=progress)
         return field
 
+    def cube_body_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """The cube's body pose during the survey (a printed cube's: its part frame's)."""
+        if self.cube_geometry is not None:
+            return rig.geometry_body_pose(self.cube_geometry, self.scene.cube)
+        return rig.cube_body_pose(self.scene.cube)
+
     def true_cube_frame(self) -> tuple[np.ndarray, np.ndarray]:
         """True pose ``(r_0, T_I)`` of the cube fixture frame (docs/math.md §5) during the survey."""
-        body_position, body_quaternion = rig.cube_body_pose(self.scene.cube)
+        body_position, body_quaternion = self.cube_body_pose()
         origin, T_body = fixture_frame(self.cube.body_positions)
         R = rotations.to_matrix(body_quaternion)
         return body_position + R @ origin, R @ T_body
@@ -86,13 +103,18 @@ class Simulator:
     def declared_cube_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """The user's declared cube pose: the true one with a realistic placement error.
 
+        A printed cube's is its geometry file's declared frame, carried by the part's placement (the
+        true part pose with the placement error): no sensor is measured for it.
         Returns ``(declared_position (3,), declared_quaternion (4,))``.
         """
         rng = self._rng("placement")
-        r0, T_I = self.true_cube_frame()
-        position = r0 + self.scene.cube.placement_sigma * rng.standard_normal(3)
+        offset = self.scene.cube.placement_sigma * rng.standard_normal(3)
         tilt = rotations.from_rotvec(self.scene.cube.placement_sigma_rad * rng.standard_normal(3))
-        return position, rotations.canonical(rotations.multiply(tilt, rotations.from_matrix(T_I)))
+        if self.cube_geometry is not None:
+            part_position, part_quaternion = self.cube_body_pose()
+            return self.cube_geometry.declared_pose(part_position + offset, rotations.multiply(tilt, part_quaternion))
+        r0, T_I = self.true_cube_frame()
+        return r0 + offset, rotations.canonical(rotations.multiply(tilt, rotations.from_matrix(T_I)))
 
     def step(self, name: str, frames: int | None = None) -> tuple[Step, Truth]:
         """Simulate one protocol step; returns the recorded step and its truth."""
@@ -113,7 +135,7 @@ class Simulator:
             body = (np.asarray(scene.cube.center), rotations.random(1, rng)[0])
             positions, quaternions = self._static(self.cube, *body, frames)
         elif name == "cube_survey":
-            positions, quaternions = self._static(self.cube, *rig.cube_body_pose(scene.cube), frames)
+            positions, quaternions = self._static(self.cube, *self.cube_body_pose(), frames)
             declared_position, declared_quaternion = self.declared_cube_pose()
             attrs = {"declared_position": declared_position, "declared_quaternion": declared_quaternion}
         elif name == "wand_calibration":

@@ -14,6 +14,7 @@ import numpy as np
 
 from ivc import rotations
 from ivc.fixtures.cube import CUBE_BITS
+from ivc.fixtures.geometry import FixtureGeometry
 from ivc.sim.scene import CubeSpec, Scene, WandSpec
 
 
@@ -32,6 +33,83 @@ class RigidFixture:
         positions = position[:, None, :] + np.einsum("fij,nj->fni", R, self.body_positions)
         quaternions = rotations.canonical(rotations.multiply(quaternion[:, None, :], self.body_quaternions[None]))
         return positions, quaternions
+
+
+#: a correct print's errors, 1 sigma per axis: a sensor's position (m; an FDM printer's 0.2-0.3 mm and the
+#: pocket's clearance) and orientation (rad) in its pocket (docs/printing.md)
+PRINT_POSITION_SIGMA = 0.1e-3
+PRINT_ANGLE_SIGMA = float(np.radians(0.25))
+
+
+def build_fixture(geometry: FixtureGeometry, rng: np.random.Generator, *, origin: np.ndarray | None = None,
+                  position_sigma: float = PRINT_POSITION_SIGMA, angle_sigma: float = PRINT_ANGLE_SIGMA,
+                  swaps: tuple[tuple[int, int], ...] = (), turns: dict[int, np.ndarray] | None = None,
+                  lifts: dict[int, np.ndarray] | None = None) -> RigidFixture:
+    """A fixture printed from ``geometry`` and assembled, with a correct print's random errors and build faults.
+
+    The body frame has the part frame's axes and its origin at ``origin`` (part frame, m; default the part
+    frame's own). Faults: ``swaps`` (pairs of sensors that sit in each other's pockets), ``turns`` (sensor
+    -> rotation vector, rad, in the sensor's own axes), ``lifts`` (sensor -> offset, m, part frame).
+    """
+    n = geometry.n_sensors
+    positions = geometry.positions - (np.zeros(3) if origin is None else np.asarray(origin, float))
+    positions = positions + position_sigma * rng.standard_normal((n, 3))
+    errors = rotations.from_rotvec(angle_sigma * rng.standard_normal((n, 3)))
+    quaternions = rotations.multiply(geometry.quaternions, errors)
+    for a, b in swaps:
+        positions[[a, b]] = positions[[b, a]]
+        quaternions[[a, b]] = quaternions[[b, a]]
+    for k, turn in (turns or {}).items():
+        quaternions[k] = rotations.multiply(quaternions[k], rotations.from_rotvec(np.asarray(turn, float)))
+    for k, lift in (lifts or {}).items():
+        positions[k] = positions[k] + np.asarray(lift, float)
+    return RigidFixture(positions, rotations.canonical(quaternions))
+
+
+def random_build(geometry: FixtureGeometry, rng: np.random.Generator, *, origin: np.ndarray | None = None,
+                 fault_probability: float = 0.5) -> tuple[RigidFixture, dict]:
+    """A random build of ``geometry`` for testing the build check: with probability ``1 − fault_probability``
+    a correct print (:func:`build_fixture`'s errors only); else each of these faults with probability 1/2
+    (at least one), on distinct sensors: two sensors swapped, a sensor turned by 2-90° about a random axis,
+    a sensor moved by 1-4 mm in a random direction. Returns the fixture and its faults (``build_fixture``'s
+    keyword arguments)."""
+    n = geometry.n_sensors
+    faults: dict = {"swaps": (), "turns": {}, "lifts": {}}
+    if rng.random() < fault_probability:
+        chosen = [False, False, False]
+        while not any(chosen):
+            chosen = list(rng.random(3) < 0.5)
+        order = rng.permutation(n)
+        if chosen[0]:
+            faults["swaps"] = ((int(order[0]), int(order[1])),)
+        if chosen[1]:
+            axis = rng.standard_normal(3)
+            faults["turns"] = {int(order[2]): np.radians(rng.uniform(2, 90)) * axis / np.linalg.norm(axis)}
+        if chosen[2]:
+            direction = rng.standard_normal(3)
+            faults["lifts"] = {int(order[3]): rng.uniform(1e-3, 4e-3) * direction / np.linalg.norm(direction)}
+    return build_fixture(geometry, rng, origin=origin, **faults), faults
+
+
+def build_deviations(geometry: FixtureGeometry, fixture: RigidFixture, origin: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """How far each built sensor sits from its own pocket's nominal pose: position (N,) m and angle (N,) rad
+    (for a 5-DOF sensor, of its measured axis). ``origin``: as for :func:`build_fixture`."""
+    shift = np.zeros(3) if origin is None else np.asarray(origin, float)
+    position = np.linalg.norm(fixture.body_positions + shift - geometry.positions, axis=1)
+    if geometry.sensor.dof == 5:
+        k = geometry.sensor.axis
+        built = rotations.to_matrix(fixture.body_quaternions)[:, :, k]
+        cos = np.einsum("ni,ni->n", built, geometry.matrices[:, :, k])
+        return position, np.arccos(np.clip(cos, -1.0, 1.0))
+    return position, rotations.angle_between(fixture.body_quaternions, geometry.quaternions)
+
+
+def geometry_body_pose(geometry: FixtureGeometry, spec: CubeSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Part-frame pose that puts the printed cube's nominal sensor centroid at ``spec.center``, turned by
+    ``spec.quaternion``: where the simulator places a cube built from ``geometry``."""
+    R = rotations.to_matrix(spec.quaternion)
+    return spec.center - R @ geometry.positions.mean(axis=0), spec.quaternion.copy()
 
 
 def make_cube(spec: CubeSpec, rng: np.random.Generator) -> RigidFixture:
