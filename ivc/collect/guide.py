@@ -448,7 +448,7 @@ def collect_protocol(source, steps: Sequence[str] = STEPS, session: Session | No
         if step is not None:
             session.steps[name] = step
             if output is not None:
-                _save(output, name, step, session, force)
+                save_step(output, name, step, session, force)
         if on_step is not None:
             on_step(step, report)
         if step is None or report.stopped:
@@ -456,9 +456,10 @@ def collect_protocol(source, steps: Sequence[str] = STEPS, session: Session | No
     return session, reports
 
 
-def _save(output: Path, name: str, step: Step, session: Session, force: bool) -> None:
+def save_step(output: str | Path, name: str, step: Step, session: Session, force: bool = False) -> None:
     """Add a kept step to the session file, atomically; a new file also gets the session's attributes (the
-    declared working volume)."""
+    declared working volume). ``force`` replaces a step already in the file."""
+    output = Path(output)
     if output.exists():
         add_step(output, name, step, hemisphere=session.hemisphere, force=force)
     else:

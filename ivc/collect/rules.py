@@ -498,8 +498,8 @@ class SweepRule:
                             "keep the wand's tip inside the cube")
         thin, target = None, None
         if self.centre is not None:
-            octant_share = self.octants / self.per_octant
-            direction_share = self.direction_counts / self.per_direction
+            octant_share = self.octants / max(self.per_octant, 1) + (self.per_octant <= 0)
+            direction_share = self.direction_counts / max(self.per_direction, 1) + (self.per_direction <= 0)
             if octant_share.min() < 1:  # a region of the ball first; then the directions within it
                 o = int(np.argmin(octant_share))
                 thin = f"the {OCTANT_NAMES[o]} octant of the ball ({self.octants[o]:,} of {self.per_octant:,})"
