@@ -105,6 +105,7 @@ class StepStatus:
     latest: NDArray[np.float64] | None = None
     cube: NDArray[np.float64] | None = None
     restarts: int = 0
+    cells: list = field(default_factory=list)  # coverage regions: (centre (3,) m, share 0-1 of their target)
 
 
 @dataclass
@@ -296,7 +297,7 @@ def collect_step(source, step: str, session: Session | None = None, *, rule: Sto
             elapsed = 0.0
         return StepStatus(step, instruction(step), rule.description, recorder.n_frames if recorder else 0, elapsed,
                           sensors, state.progress, problems, done or state.done, state.thin, state.target,
-                          state.points, latest, cube, restarts)
+                          state.points, latest, cube, restarts, state.cells)
 
     try:
         while reason is None:

@@ -119,7 +119,8 @@ class Progress:
 class RuleState:
     """Where a rule stands: ``done`` when every target is met; ``progress`` the numbers; ``problems`` in plain
     words; ``thin`` the region still short of its target, in words (None when none is); ``target`` a point (3,) m
-    to go to next (for the 3D view); ``points`` the sample positions (M, 3) m so far (a bounded subsample)."""
+    to go to next (for the 3D view); ``points`` the sample positions (M, 3) m so far (a bounded subsample);
+    ``cells`` the coverage regions as (centre (3,) m, share 0-1 of their target) pairs."""
 
     done: bool
     progress: list[Progress]
@@ -127,6 +128,7 @@ class RuleState:
     thin: str | None = None
     target: NDArray[np.float64] | None = None
     points: NDArray[np.float64] | None = None
+    cells: list[tuple[NDArray[np.float64], float]] = field(default_factory=list)
 
 
 class StopRule(Protocol):
@@ -511,7 +513,13 @@ class SweepRule:
                         f"({self.direction_counts[d]:,} of {self.per_direction:,} frames)")
                 target = self.centre + 0.75 * self.radius * self.directions[d]
         done = all(p.done for p in progress)
-        return RuleState(done, progress, problems, thin, target, self._points.points.copy())
+        cells = []
+        if self.centre is not None:
+            for o in range(8):
+                sign = np.array([1 if o & 4 else -1, 1 if o & 2 else -1, 1 if o & 1 else -1]) / np.sqrt(3)
+                cells.append((self.centre + 0.75 * self.radius * sign, min(self.octants[o] / max(self.per_octant, 1),
+                                                                            1.0)))
+        return RuleState(done, progress, problems, thin, target, self._points.points.copy(), cells)
 
     def usable(self) -> tuple[bool, str]:
         if self.kept >= SWEEP_PER_OCTANT:
@@ -578,7 +586,11 @@ class ExtensionRule:
             missing = self.lattice[~self.covered]
             if len(missing):
                 target = missing[np.argmin(np.linalg.norm(missing - missing.mean(axis=0), axis=1))]
-        return RuleState(all(p.done for p in progress), progress, [], thin, target, self._points.points.copy())
+        centre, size = self.box
+        cells = [(centre + np.eye(3)[a] * size[a] / 2 * (1 if sign == "+" else -1), faces[f"{sign}{axis}"])
+                 for a, axis in enumerate("xyz") for sign in "-+"]
+        return RuleState(all(p.done for p in progress), progress, [], thin, target, self._points.points.copy(),
+                         cells)
 
     def usable(self) -> tuple[bool, str]:
         if self.frames >= MIN_KEPT_FRAMES:
