@@ -305,3 +305,38 @@ def test_check_and_count_rules_stop_by_frames_or_tracker_time(rng):
     assert step.n_frames == 350 and report.outcome == "done"  # the rule is read after each batch of 50
     step, _ = collect_step(ArraySource(position[:, :1], quaternion[:, :1], chunk=1), "check", duration_s=1.0)
     assert step.n_frames == 241 and isinstance(step, Step)
+
+
+def test_a_source_that_fails_for_good_ends_the_step_keeping_what_is_usable(rng):
+    from ivc.errors import LiveError
+
+    position, quaternion = static_cube(5000, rng, noise=5e-4)
+
+    class Failing(ArraySource):
+        def read(self, timeout_s):
+            if self.reads >= self.fail_after:
+                raise LiveError("igtl://h:1: the connection was lost and 5 reconnections failed")
+            return super().read(timeout_s)
+
+    for fail_after, outcome in ((30, "kept"), (5, "dropped")):  # 1500 frames recorded, or 250
+        source = Failing(position, quaternion)
+        source.fail_after = fail_after
+        step, report = collect_step(source, "cube_calibration")
+        assert report.outcome == outcome and "the source failed (igtl://h:1: the connection was lost" in report.message
+        assert (step is None) == (outcome == "dropped")
+
+
+def test_a_rehearsal_step_ends_when_its_source_falls_silent(small_session):
+    """A rehearsal over a network never says it finished: its last step ends when nothing more comes."""
+    simulator, session = small_session
+
+    class Silent:
+        def __init__(self, inner):
+            self.inner, self.sensor_names, self.sample_rate_hz = inner, inner.sensor_names, inner.sample_rate_hz
+
+        def read(self, timeout_s):
+            return self.inner.read(timeout_s)
+
+    with SessionSource(Session(session.hemisphere, {"check": session.steps["check"]})) as inner:
+        step, report = collect_step(Silent(inner), "check", idle_limit_s=0.0)
+    assert report.outcome == "done" and step.n_frames == session.steps["check"].n_frames

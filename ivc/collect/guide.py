@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from ivc import rotations
 from ivc.collect.rules import Frames, Progress, StopRule, default_rule
 from ivc.collect.stream import Sample, SourceEvent, StaleWatch, StepRecorder
-from ivc.errors import InputError
+from ivc.errors import InputError, IvcError
 from ivc.session import (
     CUBE_SENSORS,
     STEPS,
@@ -45,6 +45,8 @@ from ivc.session import (
 
 #: a sensor is stale (repeats its pose exactly) or missing (no valid pose) after this long, source clock (s)
 STALE_AFTER_S = 0.5
+#: a rehearsal's step ends when nothing more arrives for this long after its labelled frames (host clock, s)
+REHEARSAL_IDLE_S = 3.0
 #: rate and jitter are measured over this many recent frames
 WINDOW_FRAMES = 480
 #: what to tell the person before each step
@@ -263,7 +265,9 @@ def collect_step(source, step: str, session: Session | None = None, *, rule: Sto
     ``frames`` / ``duration_s`` seconds of tracker time). ``attrs`` are stored on the step (a cube survey's
     ``declared_position`` and ``declared_quaternion``). ``on_status(StepStatus)`` is called every
     ``status_every_s`` seconds (host clock) and once at the end. ``stop`` ends the step cleanly when set, as
-    Ctrl-C does. ``idle_limit_s``: end the step when nothing arrives for this long (host clock; None: wait).
+    Ctrl-C does. ``idle_limit_s``: end the step when nothing arrives for this long (host clock; None: wait, or
+    :data:`REHEARSAL_IDLE_S` once a rehearsal's labelled frames have come). A source that fails for good (raises an
+    ``IvcError``: its retries ran out) ends the step, kept when what was recorded makes a valid step.
 
     Returns ``(step, report)``; ``step`` is None when ``report.outcome == "dropped"``. Nothing is written here.
     """
@@ -279,6 +283,7 @@ def collect_step(source, step: str, session: Session | None = None, *, rule: Sto
     following = False  # the source labels its frames and has reached this step's
     restarts = dropped_frames = skipped = 0
     reason: str | None = None
+    failure = ""
     stopped = False
     last_status = -np.inf
     last_arrival = _time.monotonic()
@@ -304,12 +309,17 @@ def collect_step(source, step: str, session: Session | None = None, *, rule: Sto
             if stop is not None and stop.is_set():
                 reason, stopped = "stopped", True
                 break
-            items = feed.read(read_timeout_s)
+            try:
+                items = feed.read(read_timeout_s)
+            except IvcError as error:  # the source gave up (its retries ran out): end the step, keep what can be
+                reason, failure = "failed", str(error)
+                break
             if not items:
+                idle = idle_limit_s if idle_limit_s is not None else REHEARSAL_IDLE_S if following else None
                 if feed.finished:
                     reason = "ended"
-                elif idle_limit_s is not None and _time.monotonic() - last_arrival > idle_limit_s:
-                    reason = "idle"
+                elif idle is not None and _time.monotonic() - last_arrival > idle:
+                    reason, idle_limit_s = "idle", idle
             batch: list[Sample] = []
             for at, item in enumerate(items):
                 if isinstance(item, SourceEvent):
@@ -366,7 +376,7 @@ def collect_step(source, step: str, session: Session | None = None, *, rule: Sto
     final = rule.state()
     usable, why = rule.usable()
     n = recorder.n_frames if recorder else 0
-    if reason in ("done", "moved on", "ended") and following and n:
+    if reason in ("done", "moved on", "ended", "idle") and following and n:
         outcome, message = "done", f"{step}: recorded the {n:,} frames the source labelled {step}"
         if not final.done:
             message += " (its stop rule was not met: " + "; ".join(
@@ -376,7 +386,7 @@ def collect_step(source, step: str, session: Session | None = None, *, rule: Sto
     else:
         cause = {"stopped": "stopped before its stop rule was met", "ended": "the source ended before the stop rule "
                  "was met", "idle": f"nothing arrived for {idle_limit_s} s", "moved on": "the source moved on to "
-                 "the next step before the stop rule was met"}[reason]
+                 "the next step before the stop rule was met", "failed": f"the source failed ({failure})"}[reason]
         if usable and n:
             outcome, message = "kept", f"{step}: {cause}; kept as a valid step ({why})"
         else:
