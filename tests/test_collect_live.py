@@ -178,3 +178,38 @@ def test_the_guided_protocol_from_an_unlabelled_live_source(live, small_session,
         ok = want.valid_mask
         np.testing.assert_array_equal(written.steps[name].valid_mask, ok)
         np.testing.assert_allclose(written.steps[name].position[ok], want.position[ok], atol=1e-12)
+
+
+def test_the_terminal_views_show_sensors_progress_and_problems(rng):
+    import io
+
+    from rich.console import Console
+
+    from ivc.cli.guided_view import PlainView, RichView
+    from ivc.collect.guide import collect_step
+
+    position, quaternion = static_cube(600, rng)
+    position[200:, 3] = position[200, 3]  # sensor 3 stale
+    quaternion[200:, 3] = quaternion[200, 3]
+    out = io.StringIO()
+    rich = RichView(Console(file=out, force_terminal=True, width=120))
+    plain_out = io.StringIO()
+    plain = PlainView(plain_out)
+    statuses = []
+    step, report = collect_step(ArraySource(position, quaternion), "cube_calibration", on_status=statuses.append,
+                                status_every_s=0)
+    for view in (rich, plain):
+        view.on_step_start("cube_calibration", "Put the cube in free space.")
+        for status in statuses:
+            view(status)
+        view.on_step(step, report)
+        view.close()
+    text = out.getvalue()
+    for words in ("sensor", "state", "rate (Hz)", "jitter (ms)", "stale", "frames since still",
+                  "problem: sensor 3 stale for", "cube_calibration: the source ended"):
+        assert words in text, words
+    lines = plain_out.getvalue().splitlines()
+    assert lines[0] == "== cube_calibration: Put the cube in free space."
+    assert lines[1].startswith("rule: cube_calibration: stops when")
+    assert sum("problem: sensor 3 stale for" in line for line in lines) == 1  # once, not at every status
+    assert lines[-1] == report.message

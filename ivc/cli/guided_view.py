@@ -69,11 +69,11 @@ class RichView:
     """A live rich panel: the step's instruction and rule, a table of sensors (state, rate, jitter), a bar per
     target of the stop rule, the region still thin and the problems."""
 
-    def __init__(self):
+    def __init__(self, console=None):
         from rich.console import Console
         from rich.live import Live
 
-        self.console = Console(stderr=True)
+        self.console = console or Console(stderr=True)
         self.live = Live(console=self.console, refresh_per_second=4, transient=False)
         self.live.start()
         self._step_words = ""
