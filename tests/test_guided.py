@@ -203,12 +203,13 @@ def test_sensor_0_leaving_the_cube_is_said(small_session):
     assert rule.kept == 0
 
 
-def test_a_rehearsal_is_collected_pose_for_pose(small_session, tmp_path):
+@pytest.mark.parametrize("poses_only", [False, True], ids=["signals and poses", "poses only (a PLUS user)"])
+def test_a_rehearsal_is_collected_pose_for_pose(small_session, tmp_path, poses_only):
     simulator, session = small_session
     survey = session.steps["cube_survey"]
     output = tmp_path / "rehearsal.h5"
     started = []
-    with SessionSource(session, pause_s=2.0, chunk=97) as source:
+    with SessionSource(session, pause_s=2.0, chunk=97, poses_only=poses_only) as source:
         collected, reports = collect_protocol(source, STEPS, output=output, hemisphere=session.hemisphere,
                                               declared_position=survey.attrs["declared_position"],
                                               declared_quaternion=survey.attrs["declared_quaternion"],
@@ -223,7 +224,10 @@ def test_a_rehearsal_is_collected_pose_for_pose(small_session, tmp_path):
         ok = want.valid_mask
         np.testing.assert_allclose(got.position[ok], want.position[ok], atol=1e-6, rtol=0)
         np.testing.assert_allclose(got.quaternion[ok], want.quaternion[ok], atol=1e-9, rtol=0)
-        np.testing.assert_allclose(got.signal[ok], want.signal[ok], atol=1e-12, rtol=0)
+        if poses_only:
+            assert got.signal is None
+        else:
+            np.testing.assert_allclose(got.signal[ok], want.signal[ok], atol=1e-12, rtol=0)
         assert collected.steps[name].n_frames == want.n_frames
     np.testing.assert_array_equal(written.steps["cube_survey"].attrs["declared_position"],
                                   survey.attrs["declared_position"])

@@ -86,8 +86,8 @@ class Frames:
                       None if self.signal is None else self.signal[frames])
 
     def as_step(self) -> Step:
-        return Step(time=self.time, signal=self.signal, position=None if self.signal is not None else self.position,
-                    quaternion=None if self.signal is not None else self.quaternion, valid=self.valid)
+        return Step(time=self.time, signal=self.signal, position=self.position, quaternion=self.quaternion,
+                    valid=self.valid)
 
 
 @dataclass(frozen=True)
@@ -443,8 +443,6 @@ class SweepRule:
         from ivc.fixtures.pose_mapping import map_sweep_poses
 
         step = frames.as_step()
-        if step.signal is None:
-            step.position, step.quaternion = frames.position, frames.quaternion
         n = step.n_sensors
         if n != len(self.model.wand.positions):
             raise InputError(f"wand_sweep: the source sends {n} sensors but the wand calibration has "
