@@ -1,4 +1,4 @@
-"""``ivc collect``: record protocol steps into a session file, from the simulator or a recording."""
+"""``ivc collect``: record protocol steps into a session file, from the simulator, a recording or a live tracker."""
 
 from __future__ import annotations
 
@@ -151,7 +151,8 @@ def _step_name(ctx, param, value: str) -> str:
               "(a session .h5 or a recording .csv), or a live tracker: igtl://HOST:PORT (an OpenIGTLink server: "
               "PLUS, 3D Slicer, `ivc serve`) or polhemus:DEVICE (a Polhemus serial port), collected guided.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Session file to add to.")
-@click.option("--frames", type=SIM_FRAMES, help="Frames to simulate (default: the step's protocol default).")
+@click.option("--frames", type=SIM_FRAMES, help="Frames to simulate (default: the step's protocol default); from a "
+              "live source, stop each step after N frames instead of by its stop rule.")
 @click.option("--sweep-frames", type=SIM_FRAMES, help="protocol: frames of the wand sweep (default 100,000).")
 @click.option("--check-frames", type=SIM_FRAMES, help="protocol: check poses (default 10,000).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Simulator seed.")
@@ -182,6 +183,13 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
     part of it inside the region mapped so far), and check (independent poses).
     With --tracker-model the signals are stored in ideal-dipole units (a simulated device
     records with that coil model first).
+
+    From a live tracker (--source igtl://HOST:PORT or polhemus:DEVICE; or a session file
+    rehearsed with --source replay:FILE --guided) each step is guided: every sensor shown
+    OK / missing / stale with its rate and jitter, progress toward the step's stop rule
+    (stated when it starts), the region still thin and the problems; the step ends when the
+    rule is met (or after --frames / --duration). Ctrl-C ends it cleanly: it is kept if it
+    makes a valid step, else dropped, and the output says which (docs/collect.md).
     """
     kind, argument = _parse_source(source)
     if guided and kind != "replay":
