@@ -99,6 +99,7 @@ def run() -> list[Figure]:
     figures.append(Figure("guided: trusted", scored["trusted"], "%", "fixed 100k sweep", baseline["trusted"],
                           f">= {1 - TOLERANCE:.2f}x baseline",
                           passed=scored["trusted"] >= (1 - TOLERANCE) * baseline["trusted"]))
-    figures.append(Figure("guided: stream through the guide", stop / seconds, "frames/s", "", float("nan"),
-                          ">= 240 (real time)", passed=stop / seconds >= 240))
+    figures.append(Figure("guided: stream through the guide", stop / seconds, "frames/s", "the tracker's rate",
+                          simulator.scene.sweep_rate_hz, ">= 1x (real time)",
+                          passed=stop / seconds >= simulator.scene.sweep_rate_hz))
     return figures
