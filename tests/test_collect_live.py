@@ -11,7 +11,7 @@ from ivc.cli import cli
 from ivc.collect import sources
 from ivc.session import STEPS, write
 from ivc.session import read as read_session
-from tests.test_guided import ArraySource, static_cube
+from tests.live_helpers import ArraySource, static_cube
 
 
 class FakeLive:

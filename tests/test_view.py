@@ -14,7 +14,7 @@ from ivc.collect.stream import SessionSource
 from ivc.errors import LiveError
 from ivc.session import Session
 from tests.browser import Chromium, find_chromium, wait_for
-from tests.test_guided import Unlabelled
+from tests.live_helpers import Unlabelled
 
 pytest.importorskip("viser")
 

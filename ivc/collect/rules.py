@@ -32,8 +32,8 @@ from ivc.errors import InputError, IvcError
 from ivc.fixtures.volume import FACES, box_points, face_shares
 from ivc.session import Session, Step, is_extension_step, working_volume
 
-#: static steps: bound on the standard error of each sensor's mean position (m) and orientation (rad); a tenth
-#: of the accuracy a fitted map reaches on the default scene (0.058 mm, 0.231 mrad median, docs/collect.md)
+#: static steps: bound on the standard error of each sensor's mean position (m) and orientation (rad): a tenth
+#: of the accuracy a fitted map reaches on the default scene (0.04-0.06 mm, 0.17-0.23 mrad median; docs/collect.md)
 STATIC_POSITION_SE = 5e-6
 STATIC_ANGLE_SE = 2e-5
 #: a static fixture has moved when a sensor is this far from its mean pose (the checks' spread bound) ...
