@@ -213,3 +213,13 @@ def test_the_terminal_views_show_sensors_progress_and_problems(rng):
     assert lines[1].startswith("rule: cube_calibration: stops when")
     assert sum("problem: sensor 3 stale for" in line for line in lines) == 1  # once, not at every status
     assert lines[-1] == report.message
+
+
+def test_view_serves_the_step_on_loopback(live, rng, tmp_path):
+    pytest.importorskip("viser")
+    live.NEXT = Opened(ArraySource(*static_cube(1500, rng)))
+    result = run("collect", "wand_calibration", "--source", "igtl://h:1", "-o", tmp_path / "s.h5", "--view",
+                 "--view-port", 0)
+    assert result.exit_code == 0, result.output
+    assert "3D view: http://127.0.0.1:" in result.output
+    assert read_session(tmp_path / "s.h5").steps["wand_calibration"].n_frames == 100

@@ -290,3 +290,44 @@ def test_a_rehearsal_step_ends_when_its_source_falls_silent(small_session):
     with SessionSource(Session(session.hemisphere, {"check": session.steps["check"]})) as inner:
         step, report = collect_step(Silent(inner), "check", idle_limit_s=0.0)
     assert report.outcome == "done" and step.n_frames == session.steps["check"].n_frames
+
+
+def test_an_extension_sweep_reports_the_working_volume_by_face(rng):
+    from ivc.collect.rules import ExtensionRule
+
+    session = Session(attrs={"working_volume_center": np.array([0.5, 0.0, 0.0]),
+                             "working_volume_size": np.array([0.4, 0.4, 0.4])})
+    rule = ExtensionRule(session)
+    assert "declared working volume (400 x 400 x 400 mm)" in rule.description
+    # a wand walked through the -x half of the box only
+    points = np.array([0.3, -0.2, -0.2]) + rng.random((20_000, 8, 3)) * np.array([0.2, 0.4, 0.4])
+    identity = np.tile([1.0, 0, 0, 0], (20_000, 8, 1))
+    frames = Frames(np.arange(20_000) / 240, np.ones((20_000, 8), bool), points, identity)
+    rule.update(frames)
+    share, faces = rule.shares()
+    assert 0.5 <= share < 0.62  # the half, and the lattice within reach (4 cm) beyond it
+    assert faces["-x"] == 1.0 and faces["+x"] == 0.0 and 0.5 < faces["+y"] < 0.65
+    state = rule.state()
+    assert not state.done and state.thin == "face +x of the working volume (0 % covered)"
+    assert state.target[0] > 0.5 and len(state.cells) == 6
+    rule.update(Frames(frames.time, frames.valid, points + [0.2, 0, 0], frames.quaternion))
+    assert rule.state().done and rule.state().thin is None
+
+
+def test_an_extension_sweep_without_a_declared_volume_says_so():
+    from ivc.collect.rules import ExtensionRule
+
+    rule = ExtensionRule(Session())
+    assert "declares no working volume" in rule.description
+    assert rule.state().problems == ["no declared working volume: coverage cannot be stated"]
+
+
+def test_a_signal_only_source_is_watched_through_the_closed_form_pose(small_session):
+    simulator, session = small_session
+    cube = session.steps["cube_calibration"]
+    signals = dataclasses.replace(cube, position=None, quaternion=None)
+    with SessionSource(Session(session.hemisphere, {"cube_calibration": signals})) as inner:
+        step, report = collect_step(Unlabelled(inner), "cube_calibration")
+    assert step.position is None and step.n_frames == cube.n_frames
+    np.testing.assert_array_equal(step.signal[step.valid_mask], cube.signal[cube.valid_mask])
+    assert report.progress[1].value < 1e3 * STATIC_POSITION_SE  # the closed-form poses' standard error, mm
