@@ -223,3 +223,21 @@ def test_view_serves_the_step_on_loopback(live, rng, tmp_path):
     assert result.exit_code == 0, result.output
     assert "3D view: http://127.0.0.1:" in result.output
     assert read_session(tmp_path / "s.h5").steps["wand_calibration"].n_frames == 100
+
+
+def test_a_bumped_survey_through_the_polhemus_source_and_its_emulator(rng):
+    """The guide over the real serial source (ivc.collect.polhemus_serial) and the emulated Liberty on a
+    pseudo-terminal (tests/polhemus_emulator.py): the bump is caught and the survey restarted."""
+    serial = pytest.importorskip("ivc.collect.polhemus_serial")
+    emulator = pytest.importorskip("tests.polhemus_emulator")
+    from ivc.collect.guide import collect_step
+
+    position, quaternion = static_cube(3000, rng, moves=[(50, np.array([0.004, 0.0, 0.0]))])
+    attrs = {"declared_position": np.array([0.5, 0, 0]), "declared_quaternion": np.array([1.0, 0, 0, 0])}
+    with emulator.PolhemusEmulator(position, quaternion, model="liberty") as tracker:
+        with serial.PolhemusSource(tracker.path) as source:
+            step, report = collect_step(source, "cube_survey", attrs=attrs, idle_limit_s=60)
+    assert report.outcome == "done" and report.restarts == 1 and 50 <= report.dropped_frames <= 53
+    assert any("the cube moved during the survey" in p for p in report.problems)
+    start = report.dropped_frames  # every frame streamed (the tracker's frame count), so frame k is truth frame k
+    np.testing.assert_allclose(step.position, position[start : start + step.n_frames], atol=1e-6)  # float32 in cm
