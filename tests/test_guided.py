@@ -137,6 +137,23 @@ def test_a_sweep_that_never_enters_one_octant_names_it(small_session, longer_swe
     assert set(whole.dropped) >= {"outside the cube", "residual too high"}
 
 
+def test_a_wand_out_of_order_breaks_its_rigidity_and_is_said(small_session):
+    simulator, session = small_session
+    sweep = session.steps["wand_sweep"].select(slice(0, 480))
+    position, quaternion = sweep.poses(session.hemisphere)
+    words = []
+    for order in (list(range(8)), [0, 1, 2, 6, 4, 5, 3, 7]):  # sensors 3 and 6 swapped (a wrong --sensors)
+        rule = _sweep_rule(small_session)
+        rule.update(Frames(sweep.time, sweep.valid_mask[:, order], position[:, order], quaternion[:, order]))
+        rule.finish()
+        words.append([p for p in rule.state().problems if "lever arms" in p])
+    assert words[0] == []
+    assert len(words[1]) == 1 and words[1][0].startswith("wand sensors 3, 6 are up to ")
+    arms = rule.model.wand.lever_arms
+    stated = float(words[1][0].split("up to ")[1].split(" mm")[0])
+    assert abs(stated - 1e3 * abs(arms[6] - arms[3])) < 10  # the swap moves each by the two lever arms' difference
+
+
 def test_sensor_0_leaving_the_cube_is_said(small_session):
     simulator, session = small_session
     rule = _sweep_rule(small_session, min_kept=10**9)

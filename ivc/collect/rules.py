@@ -49,6 +49,9 @@ SWEEP_PER_OCTANT = 2_000
 DIRECTION_BINS = 32
 #: ... and each wants this many frames whose sensor 0 passed the gates
 SWEEP_PER_DIRECTION = 200
+#: a wand sensor whose reported distance from sensor 0 is off its calibrated lever arm by more than this (m, median
+#: over a second; the room's distortion moves reported positions by millimetres) is said to break the wand's rigidity
+RIGIDITY_TOLERANCE = 0.015
 #: frames solved through the cube at once (1 s at 240 Hz): the gates run on this many frames together
 SWEEP_CHUNK = 240
 #: extension sweeps: the lattice (m) probing the working volume, and how near (m) a wand sensor must come to a
@@ -369,6 +372,7 @@ class SweepRule:
         self.octants = np.zeros(8, dtype=int)
         self.direction_counts = np.zeros(DIRECTION_BINS, dtype=int)
         self.recent_outside = 0.0
+        self.recent_rigidity: NDArray[np.float64] | None = None  # (W,) m, each sensor's lever-arm misfit
         self._pending: list[Frames] = []
         self._points = _Reservoir()
         self.model, self.why_ungated = model, None
@@ -423,6 +427,7 @@ class SweepRule:
         if self.model is None:
             self._ungated(frames)
             return
+        self._rigidity(frames)
         positions, rotation0, keep, inside, ok0 = self._gate(frames)
         self.kept += int(keep.sum())
         offset = positions[keep] - self.centre
@@ -437,6 +442,16 @@ class SweepRule:
         tried = ok0.sum()
         self.recent_outside = float(np.sum(ok0 & ~inside) / tried) if tried else 0.0
         self._points.add(positions[keep])
+
+    def _rigidity(self, frames: Frames) -> None:
+        """Each wand sensor's reported distance from sensor 0 against its calibrated lever arm (median, m)."""
+        arms = self.model.wand.lever_arms
+        if frames.position.shape[1] != len(arms):
+            return
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a sensor invalid over the whole second
+            reach = np.linalg.norm(frames.position - frames.position[:, :1], axis=-1)
+            self.recent_rigidity = np.nanmedian(np.abs(reach - arms), axis=0)
 
     def _gate(self, frames: Frames):
         from ivc.fixtures.mapping import FixtureModel, map_sweep
@@ -493,6 +508,12 @@ class SweepRule:
         problems = []
         if self.model is None and self.why_ungated:
             problems.append(f"the sweep's samples cannot be gated yet ({self.why_ungated}); counting valid samples")
+        if self.recent_rigidity is not None and np.nanmax(self.recent_rigidity, initial=0.0) > RIGIDITY_TOLERANCE:
+            loose = np.flatnonzero(self.recent_rigidity > RIGIDITY_TOLERANCE)
+            problems.append(f"wand sensor{'s' if len(loose) > 1 else ''} {', '.join(map(str, loose))} "
+                            f"{'are' if len(loose) > 1 else 'is'} up to {1e3 * np.nanmax(self.recent_rigidity):.0f} mm "
+                            "off the wand calibration's lever arms: a loose sensor, or the sensors in the wrong order "
+                            "(sensors=, --sensors)")
         if self.recent_outside > 0.5:
             problems.append(f"sensor 0 left the cube ({100 * self.recent_outside:.0f} % of the last second's frames): "
                             "keep the wand's tip inside the cube")
