@@ -227,7 +227,7 @@ def test_view_serves_the_step_on_loopback(live, rng, tmp_path):
 
 def test_a_bumped_survey_through_the_polhemus_source_and_its_emulator(rng):
     """The guide over the real serial source (ivc.collect.polhemus_serial) and the emulated Liberty on a
-    pseudo-terminal (tests/polhemus_emulator.py): the bump is caught and the survey restarted."""
+    pseudo-terminal (the serial source's own test emulator): the bump is caught and the survey restarted."""
     serial = pytest.importorskip("ivc.collect.polhemus_serial")
     emulator = pytest.importorskip("tests.polhemus_emulator")
     from ivc.collect.guide import collect_step
