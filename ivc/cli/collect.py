@@ -1,4 +1,4 @@
-"""``ivc collect``: record protocol steps into a session file, from the simulator or a recording."""
+"""``ivc collect``: record protocol steps into a session file, from the simulator, a recording or a live tracker."""
 
 from __future__ import annotations
 
@@ -17,6 +17,8 @@ from ivc.cli.paths import refuse_inputs_as_outputs
 from ivc.cli.progress import ON_TERMINAL
 from ivc.cli.tracker import tracker_option
 from ivc.collect import check_step, replay
+from ivc.collect.guide import instruction, save_step
+from ivc.collect.sources import is_live_spec
 from ivc.fixtures.geometry import load_geometries, part_declared_pose
 from ivc.session import STEPS, Session, SessionError, Step, Truth, is_extension_step
 from ivc.sim import Simulator, load_scene
@@ -38,13 +40,15 @@ def _floats(count: int):
 
 
 def _parse_source(source: str) -> tuple[str, str | None]:
+    if is_live_spec(source):
+        return "live", source
     kind, _, argument = source.partition(":")
     if kind == "sim":
         return kind, argument or None
     if kind == "replay" and argument:
         return kind, argument
-    raise click.BadParameter(f"{source!r}: use sim, sim:SCENE (a built-in name or a .toml file) or replay:FILE",
-                             param_hint="--source")
+    raise click.BadParameter(f"{source!r}: use sim, sim:SCENE (a built-in name or a .toml file), replay:FILE, "
+                             "igtl://HOST:PORT or polhemus:DEVICE", param_hint="--source")
 
 
 class SimulatorProgress:
@@ -146,10 +150,12 @@ def _step_name(ctx, param, value: str) -> str:
 
 @click.command()
 @click.argument("step", callback=_step_name, metavar="STEP")
-@click.option("--source", default="sim", show_default=True, help="sim, sim:SCENE (name or .toml), or replay:FILE "
-              "(a session .h5 or a recording .csv).")
+@click.option("--source", default="sim", show_default=True, help="sim, sim:SCENE (name or .toml), replay:FILE "
+              "(a session .h5 or a recording .csv), or a live tracker: igtl://HOST:PORT (an OpenIGTLink server: "
+              "PLUS, 3D Slicer, `ivc serve`) or polhemus:DEVICE (a Polhemus serial port), collected guided.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Session file to add to.")
-@click.option("--frames", type=SIM_FRAMES, help="Frames to simulate (default: the step's protocol default).")
+@click.option("--frames", type=SIM_FRAMES, help="Frames to simulate (default: the step's protocol default); from a "
+              "live source, stop each step after N frames instead of by its stop rule.")
 @click.option("--sweep-frames", type=SIM_FRAMES, help="protocol: frames of the wand sweep (default 100,000).")
 @click.option("--check-frames", type=SIM_FRAMES, help="protocol: check poses (default 10,000).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Simulator seed.")
@@ -162,9 +168,19 @@ def _step_name(ctx, param, value: str) -> str:
               help="A printed cube's and/or wand's geometry file (repeat for both; docs/printing.md): the simulator "
                    "builds that fixture, and --declared-position/--declared-quaternion give the cube's part frame "
                    "(its corner mark), from which the declared frame follows.")
+@click.option("--sensors", help="Live sources: the device names in the step's order, sensor 0 first "
+              "(NAME0,NAME1,...).")
+@click.option("--duration", type=POSITIVE, help="Live sources: stop the step after this many seconds of tracker "
+              "time instead of by its stop rule.")
+@click.option("--guided", is_flag=True, help="Stream replay:FILE (a session .h5) through guided collection as a "
+              "live tracker would (a rehearsal: each step records the frames the file holds for it).")
+@click.option("--view", is_flag=True, help="Live sources: also show the collection in 3D in a browser, served "
+              "on loopback (needs the `view` extra: pip install 'ivc[view]').")
+@click.option("--view-port", type=click.IntRange(0, 65535), default=8080, show_default=True,
+              help="--view: the loopback port to serve on.")
 @tracker_option
 def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemisphere, rate, declared_position,
-            declared_quaternion, force, geometry_files, tracker_file):
+            declared_quaternion, force, geometry_files, sensors, duration, guided, view, view_port, tracker_file):
     """Record protocol STEP (or the whole `protocol`) into the session file OUTPUT.
 
     The protocol (Himberg 2010, ch. 4.4.3): cube_calibration (free space), cube_survey (cube at
@@ -174,12 +190,33 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
     part of it inside the region mapped so far), and check (independent poses).
     With --tracker-model the signals are stored in ideal-dipole units (a simulated device
     records with that coil model first).
+
+    From a live tracker (--source igtl://HOST:PORT or polhemus:DEVICE; or a session file
+    rehearsed with --source replay:FILE --guided) each step is guided: every sensor shown
+    OK / missing / stale with its rate and jitter, progress toward the step's stop rule
+    (stated when it starts), the region still thin and the problems; the step ends when the
+    rule is met (or after --frames / --duration). Ctrl-C ends it cleanly: it is kept if it
+    makes a valid step, else dropped, and the output says which (docs/collect.md).
     """
     kind, argument = _parse_source(source)
     geometries = load_geometries(geometry_files)
     if "cube" in geometries and (declared_position is not None or declared_quaternion is not None):
         declared_position, declared_quaternion = part_declared_pose(geometries["cube"], declared_position,
                                                                     declared_quaternion)
+    if guided and kind != "replay":
+        raise click.UsageError("--guided replays a session file: use it with --source replay:FILE")
+    if kind == "live" or guided:
+        if tracker_file is not None or rate is not None or sweep_frames or check_frames:
+            raise click.UsageError("--tracker-model, --rate, --sweep-frames and --check-frames are for sim and "
+                                   "replay sources; a live step stops by its rule, --frames or --duration")
+        if guided:
+            refuse_inputs_as_outputs({"--output": output}, {"the --source file": argument})
+        guided_collect(step, source, Path(output), frames=frames, duration=duration, sensors=sensors,
+                       hemisphere=hemisphere, declared_position=declared_position,
+                       declared_quaternion=declared_quaternion, force=force, view=view, view_port=view_port)
+        return
+    if sensors is not None or duration is not None or view:
+        raise click.UsageError("--sensors, --duration and --view are for live sources (igtl://, polhemus:)")
     if kind == "replay" or argument is not None:
         refuse_inputs_as_outputs({"--output": output}, {"the --source file": argument})
     device = None
@@ -223,3 +260,85 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
         raise SessionError(f"{error} (nothing was written)") from None
     click.echo(summary(step, new, truth))
     click.echo(f"wrote {step} to {output}")
+
+
+def guided_collect(step: str, source: str, output: Path, *, frames: int | None, duration: float | None,
+                   sensors: str | None, hemisphere: str | None, declared_position, declared_quaternion, force: bool,
+                   view: bool, view_port: int) -> None:
+    """Collect STEP (or the whole protocol) from a live source, guided by the stop rules (ivc.collect.guide)."""
+    from ivc.cli.guided_view import make_view
+    from ivc.collect.guide import collect_protocol, collect_step
+    from ivc.collect.sources import open_live_source
+
+    names = [n.strip() for n in sensors.split(",")] if sensors else None
+    if names is not None and (not all(names) or len(set(names)) != len(names)):
+        raise click.BadParameter(f"{sensors!r}: give distinct device names, comma-separated", param_hint="--sensors")
+    existing = session_io.read(output) if output.exists() else None
+    hemisphere = hemisphere or (existing.hemisphere if existing else "+x")
+    session = existing or Session(hemisphere=hemisphere)
+    if existing is not None and existing.hemisphere != hemisphere:
+        raise click.UsageError(f"{output} was recorded in hemisphere {existing.hemisphere}, not {hemisphere}")
+    steps = list(STEPS) if step == "protocol" else [step]
+    already = [name for name in steps if name in session.steps]
+    if already and not force:
+        raise FileExistsError(f"{output}: step(s) {', '.join(already)} already recorded; pass --force to replace them")
+    survey = "cube_survey" in steps
+    if survey and (declared_position is None or declared_quaternion is None):
+        raise click.UsageError("cube_survey needs the cube's declared pose: pass --declared-position x,y,z (metres) "
+                               "and --declared-quaternion w,x,y,z (the cube fixture frame in the source frame)")
+    if survey and abs(np.linalg.norm(declared_quaternion) - 1) > 1e-6:
+        raise click.BadParameter("must be a unit quaternion w,x,y,z", param_hint="--declared-quaternion")
+    counts = {"frames": frames, "duration_s": duration} if frames is not None or duration is not None else {}
+    live = open_live_source(source, sensors=names, hemisphere=hemisphere)
+    terminal = make_view()
+    browser = _browser(view, view_port)
+    on_status = terminal if browser is None else _both(terminal, browser)
+    try:
+        with live:
+            if step == "protocol":
+                session, reports = collect_protocol(
+                    live, steps, session, output=output, force=force, hemisphere=hemisphere,
+                    declared_position=declared_position, declared_quaternion=declared_quaternion,
+                    counts={name: counts for name in steps} if counts else None, on_step_start=terminal.on_step_start,
+                    on_status=on_status, on_step=terminal.on_step)
+            else:
+                terminal.on_step_start(step, instruction(step))
+                attrs = None
+                if survey:
+                    attrs = {"declared_position": declared_position,
+                             "declared_quaternion": rotations.canonical(declared_quaternion)}
+                new, report = collect_step(live, step, session, frames=frames, duration_s=duration,
+                                           hemisphere=hemisphere, attrs=attrs, on_status=on_status)
+                terminal.on_step(new, report)
+                reports = [report]
+                if new is not None:
+                    save_step(output, step, new, session, force)
+    finally:
+        terminal.close()
+        if browser is not None:
+            browser.close()
+    for report in reports:
+        click.echo(report.message)
+    kept = [r.step for r in reports if r.kept]
+    if kept:
+        click.echo(f"wrote {', '.join(kept)} to {output}")
+    if not reports or not reports[-1].kept:
+        raise click.exceptions.Exit(1)
+
+
+def _browser(view: bool, port: int):
+    if not view:
+        return None
+    from ivc.collect.view import BrowserView
+
+    browser = BrowserView(port=port)
+    click.echo(f"3D view: {browser.url}", err=True)
+    return browser
+
+
+def _both(*views):
+    def on_status(status):
+        for view in views:
+            view(status)
+
+    return on_status
