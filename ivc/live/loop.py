@@ -36,7 +36,7 @@ from ivc.correct import kernels as _correct_kernels
 from ivc.correct import pose_kernels as _pose_kernels
 from ivc.correct.pose_domain import PoseCorrector
 from ivc.dipole import kernels as _dipole_kernels
-from ivc.live.igtl import Framer, TrackingDataMessage, encode_transforms
+from ivc.igtl import Framer, TrackingDataMessage, encode_transforms
 from ivc.lut import kernels as _lut_kernels
 from ivc.predict import Tuning
 from ivc.predict import make as make_predictor

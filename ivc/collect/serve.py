@@ -1,0 +1,293 @@
+"""``ivc serve``: any live source served as an OpenIGTLink server, the way PLUS serves a tracker.
+
+Per frame and per sensor a TRANSFORM named ``<sensor><reference suffix>`` (``cube0ToTracker``: PLUS's
+``<Tool>To<Reference>`` naming; a name longer than OpenIGTLink's 20 bytes is cut in the header and sent whole in
+the ``IGTL_DEVICE_NAME`` metadata), translation in millimetres, time stamped with the frame's time on the
+source's clock plus the host's time at start (so stamps are never 0), and PLUS's status metadata:
+``TransformStatus`` ``OK`` or ``MISSING`` and ``TransformValid`` ``1`` or ``0`` (a missing sensor's matrix is the
+identity). Frames of a rehearsal source carry their step in ``IvcStep``. With ``signals``, each sensor's signal
+matrix goes first as an NDARRAY (3, 3) of the same device name and stamp (what ``ivc correct --live`` corrects
+best); without, a client receives what a PLUS user gets.
+
+Single-threaded around a selector. Any number of clients; one that leaves does not stop the server. A client that
+reads too slowly loses its oldest messages (a tracker cannot wait), unless ``lossless``: then the source is read
+only while every client keeps up (a rehearsal or a replay can wait). ``start_on_connect`` holds the source until
+the first client connects (a rehearsal then starts when the collector is ready).
+"""
+
+from __future__ import annotations
+
+import logging
+import selectors
+import socket
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from ivc import rotations
+from ivc.collect.stream import LiveSource, Sample, SourceEvent
+from ivc.errors import LiveError
+from ivc.igtl import DEFAULT_PORT, ndarray_content, pack_message, transform_contents
+
+log = logging.getLogger("ivc.serve")
+#: a client whose queue grows beyond this many bytes loses its oldest messages (or, lossless, holds the source)
+MAX_QUEUE_BYTES = 1 << 22
+DEVICE_NAME_BYTES = 20
+
+
+@dataclass
+class ServeStats:
+    """Counters of a run: frames read from the source and sent, clients seen, messages a slow client lost."""
+
+    frames: int = 0
+    messages: int = 0
+    clients: int = 0
+    dropped_for_slow_clients: int = 0
+    events: int = 0
+
+
+class _Client:
+    def __init__(self, sock: socket.socket, address):
+        self.sock, self.address = sock, address
+        self.queue: deque[bytes] = deque()
+        self.queued_bytes = 0
+        self.pending = memoryview(b"")
+        self.warned = False
+
+
+class IgtlServer:
+    """Serve ``source`` (a :class:`~ivc.collect.stream.LiveSource`, not yet opened) on ``(host, port)`` (port 0: a
+    free one, see :attr:`address`); see the module docstring. :meth:`run` serves until the source is finished and
+    every client has its frames, ``duration`` s have passed, or ``stop`` (a threading.Event) is set."""
+
+    def __init__(self, source: LiveSource, port: int = DEFAULT_PORT, host: str = "127.0.0.1", *,
+                 signals: bool = True, reference: str = "Tracker", lossless: bool = False,
+                 start_on_connect: bool = False, read_s: float = 0.01):
+        self.source = source
+        self.signals, self.lossless, self.start_on_connect = signals, lossless, start_on_connect
+        self.suffix = f"To{reference}" if reference else ""
+        self.read_s = float(read_s)
+        self.stats = ServeStats()
+        self._epoch = float(int(time.time()))
+        self._names: dict[tuple[str, ...], list[tuple[str, dict]]] = {}
+        self._clients: dict[int, _Client] = {}
+        self._selector = selectors.DefaultSelector()
+        try:
+            self._listener = socket.create_server((host, int(port)))
+        except OSError as error:
+            raise LiveError(f"cannot serve on {host}:{port} ({error.strerror or error}); choose another port") \
+                from None
+        self._listener.setblocking(False)
+        self._selector.register(self._listener, selectors.EVENT_READ, "listen")
+        self.address: tuple[str, int] = self._listener.getsockname()[:2]
+        self.ready = threading.Event()  #: set once the server listens (for a script running it in a thread)
+
+    # ---- encoding -------------------------------------------------------------------------------------------
+    def _devices(self, names: tuple[str, ...]) -> list[tuple[str, dict]]:
+        """(header device name, constant metadata) per sensor name."""
+        devices = self._names.get(names)
+        if devices is None:
+            devices = []
+            for name in names:
+                full = f"{name}{self.suffix}"
+                short = full.encode()[:DEVICE_NAME_BYTES].decode(errors="ignore")
+                devices.append((short, {"IGTL_DEVICE_NAME": full} if short != full else {}))
+            self._names[names] = devices
+        return devices
+
+    def encode(self, sample: Sample, names: tuple[str, ...]) -> list[bytes]:
+        """The messages of one frame: per sensor an NDARRAY (with ``signals``, when the sample has them) then a
+        TRANSFORM (when it has poses) with PLUS's status metadata and, if labelled, ``IvcStep``."""
+        n = sample.n_sensors
+        names = names[:n] if len(names) >= n else tuple(str(i) for i in range(n))
+        devices = self._devices(names)
+        stamp = self._epoch + float(sample.time)
+        valid = np.asarray(sample.valid, bool)
+        out = []
+        step = {"IvcStep": sample.step} if sample.step is not None else {}
+        contents = None
+        if sample.position is not None:
+            m = np.zeros((n, 4, 4))
+            m[:] = np.eye(4)
+            ok = valid & np.all(np.isfinite(sample.position), axis=1) & np.all(np.isfinite(sample.quaternion), axis=1)
+            m[ok, :3, :3] = rotations.to_matrix(np.asarray(sample.quaternion, float)[ok])
+            m[ok, :3, 3] = np.asarray(sample.position, float)[ok] * 1e3
+            contents = transform_contents(m)
+        for i, (device, extra) in enumerate(devices):
+            if self.signals and sample.signal is not None:
+                out.append(pack_message("NDARRAY", device, stamp, ndarray_content(sample.signal[i]),
+                                        {**extra, **step} if extra or step else None))
+            if contents is not None:
+                status = {"TransformStatus": "OK", "TransformValid": "1"} if ok[i] else \
+                    {"TransformStatus": "MISSING", "TransformValid": "0"}
+                out.append(pack_message("TRANSFORM", device, stamp, contents[i].tobytes(), {**extra, **status, **step}))
+        return out
+
+    # ---- clients --------------------------------------------------------------------------------------------
+    def _accept(self) -> None:
+        try:
+            sock, address = self._listener.accept()
+        except (BlockingIOError, InterruptedError):
+            return
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        client = _Client(sock, address)
+        self._clients[sock.fileno()] = client
+        self._selector.register(sock, selectors.EVENT_READ, client)
+        self.stats.clients += 1
+        log.info("client %s:%d connected", *address[:2])
+
+    def _drop_client(self, client: _Client, reason: str) -> None:
+        self._clients.pop(client.sock.fileno(), None)
+        try:
+            self._selector.unregister(client.sock)
+        except (KeyError, ValueError):
+            pass
+        client.sock.close()
+        log.info("client %s:%d %s", client.address[0], client.address[1], reason)
+
+    def _send_all(self, messages: list[bytes]) -> None:
+        size = sum(len(m) for m in messages)
+        for client in list(self._clients.values()):
+            client.queue.extend(messages)
+            client.queued_bytes += size
+            while not self.lossless and client.queued_bytes > MAX_QUEUE_BYTES:
+                client.queued_bytes -= len(client.queue.popleft())
+                self.stats.dropped_for_slow_clients += 1
+                if not client.warned:
+                    client.warned = True
+                    log.warning("client %s:%d reads too slowly: dropping its oldest messages", *client.address[:2])
+            self._flush(client)
+
+    def _flush(self, client: _Client) -> None:
+        try:
+            while True:
+                if not client.pending:
+                    if not client.queue:
+                        break
+                    batch = []
+                    while client.queue and len(batch) < 4096:
+                        batch.append(client.queue.popleft())
+                    data = b"".join(batch)
+                    client.queued_bytes -= len(data)
+                    client.pending = memoryview(data)
+                sent = client.sock.send(client.pending)
+                client.pending = client.pending[sent:]
+        except (BlockingIOError, InterruptedError):
+            pass
+        except OSError:
+            self._drop_client(client, "disconnected")
+            return
+        events = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.pending or client.queue else 0)
+        self._selector.modify(client.sock, events, client)
+
+    def _client_event(self, client: _Client, mask: int) -> None:
+        if mask & selectors.EVENT_READ:
+            try:
+                data = client.sock.recv(1 << 16)  # clients may send commands; none is answered
+            except (BlockingIOError, InterruptedError):
+                data = b"-"
+            except OSError:
+                data = b""
+            if not data:
+                self._drop_client(client, "disconnected")
+                return
+        if mask & selectors.EVENT_WRITE and client.sock.fileno() in self._clients:
+            self._flush(client)
+
+    def _backlogged(self) -> bool:
+        return any(c.queued_bytes + len(c.pending) > MAX_QUEUE_BYTES for c in self._clients.values())
+
+    # ---- the loop -------------------------------------------------------------------------------------------
+    def run(self, duration: float | None = None, stop: threading.Event | None = None) -> ServeStats:
+        """Serve (see the class docstring); returns the counters. Closes the source and every connection."""
+        end = None if duration is None else time.monotonic() + duration
+        opened = False
+        self.ready.set()
+        try:
+            while not (stop is not None and stop.is_set()) and (end is None or time.monotonic() < end):
+                waiting = self.start_on_connect and not opened and not self._clients
+                if not opened and not waiting:
+                    self.source.open()
+                    opened = True
+                finished = opened and getattr(self.source, "finished", False)
+                if finished and not any(c.queue or c.pending for c in self._clients.values()):
+                    break
+                busy = not opened or finished or (self.lossless and self._backlogged())
+                for key, mask in self._selector.select(timeout=0.05 if busy else 0):
+                    if key.data == "listen":
+                        self._accept()
+                    else:
+                        self._client_event(key.data, mask)
+                if not busy:
+                    self._pump()
+        finally:
+            self.close()
+            if opened:
+                self.source.close()
+        return self.stats
+
+    def _pump(self) -> None:
+        """Read the source once and send what it gave."""
+        items = self.source.read(self.read_s)
+        messages = []
+        names = tuple(self.source.sensor_names)
+        session = getattr(self.source, "session", None)  # a rehearsal: each step's own sensor names
+        for item in items:
+            if isinstance(item, SourceEvent):
+                self.stats.events += 1
+                log.info("source: %s", item.message)
+                continue
+            step = session.steps.get(item.step) if session is not None and item.step is not None else None
+            messages += self.encode(item, tuple(step.names) if step is not None else names)
+            self.stats.frames += 1
+        if messages:
+            self.stats.messages += len(messages)
+            self._send_all(messages)
+
+    def close(self) -> None:
+        for client in list(self._clients.values()):
+            self._drop_client(client, "closed")
+        try:
+            self._selector.unregister(self._listener)
+        except (KeyError, ValueError):
+            pass
+        self._listener.close()
+        self._selector.close()
+
+
+def serve(source: LiveSource, port: int = DEFAULT_PORT, host: str = "127.0.0.1", *, duration: float | None = None,
+          stop: threading.Event | None = None, **options) -> ServeStats:
+    """Serve ``source`` over OpenIGTLink on ``host:port`` until it is finished, ``duration`` s passed or ``stop``
+    is set (options: those of :class:`IgtlServer`); returns the counters."""
+    return IgtlServer(source, port, host, **options).run(duration, stop)
+
+
+def serve_source(spec: str, *, seed: int = 0, pause_s: float = 5.0, speed: float = 1.0,
+                 frames: dict[str, int | None] | None = None, sensors=None, hemisphere: str = "+x") -> LiveSource:
+    """The source ``ivc serve`` streams: ``sim`` or ``sim:SCENE`` (the simulator running the whole protocol in real
+    time at ``speed``, ``pause_s`` s of tracker time between steps, frames labelled by step; ``frames`` as
+    :meth:`~ivc.sim.Simulator.protocol`'s), ``replay:FILE`` (a session file at its own rate), or a live source of
+    the registry (``polhemus:DEVICE``, ``igtl://HOST:PORT``)."""
+    from ivc.collect.stream import SessionSource
+
+    if spec == "sim" or spec.startswith("sim:"):
+        from ivc.sim import Simulator, load_scene
+
+        scene = load_scene(spec[4:] or "default")
+        simulator = Simulator(scene, seed)
+        session = simulator.protocol(frames)
+        return SessionSource(session, pause_s=pause_s, realtime=True, speed=speed)
+    if spec.startswith("replay:"):
+        from ivc.session import read
+
+        return SessionSource(read(spec[len("replay:"):]), pause_s=pause_s, realtime=True, speed=speed)
+    from ivc.collect.sources import open_live_source
+
+    try:
+        return open_live_source(spec, sensors=sensors, hemisphere=hemisphere)
+    except ModuleNotFoundError as error:
+        raise LiveError(f"source {spec!r} is not available in this installation ({error.name} is missing)") from None
