@@ -213,6 +213,7 @@ class IgtlSource:
             time.sleep(self.retry_s)
         self._opened = True
         if self.fixed:
+            self._set_order(list(self.sensor_names))
             return
         deadline = time.monotonic() + self.discover_s
         while not self._first_frame_known():
