@@ -133,12 +133,15 @@ class IgtlSource:
         self._last_host: float | None = None  # host time of the last frame
         self._idle: np.ndarray | None = None
         self._told: set = set()
+        self._emitted: float | None = None  # the time stamp of the last frame assembled
         self._lost: str | None = None  # why the connection ended during the current read
         self._events: list[SourceEvent] = []  # said while decoding, returned by the current read
         self._garbage = 0
         self._failures = 0
         self._next_try = 0.0
         self._opened = False
+        #: a rehearsal's sensor names per step label (a Sample carries no names, and they change with the step)
+        self.names_by_step: dict[str, tuple[str, ...]] = {}
         self.frames = 0  #: samples returned so far
         self.connections = 0  #: successful connections so far
 
@@ -374,6 +377,11 @@ class IgtlSource:
         """Assemble records into frames by time stamp; the samples of the frames completed."""
         out = []
         for stamp, name, kind, value, meta, host in self._records:
+            if stamp == self._emitted and self._pending is None:  # a late part of a frame already complete
+                if name in self._index:
+                    self._tell(("late", name), f"tool {name!r}: a message arrived after its frame was complete "
+                               "(a repeated time stamp); ignored")
+                continue
             p = self._pending
             if p is not None and p["stamp"] != stamp:
                 out += self._emit()
@@ -401,6 +409,7 @@ class IgtlSource:
 
     def _emit(self) -> list[Sample]:
         p, self._pending = self._pending, None
+        self._emitted = p["stamp"]
         if not self._index and not self._opened:
             return []
         step = p["step"]
@@ -414,6 +423,8 @@ class IgtlSource:
                 except LiveError as error:
                     self._events.append(SourceEvent("info", f"step {step!r}: {error}"))
         self._step = step if step is not None else self._step
+        if step is not None:
+            self.names_by_step.setdefault(step, self.sensor_names)
         n = len(self._index)
         valid = np.zeros(n, bool)
         has_pose, has_signal = "pose" in self._kinds, "signal" in self._kinds

@@ -71,7 +71,8 @@ class IgtlServer:
         self.suffix = f"To{reference}" if reference else ""
         self.read_s = float(read_s)
         self.stats = ServeStats()
-        self._epoch = float(int(time.time()))
+        #: added to the source's times to make the stamps (s): the host's whole seconds at start, so no stamp is 0
+        self.epoch = float(int(time.time()))
         self._names: dict[tuple[str, ...], list[tuple[str, dict]]] = {}
         self._clients: dict[int, _Client] = {}
         self._selector = selectors.DefaultSelector()
@@ -104,7 +105,7 @@ class IgtlServer:
         n = sample.n_sensors
         names = names[:n] if len(names) >= n else tuple(str(i) for i in range(n))
         devices = self._devices(names)
-        stamp = self._epoch + float(sample.time)
+        stamp = self.epoch + float(sample.time)
         valid = np.asarray(sample.valid, bool)
         out = []
         step = {"IvcStep": sample.step} if sample.step is not None else {}
