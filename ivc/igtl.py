@@ -47,6 +47,9 @@ _CRC_START = CRC64(b"")
 _CANDIDATE = re.compile(rb"\x00[\x01-\x03][0-9:;<=>?@A-Z_]")
 #: a type name: characters 0-9, :;<=>?@, A-Z and _
 _KIND = re.compile(rb"[0-9:;<=>?@A-Z_]+")
+#: header type fields seen → type name ("" when not a valid one), and device fields → names: a stream repeats a few
+_KINDS: dict[bytes, str] = {}
+_NAMES: dict[bytes, str] = {}
 
 
 def parse_url(url: str) -> tuple[str, int]:
@@ -118,17 +121,33 @@ def pack_metadata(metadata: dict[str, str]) -> tuple[bytes, bytes]:
     return header, b"".join(k + v for k, v in keys)
 
 
+def wrap_metadata(metadata: dict[str, str]) -> tuple[bytes, bytes]:
+    """(what goes before, what goes after) a v2 message's content for ``metadata``: the extended header, and the
+    metadata header and body. Compute it once for metadata that repeats (a tracker's statuses)."""
+    meta_header, meta_body = pack_metadata(metadata)
+    return _EXTENDED.pack(12, len(meta_header), len(meta_body), 0), meta_header + meta_body
+
+
 def pack_message(kind: str, name: str, timestamp: float, content: bytes,
-                 metadata: dict[str, str] | None = None) -> bytes:
-    """One whole message: header v2 with ``metadata`` when given (even empty), else v1; ``timestamp`` in s."""
-    body = content
-    version = 1
-    if metadata is not None:
-        version = 2
-        meta_header, meta_body = pack_metadata(metadata)
-        body = _EXTENDED.pack(12, len(meta_header), len(meta_body), 0) + content + meta_header + meta_body
+                 metadata: dict[str, str] | tuple[bytes, bytes] | None = None) -> bytes:
+    """One whole message: header v2 with ``metadata`` when given (even empty; or as :func:`wrap_metadata` made
+    it), else v1; ``timestamp`` in s."""
+    wrap = metadata if metadata is None or isinstance(metadata, tuple) else wrap_metadata(metadata)
+    return pack_messages(kind, [name], timestamp, [content], [wrap])[0]
+
+
+def pack_messages(kind: str, names: list[str], timestamp: float, contents: list[bytes],
+                  wraps: list[tuple[bytes, bytes] | None]) -> list[bytes]:
+    """Messages of one type and time stamp (s), one per name: header v1 where ``wraps`` (from
+    :func:`wrap_metadata`) is None, else v2 with that metadata. The hot path of a server."""
     seconds, fraction = _stamp(timestamp)
-    return HEADER.pack(version, kind.encode(), name.encode()[:20], seconds, fraction, len(body), CRC64(body)) + body
+    kind_bytes = kind.encode()
+    out = []
+    for name, content, wrap in zip(names, contents, wraps, strict=True):
+        body = content if wrap is None else wrap[0] + content + wrap[1]
+        out.append(HEADER.pack(1 if wrap is None else 2, kind_bytes, name.encode()[:20], seconds, fraction,
+                               len(body), CRC64(body)) + body)
+    return out
 
 
 def transform_contents(matrices: np.ndarray) -> np.ndarray:
@@ -271,13 +290,17 @@ class Framer:
         self._partial = None
 
     def _header_at(self, at: int):
-        version, kind, device, seconds, fraction, size, crc = HEADER.unpack_from(self.buffer, at)
+        version, raw, device, seconds, fraction, size, crc = HEADER.unpack_from(self.buffer, at)
         if version not in (1, 2, 3):
             return None
-        kind = kind.rstrip(b"\0")
-        if _KIND.fullmatch(kind) is None:  # 0-9, :;<=>?@, A-Z, _
+        kind = _KINDS.get(raw)
+        if kind is None:
+            kind = raw.rstrip(b"\0")
+            kind = kind.decode() if _KIND.fullmatch(kind) is not None else ""  # 0-9, :;<=>?@, A-Z, _
+            if len(_KINDS) < 4096:
+                _KINDS[raw] = kind
+        if not kind:
             return None
-        kind = kind.decode()
         if size > BODY_LIMITS.get(kind, MAX_BODY) or (version >= 2 and size < _EXTENDED.size):
             return None
         return version, kind, device, seconds, fraction, size, crc
@@ -347,12 +370,20 @@ class Framer:
             end = at + HEADER_SIZE + size
             if len(buf) < end:
                 break  # wait for the rest of the body
-            if at == 0 and self._partial is not None:  # the CRC of the body's start, computed as it arrived
-                running, done = self._partial
+            small = kind in BODY_LIMITS  # a tracking message: its body is copied (a video frame's is not)
+            body = b""
+            if small and (at or self._partial is None):
+                body = bytes(buf[at + HEADER_SIZE:end])
+                running = CRC64(body)
             else:
-                running, done = _CRC_START, 0
-            with memoryview(buf) as view, view[at + HEADER_SIZE + done:end] as rest:
-                running = CRC64(rest, running)
+                if at == 0 and self._partial is not None:  # the CRC of the body's start, computed as it arrived
+                    running, done = self._partial
+                else:
+                    running, done = _CRC_START, 0
+                with memoryview(buf) as view, view[at + HEADER_SIZE + done:end] as rest:
+                    running = CRC64(rest, running)
+                if small:
+                    body = bytes(buf[at + HEADER_SIZE:end])
             self._partial = None
             if running != crc:
                 skip = self._next_candidate(at + 1)
@@ -360,14 +391,17 @@ class Framer:
                 at = skip
                 continue
             payload = None
-            body = bytes(buf[at + HEADER_SIZE:end]) if kind in BODY_LIMITS else b""  # not a video frame
             decoder = _DECODERS.get(kind) if self.decode else None
             if decoder is not None:  # the small tracking messages: decoded from the body's copy
                 try:
                     payload = decoder(_content(version, body))
                 except (struct.error, ValueError):
                     self.bad += 1
-            name = device.rstrip(b"\0").decode(errors="replace")
+            name = _NAMES.get(device)
+            if name is None:
+                if len(_NAMES) > 4096:
+                    _NAMES.clear()
+                name = _NAMES[device] = device.rstrip(b"\0").decode(errors="replace")
             out.append(Frame(kind, name, seconds + fraction / 2.0**32, payload, body, version))
             at = end
         if at:

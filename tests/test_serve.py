@@ -93,6 +93,7 @@ def rehearsal():
     return serve_source("sim:default", seed=7, pause_s=0.5, speed=float("inf"), frames={n: 12 for n in steps})
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("signals", [True, False], ids=["with-signals", "poses-only"])
 def test_served_simulation_recorded_through_igtl_is_the_same_session(rehearsal, signals):
     """The simulated protocol served, read by the igtl:// source and recorded per step gives the simulator's

@@ -359,14 +359,26 @@ class IgtlSource:
                 self._tell(("bad", kind), f"dropped a {kind} message whose content could not be decoded")
         if transforms:
             m = decode_transforms(b"".join(transforms))
-            p, q = m[:, :3, 3], rotations.from_matrix(m[:, :3, :3])
+            p, q = self._poses(m[:, :3, 3], rotations.from_matrix(m[:, :3, :3]))
             for k, r in enumerate(rows):
-                records[r][3] = (p[k], q[k])
+                records[r][3] = (p[k], q[k]) if p[k] is not None else None
         if positions:
-            p, q = np.asarray(positions), np.asarray(quaternions)
+            p, q = self._poses(np.asarray(positions), np.asarray(quaternions))
             for r in records:
                 if isinstance(r[3], int):
-                    r[3] = (p[-1 - r[3]], q[-1 - r[3]])
+                    k = -1 - r[3]
+                    r[3] = (p[k], q[k]) if p[k] is not None else None
+
+    def _poses(self, position: np.ndarray, quaternion: np.ndarray) -> tuple[list, list]:
+        """Decoded poses (stream unit, quaternions) → rows in metres and unit quaternions, None where not finite."""
+        position = position * self.length_unit
+        with np.errstate(all="ignore"):
+            quaternion = quaternion / np.linalg.norm(quaternion, axis=1, keepdims=True)
+        finite = np.all(np.isfinite(position), axis=1) & np.all(np.isfinite(quaternion), axis=1)
+        rows_p, rows_q = list(position), list(quaternion)
+        for k in np.flatnonzero(~finite):
+            rows_p[k] = rows_q[k] = None
+        return rows_p, rows_q
 
     def _tell(self, key, message: str) -> None:
         if key not in self._told:
@@ -387,14 +399,19 @@ class IgtlSource:
                 out += self._emit()
                 p = None
             if p is None:
-                p = self._pending = {"stamp": stamp, "host": host, "tools": {}, "step": None}
-            tool = p["tools"].setdefault(name, {})
+                p = self._pending = {"stamp": stamp, "host": host, "tools": {}, "step": None, "whole": 0}
+            tool = p["tools"].get(name)
+            if tool is None:
+                tool = p["tools"][name] = {}
             tool[kind] = (value, meta.valid)
-            self._kinds.add(kind)
+            if kind not in self._kinds:
+                self._kinds.add(kind)
             if meta.step is not None:
                 p["step"] = meta.step
-            if self._opened and self._index and self._complete(p):
-                out += self._emit()
+            if len(tool) == len(self._kinds) and name in self._index:  # this tool is whole
+                p["whole"] += 1
+                if p["whole"] >= len(self._index) and self._opened and self._complete(p):
+                    out += self._emit()
         self._records = []
         if self._pending is not None and self._index and time.monotonic() - self._pending["host"] \
                 > self.frame_timeout_s:
@@ -426,38 +443,38 @@ class IgtlSource:
         if step is not None:
             self.names_by_step.setdefault(step, self.sensor_names)
         n = len(self._index)
-        valid = np.zeros(n, bool)
         has_pose, has_signal = "pose" in self._kinds, "signal" in self._kinds
-        position = np.full((n, 3), np.nan) if has_pose else None
-        quaternion = np.full((n, 4), np.nan) if has_pose else None
-        signal = np.full((n, 3, 3), np.nan) if has_signal else None
+        index, rows, positions, quaternions, signals = self._index, [], [], [], []
         for name, tool in p["tools"].items():
-            i = self._index.get(name)
+            i = index.get(name)
             if i is None:
                 self._tell(("unknown", name), f"ignoring tool {name!r}: not one of the sensors "
                            f"{', '.join(self.sensor_names)}")
                 continue
-            ok = True
             if has_pose:
                 pose = tool.get("pose")
-                ok &= pose is not None and pose[1] and pose[0] is not None
-                if ok:
-                    position[i] = pose[0][0] * self.length_unit
-                    quaternion[i] = pose[0][1]
+                if pose is None or not pose[1] or pose[0] is None:  # absent, a PLUS status, or not finite
+                    continue
             if has_signal:
                 sig = tool.get("signal")
-                ok &= sig is not None and sig[1]
-                if ok:
-                    signal[i] = sig[0]
-            valid[i] = ok
+                if sig is None or not sig[1] or not np.all(np.isfinite(sig[0])):
+                    continue
+                signals.append(sig[0])
+            if has_pose:
+                positions.append(pose[0][0])
+                quaternions.append(pose[0][1])
+            rows.append(i)
+        valid = np.zeros(n, bool)
+        valid[rows] = True
+        position = quaternion = signal = None
         if has_pose:
-            finite = np.all(np.isfinite(position), axis=1) & np.all(np.isfinite(quaternion), axis=1)
-            valid &= finite
-            norm = np.linalg.norm(quaternion, axis=1, keepdims=True)
-            quaternion = np.where(valid[:, None], quaternion / np.where(valid[:, None], norm, 1.0), np.nan)
-            position[~valid] = np.nan
+            position, quaternion = np.full((n, 3), np.nan), np.full((n, 4), np.nan)
+            if rows:
+                position[rows], quaternion[rows] = positions, quaternions
         if has_signal:
-            signal[~valid] = np.nan
+            signal = np.full((n, 3, 3), np.nan)
+            if rows:
+                signal[rows] = signals
         sample = Sample(time=float(p["stamp"]), valid=valid, position=position, quaternion=quaternion, signal=signal,
                         host_time=p["host"], step=step)
         self._last_host = p["host"]

@@ -30,7 +30,7 @@ import numpy as np
 from ivc import rotations
 from ivc.collect.stream import LiveSource, Sample, SourceEvent
 from ivc.errors import LiveError
-from ivc.igtl import DEFAULT_PORT, ndarray_content, pack_message, transform_contents
+from ivc.igtl import DEFAULT_PORT, ndarray_content, pack_messages, transform_contents, wrap_metadata
 
 log = logging.getLogger("ivc.serve")
 #: a client whose queue grows beyond this many bytes loses its oldest messages (or, lossless, holds the source)
@@ -74,6 +74,7 @@ class IgtlServer:
         #: added to the source's times to make the stamps (s): the host's whole seconds at start, so no stamp is 0
         self.epoch = float(int(time.time()))
         self._names: dict[tuple[str, ...], list[tuple[str, dict]]] = {}
+        self._packed: dict[tuple, tuple[bytes, bytes] | None] = {}
         self._clients: dict[int, _Client] = {}
         self._selector = selectors.DefaultSelector()
         try:
@@ -99,33 +100,76 @@ class IgtlServer:
             self._names[names] = devices
         return devices
 
-    def encode(self, sample: Sample, names: tuple[str, ...]) -> list[bytes]:
+    @staticmethod
+    def transforms(samples: list[Sample]) -> list[tuple[np.ndarray, bytes] | None]:
+        """Per sample: (whether each sensor's pose is valid, the TRANSFORM contents of its sensors end to end: a
+        missing one's is the identity), computed for all the samples at once; None for a sample without poses."""
+        out: list = [None] * len(samples)
+        runs: dict[int, list[int]] = {}
+        for k, sample in enumerate(samples):
+            if sample.position is not None:
+                runs.setdefault(sample.n_sensors, []).append(k)
+        for n, ks in runs.items():
+            position = np.array([samples[k].position for k in ks], float).reshape(-1, 3)
+            quaternion = np.array([samples[k].quaternion for k in ks], float).reshape(-1, 4)
+            valid = np.array([samples[k].valid for k in ks], bool).reshape(-1)
+            ok = valid & np.all(np.isfinite(position), axis=1) & np.all(np.isfinite(quaternion), axis=1)
+            m = np.zeros((len(ok), 4, 4))
+            m[:] = np.eye(4)
+            m[ok, :3, :3] = rotations.to_matrix(quaternion[ok])
+            m[ok, :3, 3] = position[ok] * 1e3  # m to mm
+            blob = transform_contents(m).tobytes()
+            size = 48 * n
+            for j, k in enumerate(ks):
+                out[k] = (ok[j * n:(j + 1) * n], blob[j * size:(j + 1) * size])
+        return out
+
+    def encode(self, sample: Sample, names: tuple[str, ...], transforms: tuple[np.ndarray, bytes] | None = None
+               ) -> list[bytes]:
         """The messages of one frame: per sensor an NDARRAY (with ``signals``, when the sample has them) then a
-        TRANSFORM (when it has poses) with PLUS's status metadata and, if labelled, ``IvcStep``."""
+        TRANSFORM (when it has poses) with PLUS's status metadata and, if labelled, ``IvcStep``. ``transforms``:
+        the sample's entry of :meth:`transforms`, when computed for many samples at once."""
         n = sample.n_sensors
         names = names[:n] if len(names) >= n else tuple(str(i) for i in range(n))
         devices = self._devices(names)
         stamp = self.epoch + float(sample.time)
-        valid = np.asarray(sample.valid, bool)
         out = []
-        step = {"IvcStep": sample.step} if sample.step is not None else {}
+        if transforms is None and sample.position is not None:
+            transforms = self.transforms([sample])[0]
         contents = None
-        if sample.position is not None:
-            m = np.zeros((n, 4, 4))
-            m[:] = np.eye(4)
-            ok = valid & np.all(np.isfinite(sample.position), axis=1) & np.all(np.isfinite(sample.quaternion), axis=1)
-            m[ok, :3, :3] = rotations.to_matrix(np.asarray(sample.quaternion, float)[ok])
-            m[ok, :3, 3] = np.asarray(sample.position, float)[ok] * 1e3
-            contents = transform_contents(m)
-        for i, (device, extra) in enumerate(devices):
-            if self.signals and sample.signal is not None:
-                out.append(pack_message("NDARRAY", device, stamp, ndarray_content(sample.signal[i]),
-                                        {**extra, **step} if extra or step else None))
-            if contents is not None:
-                status = {"TransformStatus": "OK", "TransformValid": "1"} if ok[i] else \
-                    {"TransformStatus": "MISSING", "TransformValid": "0"}
-                out.append(pack_message("TRANSFORM", device, stamp, contents[i].tobytes(), {**extra, **status, **step}))
+        if transforms is not None:
+            ok, contents = transforms
+        names = [device for device, _ in devices]
+        if self.signals and sample.signal is not None:
+            arrays = [ndarray_content(a) for a in sample.signal]
+            wraps = [self._metadata(extra, None, sample.step) for _, extra in devices]
+            signals = pack_messages("NDARRAY", names, stamp, arrays, wraps)
+            if contents is None:
+                return signals
+        if contents is None:
+            return out
+        blob = contents
+        wraps = [self._metadata(extra, bool(good), sample.step) for (_, extra), good in zip(devices, ok, strict=True)]
+        transforms = pack_messages("TRANSFORM", names, stamp, [blob[48 * i:48 * i + 48] for i in range(n)], wraps)
+        if not (self.signals and sample.signal is not None):
+            return transforms
+        for signal, transform in zip(signals, transforms, strict=True):  # each sensor's signal, then its pose
+            out += (signal, transform)
         return out
+
+    def _metadata(self, extra: dict, ok: bool | None, step: str | None) -> tuple[bytes, bytes] | None:
+        """The packed metadata of a message (cached: a stream repeats a few): long name, PLUS status, step."""
+        key = (tuple(extra.items()), ok, step)
+        packed = self._packed.get(key)
+        if packed is None:
+            metadata = dict(extra)
+            if ok is not None:
+                metadata.update({"TransformStatus": "OK", "TransformValid": "1"} if ok else
+                                {"TransformStatus": "MISSING", "TransformValid": "0"})
+            if step is not None:
+                metadata["IvcStep"] = step
+            packed = self._packed[key] = wrap_metadata(metadata) if metadata else None
+        return packed
 
     # ---- clients --------------------------------------------------------------------------------------------
     def _accept(self) -> None:
@@ -237,13 +281,15 @@ class IgtlServer:
         messages = []
         names = tuple(self.source.sensor_names)
         session = getattr(self.source, "session", None)  # a rehearsal: each step's own sensor names
+        samples = [item for item in items if isinstance(item, Sample)]
+        transforms = iter(self.transforms(samples))
         for item in items:
             if isinstance(item, SourceEvent):
                 self.stats.events += 1
                 log.info("source: %s", item.message)
                 continue
             step = session.steps.get(item.step) if session is not None and item.step is not None else None
-            messages += self.encode(item, tuple(step.names) if step is not None else names)
+            messages += self.encode(item, tuple(step.names) if step is not None else names, next(transforms))
             self.stats.frames += 1
         if messages:
             self.stats.messages += len(messages)
