@@ -5,7 +5,7 @@ Poses come as TRANSFORM (one per tool, PLUS's way), POSITION, TDATA or QTDATA me
 NDARRAY (3, 3) messages (as ``ivc correct --live`` reads them); translations in ``length_unit`` metres per unit
 (millimetres, OpenIGTLink's unit, by default). Messages with the same time stamp are one frame; a frame is complete
 when every sensor of the step has sent what the stream carries (its pose, its signal, or both), when a message with
-another time stamp arrives, or ``frame_timeout_s`` after its first message (its absent sensors then invalid).
+another time stamp arrives, or when nothing has arrived for ``frame_timeout_s`` (its absent sensors then invalid).
 
 Metadata (protocol v2/v3) honoured: ``IGTL_DEVICE_NAME`` (a long device name, instead of the header's 20 bytes);
 PLUS's per-tool status ``TransformStatus`` (``OK``, ``MISSING``, ``OUT_OF_VIEW``, ``OUT_OF_VOLUME``,
@@ -108,7 +108,7 @@ class IgtlSource:
 
     def __init__(self, host: str, port: int, *, sensors: Sequence[str] | None = None, length_unit: float = 1e-3,
                  discover_s: float = 5.0, stale_after_s: float = 0.5, retries: int = 20, retry_s: float = 0.25,
-                 frame_timeout_s: float = 0.1, connect_timeout_s: float = 2.0):
+                 frame_timeout_s: float = 0.25, connect_timeout_s: float = 2.0):
         self.host, self.port = host, int(port)
         self.fixed = sensors is not None
         if sensors is not None:
@@ -134,6 +134,8 @@ class IgtlSource:
         self._idle: np.ndarray | None = None
         self._told: set = set()
         self._emitted: float | None = None  # the time stamp of the last frame assembled
+        self._last_data = 0.0  # host time the last read that received bytes ended
+        self._got_data = False  # whether the current read received bytes
         self._lost: str | None = None  # why the connection ended during the current read
         self._events: list[SourceEvent] = []  # said while decoding, returned by the current read
         self._garbage = 0
@@ -291,6 +293,7 @@ class IgtlSource:
     def _feed(self, chunks: list[bytes]) -> list[SourceEvent]:
         events = []
         if chunks:
+            self._got_data = True
             self._framer.feed(b"".join(chunks))
         self._decode(self._framer.messages())
         if self._framer.garbage > self._garbage:
@@ -413,8 +416,13 @@ class IgtlSource:
                 if p["whole"] >= len(self._index) and self._opened and self._complete(p):
                     out += self._emit()
         self._records = []
-        if self._pending is not None and self._index and time.monotonic() - self._pending["host"] \
-                > self.frame_timeout_s:
+        return out
+
+    def _quiet(self) -> list[Sample]:
+        """The frame being assembled, if the stream has been quiet for ``frame_timeout_s`` (waited for, not spent
+        decoding a backlog): its absent sensors are invalid."""
+        out = []
+        if self._pending is not None and self._index and time.monotonic() - self._last_data > self.frame_timeout_s:
             out += self._emit()
         return out
 
@@ -491,8 +499,13 @@ class IgtlSource:
             events += self._reconnect(timeout_s)
             if self._sock is None:
                 return events + self._idle_events()
+        self._got_data = False
         events += self._receive(timeout_s)
         samples = self._gather()
+        if self._got_data:
+            self._last_data = time.monotonic()  # after the decoding: its time is not the stream's silence
+        else:
+            samples += self._quiet()
         if self._lost is not None:  # what arrived whole before the drop is kept; the frame it cut is not
             events += self._drop(self._lost)
             self._lost = None
