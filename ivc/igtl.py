@@ -16,10 +16,14 @@ pyigtl's generic objects they cost more than the correction itself (benchmarks/b
 
 from __future__ import annotations
 
+import logging
 import math
 import re
+import selectors
+import socket
 import struct
 import time
+from collections import deque
 from dataclasses import dataclass
 from urllib.parse import urlparse
 
@@ -491,3 +495,118 @@ class NDArrayMessage(MessageBase):
 
 message_type_to_class_constructor.setdefault("TDATA", TrackingDataMessage)
 message_type_to_class_constructor.setdefault("NDARRAY", NDArrayMessage)
+
+
+class _Client:
+    """A downstream connection with its queue of whole messages."""
+
+    def __init__(self, sock: socket.socket, address):
+        self.sock, self.address = sock, address
+        self.queue: deque[bytes] = deque()
+        self.queued_bytes = 0
+        self.pending = memoryview(b"")
+        self.warned = False
+
+
+class Downstream:
+    """The clients of an OpenIGTLink server (ivc's live loop, ``ivc serve``), on the server's selector: each has a
+    queue of whole messages, sent as the socket takes them. A client whose queue grows beyond
+    ``max_queue_bytes`` loses its oldest messages (``dropped`` counts them), never anyone else's time; with
+    ``lossless`` nothing is dropped and the server checks :attr:`backlogged` before making more. Clients may send
+    commands: none is answered. Connections, departures and slow clients are logged on ``log``."""
+
+    def __init__(self, selector: selectors.BaseSelector, log: logging.Logger, max_queue_bytes: int,
+                 lossless: bool = False):
+        self.selector, self.log = selector, log
+        self.max_queue_bytes, self.lossless = int(max_queue_bytes), lossless
+        self.clients: dict[int, _Client] = {}
+        self.dropped = 0
+        self.accepted = 0
+
+    def accept(self, listener: socket.socket) -> None:
+        try:
+            sock, address = listener.accept()
+        except (BlockingIOError, InterruptedError):
+            return
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        client = _Client(sock, address)
+        self.clients[sock.fileno()] = client
+        self.selector.register(sock, selectors.EVENT_READ, client)
+        self.accepted += 1
+        self.log.info("client %s:%d connected", *address[:2])
+
+    def drop(self, client: _Client, reason: str) -> None:
+        self.clients.pop(client.sock.fileno(), None)
+        try:
+            self.selector.unregister(client.sock)
+        except (KeyError, ValueError):
+            pass
+        client.sock.close()
+        self.log.info("client %s:%d %s", client.address[0], client.address[1], reason)
+
+    def send(self, messages: list[bytes]) -> None:
+        """Queue ``messages`` for every client and send what each socket takes now."""
+        size = sum(len(m) for m in messages)
+        for client in list(self.clients.values()):
+            client.queue.extend(messages)
+            client.queued_bytes += size
+            while not self.lossless and client.queued_bytes > self.max_queue_bytes:
+                client.queued_bytes -= len(client.queue.popleft())
+                self.dropped += 1
+                if not client.warned:
+                    client.warned = True
+                    self.log.warning("client %s:%d reads too slowly: dropping its oldest messages",
+                                     *client.address[:2])
+            self.flush(client)
+
+    def flush(self, client: _Client) -> None:
+        try:
+            while True:
+                if not client.pending:
+                    if not client.queue:
+                        break
+                    batch = []
+                    while client.queue and len(batch) < 4096:
+                        batch.append(client.queue.popleft())
+                    data = b"".join(batch)
+                    client.queued_bytes -= len(data)
+                    client.pending = memoryview(data)
+                sent = client.sock.send(client.pending)
+                client.pending = client.pending[sent:]
+        except (BlockingIOError, InterruptedError):
+            pass
+        except OSError:
+            self.drop(client, "disconnected")
+            return
+        events = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.pending or client.queue else 0)
+        self.selector.modify(client.sock, events, client)
+
+    def event(self, client: _Client, mask: int) -> None:
+        """A selector event on ``client``'s socket."""
+        if mask & selectors.EVENT_READ:
+            try:
+                data = client.sock.recv(1 << 16)
+            except (BlockingIOError, InterruptedError):
+                data = b"-"
+            except OSError:
+                data = b""
+            if not data:
+                self.drop(client, "disconnected")
+                return
+        if mask & selectors.EVENT_WRITE and client.sock.fileno() in self.clients:
+            self.flush(client)
+
+    @property
+    def backlogged(self) -> bool:
+        """Whether some client has more than ``max_queue_bytes`` waiting."""
+        return any(c.queued_bytes + len(c.pending) > self.max_queue_bytes for c in self.clients.values())
+
+    @property
+    def idle(self) -> bool:
+        """Whether every client has been sent all it was given."""
+        return not any(c.queue or c.pending for c in self.clients.values())
+
+    def close(self) -> None:
+        for client in list(self.clients.values()):
+            self.drop(client, "closed")

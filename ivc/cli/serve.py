@@ -41,6 +41,8 @@ def serve(source, port, host, poses_only, seed, frames, pause, speed, sensors, h
     if frames is not None and (source == "sim" or source.startswith("sim:")):
         counts = {name: frames for name in Simulator(load_scene(source[4:] or "default"), seed).steps}
     names = [s.strip() for s in sensors.split(",")] if sensors else None
+    if source == "sim" or source.startswith("sim:"):
+        click.echo("simulating the protocol (the default wand sweep takes a while; --frames shortens it) ...", err=True)
     live = serve_source(source, seed=seed, pause_s=pause, speed=speed, frames=counts, sensors=names,
                         hemisphere=hemisphere)
     rehearsal = source == "sim" or source.startswith(("sim:", "replay:"))

@@ -22,7 +22,6 @@ import selectors
 import socket
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,7 +29,7 @@ import numpy as np
 from ivc import rotations
 from ivc.collect.stream import LiveSource, Sample, SourceEvent
 from ivc.errors import LiveError
-from ivc.igtl import DEFAULT_PORT, ndarray_content, pack_messages, transform_contents, wrap_metadata
+from ivc.igtl import DEFAULT_PORT, Downstream, ndarray_content, pack_messages, transform_contents, wrap_metadata
 
 log = logging.getLogger("ivc.serve")
 #: a client whose queue grows beyond this many bytes loses its oldest messages (or, lossless, holds the source)
@@ -47,15 +46,6 @@ class ServeStats:
     clients: int = 0
     dropped_for_slow_clients: int = 0
     events: int = 0
-
-
-class _Client:
-    def __init__(self, sock: socket.socket, address):
-        self.sock, self.address = sock, address
-        self.queue: deque[bytes] = deque()
-        self.queued_bytes = 0
-        self.pending = memoryview(b"")
-        self.warned = False
 
 
 class IgtlServer:
@@ -75,8 +65,8 @@ class IgtlServer:
         self.epoch = float(int(time.time()))
         self._names: dict[tuple[str, ...], list[tuple[str, dict]]] = {}
         self._packed: dict[tuple, tuple[bytes, bytes] | None] = {}
-        self._clients: dict[int, _Client] = {}
         self._selector = selectors.DefaultSelector()
+        self._clients = Downstream(self._selector, log, MAX_QUEUE_BYTES, lossless)
         try:
             self._listener = socket.create_server((host, int(port)))
         except OSError as error:
@@ -171,81 +161,6 @@ class IgtlServer:
             packed = self._packed[key] = wrap_metadata(metadata) if metadata else None
         return packed
 
-    # ---- clients --------------------------------------------------------------------------------------------
-    def _accept(self) -> None:
-        try:
-            sock, address = self._listener.accept()
-        except (BlockingIOError, InterruptedError):
-            return
-        sock.setblocking(False)
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        client = _Client(sock, address)
-        self._clients[sock.fileno()] = client
-        self._selector.register(sock, selectors.EVENT_READ, client)
-        self.stats.clients += 1
-        log.info("client %s:%d connected", *address[:2])
-
-    def _drop_client(self, client: _Client, reason: str) -> None:
-        self._clients.pop(client.sock.fileno(), None)
-        try:
-            self._selector.unregister(client.sock)
-        except (KeyError, ValueError):
-            pass
-        client.sock.close()
-        log.info("client %s:%d %s", client.address[0], client.address[1], reason)
-
-    def _send_all(self, messages: list[bytes]) -> None:
-        size = sum(len(m) for m in messages)
-        for client in list(self._clients.values()):
-            client.queue.extend(messages)
-            client.queued_bytes += size
-            while not self.lossless and client.queued_bytes > MAX_QUEUE_BYTES:
-                client.queued_bytes -= len(client.queue.popleft())
-                self.stats.dropped_for_slow_clients += 1
-                if not client.warned:
-                    client.warned = True
-                    log.warning("client %s:%d reads too slowly: dropping its oldest messages", *client.address[:2])
-            self._flush(client)
-
-    def _flush(self, client: _Client) -> None:
-        try:
-            while True:
-                if not client.pending:
-                    if not client.queue:
-                        break
-                    batch = []
-                    while client.queue and len(batch) < 4096:
-                        batch.append(client.queue.popleft())
-                    data = b"".join(batch)
-                    client.queued_bytes -= len(data)
-                    client.pending = memoryview(data)
-                sent = client.sock.send(client.pending)
-                client.pending = client.pending[sent:]
-        except (BlockingIOError, InterruptedError):
-            pass
-        except OSError:
-            self._drop_client(client, "disconnected")
-            return
-        events = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.pending or client.queue else 0)
-        self._selector.modify(client.sock, events, client)
-
-    def _client_event(self, client: _Client, mask: int) -> None:
-        if mask & selectors.EVENT_READ:
-            try:
-                data = client.sock.recv(1 << 16)  # clients may send commands; none is answered
-            except (BlockingIOError, InterruptedError):
-                data = b"-"
-            except OSError:
-                data = b""
-            if not data:
-                self._drop_client(client, "disconnected")
-                return
-        if mask & selectors.EVENT_WRITE and client.sock.fileno() in self._clients:
-            self._flush(client)
-
-    def _backlogged(self) -> bool:
-        return any(c.queued_bytes + len(c.pending) > MAX_QUEUE_BYTES for c in self._clients.values())
-
     # ---- the loop -------------------------------------------------------------------------------------------
     def run(self, duration: float | None = None, stop: threading.Event | None = None) -> ServeStats:
         """Serve (see the class docstring); returns the counters. Closes the source and every connection."""
@@ -254,19 +169,20 @@ class IgtlServer:
         self.ready.set()
         try:
             while not (stop is not None and stop.is_set()) and (end is None or time.monotonic() < end):
-                waiting = self.start_on_connect and not opened and not self._clients
+                waiting = self.start_on_connect and not opened and not self._clients.clients
                 if not opened and not waiting:
                     self.source.open()
                     opened = True
                 finished = opened and getattr(self.source, "finished", False)
-                if finished and not any(c.queue or c.pending for c in self._clients.values()):
+                if finished and self._clients.idle:
                     break
-                busy = not opened or finished or (self.lossless and self._backlogged())
+                busy = not opened or finished or (self.lossless and self._clients.backlogged)
                 for key, mask in self._selector.select(timeout=0.05 if busy else 0):
                     if key.data == "listen":
-                        self._accept()
+                        self._clients.accept(self._listener)
+                        self.stats.clients = self._clients.accepted
                     else:
-                        self._client_event(key.data, mask)
+                        self._clients.event(key.data, mask)
                 if not busy:
                     self._pump()
         finally:
@@ -293,11 +209,11 @@ class IgtlServer:
             self.stats.frames += 1
         if messages:
             self.stats.messages += len(messages)
-            self._send_all(messages)
+            self._clients.send(messages)
+            self.stats.dropped_for_slow_clients = self._clients.dropped
 
     def close(self) -> None:
-        for client in list(self._clients.values()):
-            self._drop_client(client, "closed")
+        self._clients.close()
         try:
             self._selector.unregister(self._listener)
         except (KeyError, ValueError):
