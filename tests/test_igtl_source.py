@@ -283,3 +283,16 @@ def test_registry_builds_the_source():
     source = open_live_source("igtl://127.0.0.1:18999", sensors=["a", "b"])
     assert isinstance(source, IgtlSource) and (source.host, source.port) == ("127.0.0.1", 18999)
     assert source.sensor_names == ("a", "b")
+
+
+def test_time_going_back_is_a_reset_event_and_other_messages_are_ignored(server, rng):
+    p, q = poses(rng, 8, 1)
+    stamps = [BASE + 10 + f for f in range(4)] + [BASE + f for f in range(4)]  # a server restarted with its clock
+    status = pack_message("STATUS", "S0", BASE, b"\0" * 30)
+    server.send(b"".join(status + transform("S0", t, p[f, 0], q[f, 0]) for f, t in enumerate(stamps)))
+    events = []
+    with IgtlSource("127.0.0.1", server.port, frame_timeout_s=0.05) as source:
+        got = read_until(source, 8, events)
+    assert [s.time for s in got] == pytest.approx(stamps, abs=1e-6)
+    assert [e.kind for e in events].count("reset") == 1
+    assert sum("ignoring STATUS" in e.message for e in events) == 1

@@ -107,7 +107,7 @@ class IgtlSource:
     sample_rate_hz: float | None = None
 
     def __init__(self, host: str, port: int, *, sensors: Sequence[str] | None = None, length_unit: float = 1e-3,
-                 discover_s: float = 5.0, stale_after_s: float = 0.5, retries: int = 20, retry_s: float = 0.25,
+                 discover_s: float = 5.0, stale_after_s: float = 0.5, retries: int = 40, retry_s: float = 0.25,
                  frame_timeout_s: float = 0.25, connect_timeout_s: float = 2.0):
         self.host, self.port = host, int(port)
         self.fixed = sensors is not None
@@ -324,6 +324,8 @@ class IgtlSource:
         for m in messages:
             kind = m.message_type
             if kind not in ("TRANSFORM", "POSITION", "TDATA", "QTDATA", "NDARRAY"):
+                self._tell(("type", kind), f"ignoring {kind} messages (poses come as TRANSFORM, POSITION, TDATA or "
+                           "QTDATA, signal matrices as NDARRAY)")
                 continue
             content, raw = split_body(m.version, m.body)
             meta = self._meta_of(raw)
@@ -434,6 +436,9 @@ class IgtlSource:
 
     def _emit(self) -> list[Sample]:
         p, self._pending = self._pending, None
+        if self._emitted is not None and p["stamp"] < self._emitted:
+            self._events.append(SourceEvent("reset", f"the stream's time went back {self._emitted - p['stamp']:.3f} s "
+                                            "(the server restarted, or its clock was reset)", time=p["stamp"]))
         self._emitted = p["stamp"]
         if not self._index and not self._opened:
             return []
@@ -493,12 +498,12 @@ class IgtlSource:
         """What arrived within ``timeout_s`` s: samples in order, with events (drops, garbage, stale sensors)."""
         if not self._opened:
             raise LiveError("open the igtl:// source before reading it (use it in a with statement)")
-        self._events = []
         events: list[SourceEvent] = []
         if self._sock is None:
             events += self._reconnect(timeout_s)
             if self._sock is None:
-                return events + self._idle_events()
+                told, self._events = self._events, []
+                return told + events + self._idle_events()
         self._got_data = False
         events += self._receive(timeout_s)
         samples = self._gather()
@@ -520,7 +525,8 @@ class IgtlSource:
                 self._idle[i] = False
                 out.append(SourceEvent("resumed", f"sensor {i} ({self.sensor_names[i]}) is arriving again",
                                        sensor=int(i), time=sample.time))
-        return self._events + out + self._idle_events()
+        told, self._events = self._events, []  # said while decoding (here or while opening)
+        return told + out + self._idle_events()
 
     def _idle_events(self) -> list[SourceEvent]:
         """When the whole stream stops (by the host clock), each sensor not already stale: one that stops
