@@ -1,6 +1,7 @@
 """``ivc serve``: any live source served as an OpenIGTLink server, the way PLUS serves a tracker.
 
-Per frame and per sensor a TRANSFORM named ``<sensor><reference suffix>`` (``cube0ToTracker``: PLUS's
+Per frame and per sensor a TRANSFORM named ``<sensor><reference suffix>`` (``cube0ToTracker``, ``Sensor1ToTracker``
+for a sensor named by its number alone: PLUS's
 ``<Tool>To<Reference>`` naming; a name longer than OpenIGTLink's 20 bytes is cut in the header and sent whole in
 the ``IGTL_DEVICE_NAME`` metadata), translation in millimetres, time stamped with the frame's time on the
 source's clock plus the host's time at start (so stamps are never 0), and PLUS's status metadata:
@@ -84,7 +85,7 @@ class IgtlServer:
         if devices is None:
             devices = []
             for name in names:
-                full = f"{name}{self.suffix}"
+                full = f"{'Sensor' if name.isdigit() else ''}{name}{self.suffix}"  # station "1": Sensor1ToTracker
                 short = full.encode()[:DEVICE_NAME_BYTES].decode(errors="ignore")
                 devices.append((short, {"IGTL_DEVICE_NAME": full} if short != full else {}))
             self._names[names] = devices
