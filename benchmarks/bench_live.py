@@ -26,7 +26,7 @@ import numpy as np
 
 from benchmarks.harness import Figure
 from ivc import dipole, rotations
-from ivc.live.igtl import Framer, NDArrayMessage
+from ivc.igtl import Framer, NDArrayMessage
 from ivc.lut import Grid, LookupTable
 from ivc.lut import write as write_lut
 

@@ -28,7 +28,7 @@ import pyigtl
 from benchmarks.bench_live import BASE, _table, consume
 from benchmarks.harness import Figure
 from ivc import dipole, rotations
-from ivc.live.igtl import encode_transforms
+from ivc.igtl import encode_transforms
 from ivc.live.loop import output_device_name
 from ivc.lut import write as write_lut
 

@@ -68,7 +68,7 @@ def cli(ctx: click.Context, debug: bool) -> None:
 #: ``ivc --help`` lists it): ``ivc correct`` need not load matplotlib, the simulator or the report
 COMMANDS = {"collect": "collect", "correct": "correct", "demo": "demo", "evaluate": "evaluate", "export": "export",
             "fit": "fit", "fixtures": "fixtures", "info": "info", "predict": "predict", "report": "report",
-            "tracker": "tracker", "warmup": "warmup"}
+            "serve": "serve", "tracker": "tracker", "warmup": "warmup"}
 
 
 def main() -> None:

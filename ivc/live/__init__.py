@@ -5,7 +5,7 @@ OpenIGTLink TRANSFORM or NDARRAY messages), corrects (and optionally predicts) e
 and serves the result to any number of OpenIGTLink clients (3D Slicer, PLUS, your own).
 """
 
-from ivc.live.igtl import NDArrayMessage, TrackingDataMessage, parse_url
+from ivc.igtl import NDArrayMessage, TrackingDataMessage, parse_url
 from ivc.live.loop import LiveCorrector, LiveStats, output_device_name
 
 __all__ = ["LiveCorrector", "LiveStats", "NDArrayMessage", "TrackingDataMessage", "output_device_name", "parse_url"]

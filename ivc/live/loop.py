@@ -36,7 +36,7 @@ from ivc.correct import kernels as _correct_kernels
 from ivc.correct import pose_kernels as _pose_kernels
 from ivc.correct.pose_domain import PoseCorrector
 from ivc.dipole import kernels as _dipole_kernels
-from ivc.live.igtl import Framer, TrackingDataMessage, encode_transforms
+from ivc.igtl import Downstream, Framer, TrackingDataMessage, encode_transforms
 from ivc.lut import kernels as _lut_kernels
 from ivc.predict import Tuning
 from ivc.predict import make as make_predictor
@@ -111,17 +111,6 @@ class LiveStats:
     latency_s: deque = field(default_factory=lambda: deque(maxlen=LATENCY_HISTORY))
 
 
-class _Client:
-    """A downstream connection with its queue of whole messages."""
-
-    def __init__(self, sock: socket.socket, address):
-        self.sock, self.address = sock, address
-        self.queue: deque[bytes] = deque()
-        self.queued_bytes = 0
-        self.pending = memoryview(b"")
-        self.warned = False
-
-
 class LiveCorrector:
     """Correct (and predict) tracking data streamed over OpenIGTLink; see the module docstring.
 
@@ -157,7 +146,6 @@ class LiveCorrector:
         self._upstream: socket.socket | None = None
         self._framer = Framer()
         self._next_connect = 0.0
-        self._clients: dict[int, _Client] = {}
         self._last_time: dict[str, float] = {}
         self._streams: dict = {}
         self._stream_time: dict[str, float] = {}  # each predictor stream's latest time stamp (s)
@@ -178,6 +166,7 @@ class LiveCorrector:
             self._streams.clear()
             self._stream_time.clear()
         self._selector = selectors.DefaultSelector()
+        self._clients = Downstream(self._selector, log, MAX_QUEUE_BYTES)
         self._listener = socket.create_server(publish, reuse_port=False)
         self._listener.setblocking(False)
         self._selector.register(self._listener, selectors.EVENT_READ, "listen")
@@ -412,72 +401,9 @@ class LiveCorrector:
         return published
 
     # ---- downstream ---------------------------------------------------------------------------
-    def _accept(self) -> None:
-        try:
-            sock, address = self._listener.accept()
-        except (BlockingIOError, InterruptedError):
-            return
-        sock.setblocking(False)
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        client = _Client(sock, address)
-        self._clients[sock.fileno()] = client
-        self._selector.register(sock, selectors.EVENT_READ, client)
-        log.info("client %s:%d connected", *address[:2])
-
-    def _drop_client(self, client: _Client, reason: str) -> None:
-        self._clients.pop(client.sock.fileno(), None)
-        try:
-            self._selector.unregister(client.sock)
-        except (KeyError, ValueError):
-            pass
-        client.sock.close()
-        log.info("client %s:%d %s", client.address[0], client.address[1], reason)
-
     def _send_all(self, messages: list[bytes]) -> None:
-        for client in list(self._clients.values()):
-            for m in messages:
-                client.queue.append(m)
-                client.queued_bytes += len(m)
-            while client.queued_bytes > MAX_QUEUE_BYTES:
-                client.queued_bytes -= len(client.queue.popleft())
-                self.stats.dropped_for_slow_clients += 1
-                if not client.warned:
-                    client.warned = True
-                    log.warning("client %s:%d reads too slowly: dropping its oldest messages", *client.address[:2])
-            self._flush(client)
-
-    def _flush(self, client: _Client) -> None:
-        try:
-            while True:
-                if not client.pending:
-                    if not client.queue:
-                        break
-                    data = client.queue.popleft()
-                    client.queued_bytes -= len(data)
-                    client.pending = memoryview(data)
-                sent = client.sock.send(client.pending)
-                client.pending = client.pending[sent:]
-        except (BlockingIOError, InterruptedError):
-            pass
-        except OSError:
-            self._drop_client(client, "disconnected")
-            return
-        events = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.pending or client.queue else 0)
-        self._selector.modify(client.sock, events, client)
-
-    def _client_event(self, client: _Client, mask: int) -> None:
-        if mask & selectors.EVENT_READ:
-            try:
-                data = client.sock.recv(1 << 16)  # clients may send commands; ivc answers none of them
-            except (BlockingIOError, InterruptedError):
-                data = b"-"
-            except OSError:
-                data = b""
-            if not data:
-                self._drop_client(client, "disconnected")
-                return
-        if mask & selectors.EVENT_WRITE:
-            self._flush(client)
+        self._clients.send(messages)
+        self.stats.dropped_for_slow_clients = self._clients.dropped
 
     # ---- the loop -----------------------------------------------------------------------------
     def run(self, duration: float | None = None, stop=None) -> LiveStats:
@@ -489,12 +415,12 @@ class LiveCorrector:
                     self._connect()
                 for key, mask in self._selector.select(timeout=0.05):
                     if key.data == "listen":
-                        self._accept()
+                        self._clients.accept(self._listener)
                     elif key.data == "upstream":
                         if self._upstream is not None:
                             self._read_upstream()
                     else:
-                        self._client_event(key.data, mask)
+                        self._clients.event(key.data, mask)
                 if self._upstream is not None and self._framer.waiting:
                     self._drain(time.perf_counter())
         finally:
@@ -505,8 +431,7 @@ class LiveCorrector:
         if self.compiling:
             log.info("waiting for the background compilation to finish (it is cached for the next run)")
             self._compiler.join()
-        for client in list(self._clients.values()):
-            self._drop_client(client, "closed")
+        self._clients.close()
         if self._upstream is not None:
             self._selector.unregister(self._upstream)
             self._upstream.close()
