@@ -46,7 +46,8 @@ def serve(source, port, host, poses_only, seed, frames, pause, speed, sensors, h
     live = serve_source(source, seed=seed, pause_s=pause, speed=speed, frames=counts, sensors=names,
                         hemisphere=hemisphere)
     rehearsal = source == "sim" or source.startswith(("sim:", "replay:"))
-    server = IgtlServer(live, port, host, signals=not poses_only, start_on_connect=rehearsal)
+    # a rehearsal (simulated or replayed) waits for a slow client rather than drop frames: every frame reaches it
+    server = IgtlServer(live, port, host, signals=not poses_only, start_on_connect=rehearsal, lossless=rehearsal)
     click.echo(f"serving {source} on {server.address[0]}:{server.address[1]}"
                + (" (starts when a client connects)" if rehearsal else ""), err=True)
     try:
