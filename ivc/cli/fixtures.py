@@ -8,10 +8,9 @@ import click
 from tqdm import tqdm
 
 from ivc import session as session_io
-from ivc.cli.options import POSITIVE
+from ivc.cli.options import POSITIVE, solver_option
 from ivc.cli.progress import ON_TERMINAL
 from ivc.cli.tracker import tracker_option, with_tracker
-from ivc.dipole.tracker_solver import SOLVERS
 from ivc.fixtures import VERTEX_CHOICES
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import Gates
@@ -102,9 +101,8 @@ def render(report: dict) -> str:
 @click.option("--compare-cubes", type=click.IntRange(0), default=0,
               help="Also compare the cube vertex choices on this many frames.")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
-@click.option("--tracker", "tracker_solver", type=click.Choice(SOLVERS),
-              default="closed-form", show_default=True,
-              help="For a session of reported poses only: the tracker's own pose solver (docs/lut.md).")
+@solver_option("For a session of reported poses only: the tracker's own pose solver (docs/lut.md).",
+               dest="tracker_solver", default="closed-form", show_default=True)
 @tracker_option
 def fixtures(session_file, vertices, interpolant, method, max_residual, max_error_mm, compare_cubes, as_json,
              tracker_solver, tracker_file):

@@ -95,7 +95,8 @@ def build_report(session: Session, table: LookupTable, directory: str | os.PathL
     directory = Path(directory)
     existing = [directory / name for name in REPORT_FILES if (directory / name).exists()]
     if existing and not overwrite:
-        raise FileExistsError(f"{existing[0]} exists; pass --force to replace the report, or choose another -o")
+        raise FileExistsError(f"{existing[0]} exists; pass overwrite=True to replace the report, or choose another "
+                              "directory")
     names = names or {}
     data = gather(session, table, check, step, thin, max_frames,
                   names.get("check", "the session") if check is not None else "the session", progress)

@@ -1,6 +1,15 @@
 """The HDF5 session file every command reads and writes (docs/session-format.md)."""
 
-from ivc.session.io import add_step, atomic_path, is_recording_csv, read, write
+from ivc.session.io import (
+    FLAGS_MEANING,
+    StepCorrection,
+    add_step,
+    atomic_path,
+    is_recording_csv,
+    read,
+    read_corrections,
+    write,
+)
 from ivc.session.model import (
     CUBE_SENSORS,
     DECLARED_POSE_ATTRS,
@@ -26,6 +35,7 @@ from ivc.session.model import (
 
 __all__ = [
     "CUBE_SENSORS",
+    "FLAGS_MEANING",
     "DECLARED_POSE_ATTRS",
     "EXTENSION_PREFIX",
     "FIT_STEPS",
@@ -35,6 +45,7 @@ __all__ = [
     "STEP_DESCRIPTIONS",
     "WORKING_VOLUME_ATTRS",
     "Session",
+    "StepCorrection",
     "SessionError",
     "Step",
     "Truth",
@@ -49,5 +60,6 @@ __all__ = [
     "atomic_path",
     "is_recording_csv",
     "read",
+    "read_corrections",
     "write",
 ]
