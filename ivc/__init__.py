@@ -104,6 +104,7 @@ _EXPORTS = {
     "replay": ("ivc.collect", "replay"),
     # simulation
     "Simulator": ("ivc.sim", "Simulator"),
+    "SimulatedTracker": ("ivc.sim", "SimulatedTracker"),
     "Scene": ("ivc.sim", "Scene"),
     "load_scene": ("ivc.sim", "load_scene"),
     # fixtures and the table
