@@ -145,9 +145,9 @@ def correct_file(lut_file: str | os.PathLike, input_file: str | os.PathLike, out
     >>> result = ivc.correct_file("sample_data/recordings/default_room_lut.h5",
     ...                           "sample_data/recordings/default_room_check.csv", out,
     ...                           ivc.CorrectOptions(max_precision=0.5e-3))
-    >>> flags = result.corrections["default_room_check.csv"].flags
-    >>> flags.shape, result.trusted                       # 240 frames of one sensor, each trusted
-    ((240, 1), 240)
+    >>> flags = result.corrections["default_room_check.csv"].flags   # 240 frames of one sensor
+    >>> flags.shape, result.trusted, int((flags == ivc.correct.LOW_PRECISION).sum())  # 5 less precise than 0.5 mm
+    ((240, 1), 235, 5)
     >>> out.read_text().splitlines()[0].split(",")[-4:]   # ivc's columns after the input's
     ['flags', 'residual', 'precision_mm', 'orientation_precision_mrad']
     """
