@@ -109,6 +109,7 @@ def test_cli_words_say_keywords_as_the_commands_flags():
     assert cli_words("tune_from=/data/a.csv:\ntuning") == "--tune-from /data/a.csv:\ntuning"
     assert cli_words("the live stream (rate_hz=240)", "correct") == "the live stream (--rate-hz 240)"
     assert cli_words("pass rate_hz=HZ", "predict") == "pass --rate HZ"
+    assert cli_words("or raise the gate (max_residual=)", "fit") == "or raise the gate (--max-residual)"
     # a path or an unknown keyword stays as it is
     assert cli_words("/tmp/overwrite=True/x and colour=red") == "/tmp/overwrite=True/x and colour=red"
 

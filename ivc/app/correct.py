@@ -25,17 +25,9 @@ from ivc.app.paths import input_and_output
 from ivc.collect.checks import rate_warning
 from ivc.collect.plus import is_plus_sequence, read_plus, write_plus
 from ivc.collect.replay import read_csv_columns, write_csv
-from ivc.correct import (
-    HIGH_RESIDUAL,
-    INVALID_INPUT,
-    LOW_PRECISION,
-    NOT_CONVERGED,
-    OUTSIDE,
-    Correction,
-    Corrector,
-    PoseCorrector,
-    describe,
-)
+from ivc.collect.tracker_units import apply_tracker_file
+from ivc.correct import Correction, Corrector, PoseCorrector, describe
+from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, LOW_PRECISION, NOT_CONVERGED, OUTSIDE
 from ivc.correct.solver import MAX_RESIDUAL
 from ivc.errors import OptionsError
 from ivc.lut.build import file_digest
@@ -185,6 +177,15 @@ def prediction_tuning(name: str | None, tune: bool, tune_from: str | os.PathLike
     return tuning
 
 
+def plus_output_is_csv(input_path: Path, output_path: Path, what: str) -> bool:
+    """Whether a PLUS sequence's output is a CSV; refused unless it is that or a sequence of the input's format."""
+    as_csv = session_io.is_recording_csv(output_path)
+    if not (output_path.suffix.lower() == input_path.suffix.lower() or as_csv):
+        raise OptionsError(f"a PLUS sequence is {what} into a sequence of the same format (output=FILE"
+                           f"{input_path.suffix}) or a CSV (output=FILE.csv)")
+    return as_csv
+
+
 def timing_text(label: str, step: Step, valid: np.ndarray | None = None) -> str | None:
     """The stream's rate, jitter, repeats and gaps as the predictors will see them (None: no orientations)."""
     if step.quaternion is None or step.n_frames < 2:
@@ -272,17 +273,6 @@ def correction_advice(out: Correction, max_residual: float, pose_only: bool = Fa
             "are in the tracker's units")
 
 
-def with_tracker_model(data: Session, tracker_model: str | os.PathLike | None,
-                       steps: list[str] | None = None) -> Session:
-    """``data`` with the tracker file's coil model applied to its steps (all, or ``steps``); None: as it is."""
-    if tracker_model is None:
-        return data
-    from ivc.collect.tracker_units import apply_tracker_to_session, load_labelled_tracker
-
-    model, label = load_labelled_tracker(tracker_model)
-    return apply_tracker_to_session(data, model, label, steps)
-
-
 class _Job:
     """One :func:`correct_file` call: the table and options, and the three input formats."""
 
@@ -334,10 +324,7 @@ class _Job:
         if self.precision:
             raise OptionsError("precision=True and max_precision=M need signal matrices; a PLUS sequence holds "
                                "poses only")
-        as_csv = session_io.is_recording_csv(output_path)
-        if not (output_path.suffix.lower() == input_path.suffix.lower() or as_csv):
-            raise OptionsError(f"a PLUS sequence is corrected into a sequence of the same format (output="
-                               f"FILE{input_path.suffix}) or a CSV (output=FILE.csv)")
+        as_csv = plus_output_is_csv(input_path, output_path, "corrected")
         sequence = read_plus(input_path)
         step = sequence.step
         self._warn(rate_warning(step))
@@ -366,7 +353,7 @@ class _Job:
         self._warn(rate_warning(step))
         hemisphere = o.hemisphere or self.table.hemisphere
         if o.tracker_model is not None:
-            step = with_tracker_model(Session(hemisphere, {"recording": step}), o.tracker_model).steps["recording"]
+            step = apply_tracker_file(Session(hemisphere, {"recording": step}), o.tracker_model).steps["recording"]
         out = self.correct(step, hemisphere, self.precision)
         fixed = corrected_step(step, out, self.lut_file)
         fixed.signal = None
@@ -391,7 +378,7 @@ class _Job:
         unknown = [n for n in names if n not in data.steps]
         if unknown:
             raise OptionsError(f"{input_path} has no step {', '.join(unknown)} (it has {', '.join(data.steps)})")
-        data = with_tracker_model(data, o.tracker_model, names)
+        data = apply_tracker_file(data, o.tracker_model, names)
         result = CorrectResult(output_path)
         for name in names:
             self.finish(name, data.steps[name], self.correct(data.steps[name], data.hemisphere, self.precision),

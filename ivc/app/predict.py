@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from ivc import session as session_io
-from ivc.app.correct import prediction_tuning, timing_text
+from ivc.app.correct import plus_output_is_csv, prediction_tuning, timing_text
 from ivc.app.messages import INFO, WARNING, Report, silent
 from ivc.app.paths import input_and_output
 from ivc.collect.checks import rate_warning
@@ -116,10 +116,7 @@ class _Job:
 
     def plus(self, input_path: Path, output_path: Path) -> PredictResult:
         """A PLUS sequence in; the sequence with ``<Tool>To<Tracker>Predicted`` transforms added (or a CSV, mm)."""
-        as_csv = session_io.is_recording_csv(output_path)
-        if not (output_path.suffix.lower() == input_path.suffix.lower() or as_csv):
-            raise OptionsError(f"a PLUS sequence is predicted into a sequence of the same format (output="
-                               f"FILE{input_path.suffix}) or a CSV (output=FILE.csv)")
+        as_csv = plus_output_is_csv(input_path, output_path, "predicted")
         sequence = read_plus(input_path)
         step = sequence.step
         if self.options.rate_hz:

@@ -2,8 +2,9 @@
 
 A library message names the keyword a Python caller passes (``pass overwrite=True to replace it``); where the
 command line shows that message, :func:`cli_words` rewrites each keyword as the flag that sets it (``pass --force
-to replace it``). ``KEYWORD=VALUE`` becomes ``--flag VALUE``; a boolean keyword written ``KEYWORD=True`` becomes
-the bare flag. The mapping is one table, with the few keywords whose flag differs between commands.
+to replace it``). ``KEYWORD=VALUE`` becomes ``--flag VALUE``; a boolean keyword written ``KEYWORD=True``, or a
+keyword with no value after its ``=``, becomes the bare flag. The mapping is one table, with the few keywords whose
+flag differs between commands.
 """
 
 from __future__ import annotations
@@ -55,7 +56,8 @@ def cli_words(text: str, command: str | None = None) -> str:
         name, true = match.group(1), match.group(2)
         if name not in flags:
             return match.group(0)
-        return flags[name] if true else f"{flags[name]} "
+        bare = true or match.end() == len(text) or text[match.end()] in " ),;:"  # no value follows
+        return flags[name] if bare else f"{flags[name]} "
 
     return _KEYWORD.sub(flag, text)
 

@@ -53,9 +53,10 @@ _ADVICE = {
     "outside the cube": "sensor 0 was mostly outside the cube: redo `ivc collect wand_sweep` keeping wand sensor 0 "
                         "inside the cube",
     "residual too high": "the cube field does not explain sensor 0's signal (rms(Λ) too high): redo "
-                         "`ivc collect cube_survey` (and check the declared cube pose), or raise max_residual=",
+                         "`ivc collect cube_survey` (and check the declared cube pose), or raise the gate "
+                         "(max_residual=)",
     "estimated error too high": "the estimated sample errors exceed the gate: redo `ivc collect wand_calibration` and "
-                                "`ivc collect wand_sweep` more slowly, or raise max_error=",
+                                "`ivc collect wand_sweep` more slowly, or raise the gate (max_error=)",
 }
 
 Progress = Callable[[str, int], Callable[[int], None]]
