@@ -131,3 +131,16 @@ def test_solver_is_the_flag_and_tracker_its_hidden_alias(tmp_path):
     direct = ivc.PoseCorrector(lut.read(TABLE), solver="least-squares").batch(
         step.position[:40], step.quaternion[:40], step.valid_mask[:40])
     np.testing.assert_array_equal(read_csv(outputs[0]).position, direct.position)
+
+
+def test_live_corrector_refuses_what_a_stream_cannot_do_before_it_connects(tmp_path):
+    url = "igtl://127.0.0.1:1"
+    with pytest.raises(OptionsError, match="tune=True needs the whole recording"):
+        ivc.live_corrector(TABLE, url, ivc.CorrectOptions(predictor="mmdq2", tune=True))
+    with pytest.raises(OptionsError, match="tracker_model=FILE"):
+        ivc.live_corrector(TABLE, url, ivc.CorrectOptions(tracker_model=tmp_path / "t.json"))
+    with pytest.raises(OptionsError, match=r"recording at 120 Hz, the live stream \(rate_hz=240\)"):
+        ivc.live_corrector(TABLE, url, ivc.CorrectOptions(predictor="mmdq2", tune_from=HEAD_CSV),
+                           ivc.LiveOptions(rate_hz=240.0))
+    with pytest.raises(OptionsError, match="length_unit='furlong'"):
+        ivc.live_corrector(TABLE, url, live=ivc.LiveOptions(length_unit="furlong"))

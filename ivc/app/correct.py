@@ -90,8 +90,6 @@ class CorrectOptions:
         """Refuse options that do not go together (:class:`~ivc.errors.OptionsError`)."""
         if (self.tune or self.tune_from) and not self.predictor:
             raise OptionsError("tune=True and tune_from=FILE tune a prediction filter: give predictor=NAME too")
-        if self.tune and self.tune_from:
-            raise OptionsError("give tune=True (from the input) or tune_from=FILE, not both")
 
 
 @dataclass
