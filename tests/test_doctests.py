@@ -1,27 +1,30 @@
-"""The examples in the exported app functions' docstrings run as written (on sample_data/, from the repository
-root, as a user who cloned it would run them). Named here rather than by ``--doctest-modules`` over the package, so
-that the suite collects only these examples and imports no module it does not test."""
+"""The examples in the docstrings of the names ``import ivc`` exports run as doctests (the API reference of the
+documentation site shows them)."""
 
 import doctest
-from pathlib import Path
 
 import pytest
 
 import ivc
 
-ROOT = Path(__file__).resolve().parents[1]
 
-#: the exported names whose docstrings hold an example
-EXAMPLES = ("correct_file", "predict_file")
+def _exported_with_examples():
+    finder = doctest.DocTestFinder(exclude_empty=True)
+    for name, (_, attribute) in sorted(ivc._EXPORTS.items()):
+        if attribute is None:
+            continue
+        for test in finder.find(getattr(ivc, name), f"ivc.{name}"):
+            if test.examples:
+                yield pytest.param(test, id=test.name)
 
 
-@pytest.mark.parametrize("name", EXAMPLES)
-def test_docstring_example_runs(name, monkeypatch):
-    monkeypatch.chdir(ROOT)
-    function = getattr(ivc, name)
-    tests = doctest.DocTestFinder(recurse=False).find(function, f"ivc.{name}", globs={})
-    assert tests and tests[0].examples, f"ivc.{name} has no example"
+EXAMPLES = list(_exported_with_examples())
+
+
+@pytest.mark.parametrize("test", EXAMPLES)
+def test_docstring_example(test, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # examples that write files write them here
     runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
-    for test in tests:
-        runner.run(test)
-    assert runner.failures == 0, f"ivc.{name}'s example failed (see the output above)"
+    runner.run(test)
+    result = runner.summarize(verbose=False)
+    assert result.failed == 0, f"{test.name}: {result.failed} of {result.attempted} examples failed"

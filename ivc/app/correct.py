@@ -128,17 +128,15 @@ def correct_file(lut_file: str | os.PathLike, input_file: str | os.PathLike, out
     Raises :class:`~ivc.errors.OptionsError` for options that do not fit together or do not fit the input, and the
     readers' errors (:class:`~ivc.errors.SessionError`, :class:`~ivc.errors.LutError`) for a malformed file.
 
-    >>> import tempfile
     >>> from pathlib import Path
     >>> import ivc
-    >>> out = Path(tempfile.mkdtemp()) / "corrected.csv"
-    >>> result = ivc.correct_file("sample_data/recordings/default_room_lut.h5",
-    ...                           "sample_data/recordings/default_room_check.csv", out,
-    ...                           ivc.CorrectOptions(max_precision=0.5e-3))
+    >>> samples = Path(ivc.__file__).parents[1] / "sample_data" / "recordings"   # in the repository
+    >>> result = ivc.correct_file(samples / "default_room_lut.h5", samples / "default_room_check.csv",
+    ...                           "corrected.csv", ivc.CorrectOptions(max_precision=0.5e-3))
     >>> flags = result.corrections["default_room_check.csv"].flags   # 240 frames of one sensor
     >>> flags.shape, result.trusted, int((flags == ivc.correct.LOW_PRECISION).sum())  # 5 less precise than 0.5 mm
     ((240, 1), 235, 5)
-    >>> out.read_text().splitlines()[0].split(",")[-4:]   # ivc's columns after the input's
+    >>> result.output.read_text().splitlines()[0].split(",")[-4:]   # ivc's columns after the input's
     ['flags', 'residual', 'precision_mm', 'orientation_precision_mrad']
     """
     options = options or CorrectOptions()

@@ -71,16 +71,15 @@ def predict_file(input_file: str | os.PathLike, output: str | os.PathLike, optio
     Samples the filter cannot predict yet (its first frames) or that are invalid keep their measured orientation.
     ``report(kind, text)`` receives each stream's timing and the tunings (:mod:`ivc.app.messages`).
 
-    >>> import tempfile
     >>> from pathlib import Path
     >>> import ivc
-    >>> out = Path(tempfile.mkdtemp()) / "ahead.csv"
-    >>> result = ivc.predict_file("sample_data/recordings/head_aggressive_120hz.csv", out,
+    >>> samples = Path(ivc.__file__).parents[1] / "sample_data" / "recordings"   # in the repository
+    >>> result = ivc.predict_file(samples / "head_aggressive_120hz.csv", "ahead.csv",
     ...                           ivc.PredictOptions(filter="mmdq2", horizon=0.05))
     >>> ahead = result.steps["head_aggressive_120hz.csv"]
     >>> ahead.quaternion.shape, ahead.attrs["predicted_with"], ahead.attrs["prediction_horizon_s"]
     ((1200, 1, 4), 'mmdq2', 0.05)
-    >>> len(ivc.collect.read_csv(out).time)               # the output is a recording CSV again
+    >>> len(ivc.collect.read_csv("ahead.csv").time)       # the output is a recording CSV again
     1200
     """
     options = options or PredictOptions()
