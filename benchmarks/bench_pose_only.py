@@ -47,7 +47,7 @@ def _sessions() -> tuple[Session, Session]:
     """The default protocol reported by a closed-form and by a least-squares tracker, signals removed."""
     scene = load_scene("default")
     simulator = Simulator(scene, seed=0)
-    mismatch = Simulator(replace(scene, tracker="least-squares"), seed=0)
+    mismatch = Simulator(replace(scene, solver="least-squares"), seed=0)
     mismatch.__dict__["secondary"] = simulator.secondary  # the same room: solve its eddy currents once
     out = []
     for sim in (simulator, mismatch):

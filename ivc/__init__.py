@@ -41,6 +41,7 @@ The package is laid out as the pipeline it implements:
 ``errors``     every deliberate error, under :class:`IvcError`
 ``warmup``     the compiled kernels built ahead of their first use (``ivc warmup``)
 ``compiled``   compiled kernels, or their NumPy / interpreted forms for small inputs on a cold cache
+``app``        each command as a call: :func:`correct_file`, :func:`predict_file` with their options
 ``cli``        the ``ivc`` command line
 
 The names below are loaded on first use, so ``import ivc`` stays cheap.
@@ -62,6 +63,7 @@ from ivc.errors import (
     IvcError,
     LiveError,
     LutError,
+    OptionsError,
     PredictorError,
     SceneError,
     SessionError,
@@ -102,6 +104,7 @@ _EXPORTS = {
     "replay": ("ivc.collect", "replay"),
     # simulation
     "Simulator": ("ivc.sim", "Simulator"),
+    "SimulatedTracker": ("ivc.sim", "SimulatedTracker"),
     "Scene": ("ivc.sim", "Scene"),
     "load_scene": ("ivc.sim", "load_scene"),
     # fixtures and the table
@@ -118,6 +121,15 @@ _EXPORTS = {
     "PoseCorrector": ("ivc.correct", "PoseCorrector"),
     "Correction": ("ivc.correct", "Correction"),
     "evaluate": ("ivc.correct.evaluate", "evaluate"),
+    # the app layer: a command as a call (ivc correct, ivc predict)
+    "correct_file": ("ivc.app.correct", "correct_file"),
+    "CorrectOptions": ("ivc.app.correct", "CorrectOptions"),
+    "CorrectResult": ("ivc.app.correct", "CorrectResult"),
+    "live_corrector": ("ivc.app.correct", "live_corrector"),
+    "LiveOptions": ("ivc.app.correct", "LiveOptions"),
+    "predict_file": ("ivc.app.predict", "predict_file"),
+    "PredictOptions": ("ivc.app.predict", "PredictOptions"),
+    "PredictResult": ("ivc.app.predict", "PredictResult"),
     # export
     "export_table": ("ivc.export", "export"),
     # the tracker's own coil model (docs/tracker.md)
@@ -144,8 +156,8 @@ _EXPORTS = {
     "warmup": ("ivc.warmup", None),
 }
 
-__all__ = ["CsvError", "ExportError", "InputError", "IvcError", "LiveError", "LutError", "PredictorError",
-           "SceneError", "SessionError", "TrackerError", "__version__", *_EXPORTS]
+__all__ = ["CsvError", "ExportError", "InputError", "IvcError", "LiveError", "LutError", "OptionsError",
+           "PredictorError", "SceneError", "SessionError", "TrackerError", "__version__", *_EXPORTS]
 
 
 def __getattr__(name: str):

@@ -85,7 +85,7 @@ def run(scene: str | Scene = "default", *, seed: int = 0, sweep_frames: int = 10
         result.session_file, result.table_file = demo_files(folder)
         for existing in (result.session_file, result.table_file):
             if existing.exists() and not force:
-                raise FileExistsError(f"{existing} exists; pass --force to replace it, or --keep another directory")
+                raise FileExistsError(f"{existing} exists; pass force=True to replace it, or another folder=DIR")
     stage = on_stage or (lambda name, partial: None)
     stage("collect", result)
     result.session = simulator.protocol({"wand_sweep": sweep_frames, "check": check_frames}, on_step=on_step)

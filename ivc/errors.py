@@ -7,6 +7,7 @@ written against earlier versions (``except ValueError``) still catches it.
 
     IvcError
     ├── InputError        bad arguments to a library function: shape, range, NaN, units
+    │   └── OptionsError  options of an app function (ivc.correct_file, ...) that do not go together or fit the input
     ├── SessionError      a session file, or data about to be written to one, breaks the format
     │   └── CsvError      a recording CSV is malformed
     ├── LutError          a look-up table file is missing, malformed or unusable
@@ -20,8 +21,8 @@ written against earlier versions (``except ValueError``) still catches it.
 
 from __future__ import annotations
 
-__all__ = ["IvcError", "InputError", "SessionError", "CsvError", "LutError", "ExportError", "SceneError",
-           "PredictorError", "LiveError", "TrackerError", "FixtureError"]
+__all__ = ["IvcError", "InputError", "OptionsError", "SessionError", "CsvError", "LutError", "ExportError",
+           "SceneError", "PredictorError", "LiveError", "TrackerError", "FixtureError"]
 
 
 class IvcError(Exception):
@@ -30,6 +31,11 @@ class IvcError(Exception):
 
 class InputError(IvcError, ValueError):
     """Bad arguments to a library function: wrong shape, out of range, NaN, wrong unit."""
+
+
+class OptionsError(InputError):
+    """Options of an app function (:func:`ivc.correct_file`, :func:`ivc.predict_file`) that do not go together, or
+    that do not fit the input; the message names the keyword arguments (the command line, its flags)."""
 
 
 class SessionError(IvcError, ValueError):

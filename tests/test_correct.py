@@ -153,7 +153,7 @@ def test_cli_fit_correct_evaluate(small_session, tmp_path):
 
 
 def test_correct_advice_names_the_dominant_flag():
-    from ivc.cli.correct import correction_advice
+    from ivc.app.correct import correction_advice
     from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE, Correction
 
     def out(flags):

@@ -158,7 +158,7 @@ def test_unit_is_honoured_or_refused_by_every_format(table, tmp_path):
     with pytest.raises(ExportError, match="slicer files are in mm only"):
         export(table, "slicer", tmp_path / "t.nrrd", unit="m")
     export(table, "slicer", tmp_path / "t.nrrd", unit="mm")
-    with pytest.raises(ExportError, match="--unit in for Vrui's Polhemus"):
+    with pytest.raises(ExportError, match="unit=in for Vrui's Polhemus"):
         export(table, "vrui", tmp_path / "t.grid")
     assert not (tmp_path / "t.grid").exists() and not (tmp_path / "t.h5").exists()
     lut_path = tmp_path / "map.h5"

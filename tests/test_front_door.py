@@ -75,14 +75,14 @@ def test_every_public_name_resolves_and_every_error_is_an_ivc_error():
 
     import ivc
 
-    for package in ("cli", "collect", "correct", "demo", "dipole", "export", "fixtures", "live", "lut", "pose",
+    for package in ("app", "cli", "collect", "correct", "demo", "dipole", "export", "fixtures", "live", "lut", "pose",
                     "predict", "report", "session", "sim"):
         importlib.import_module(f"ivc.{package}")  # importing a subpackage must not shadow a front-door name
     for name in ivc.__all__:
         value = getattr(ivc, name)
         assert value is not None, name
     for name in ("read_session", "write_session", "replay", "load_scene", "fit_lut", "read_lut", "write_lut",
-                 "evaluate", "export_table"):
+                 "evaluate", "export_table", "correct_file", "predict_file", "live_corrector"):
         assert callable(getattr(ivc, name)) and not isinstance(getattr(ivc, name), types.ModuleType), name
     assert set(ivc.__all__) <= set(dir(ivc))
     with pytest.raises(AttributeError):

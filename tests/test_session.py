@@ -65,7 +65,7 @@ def test_add_step_never_overwrites_without_force(tmp_path, rng):
     first = make_step(rng)
     session.add_step(path, "cube_calibration", first)
     before = digest(path)
-    with pytest.raises(FileExistsError, match="cube_calibration.*--force"):
+    with pytest.raises(FileExistsError, match="cube_calibration.*force=True"):
         session.add_step(path, "cube_calibration", make_step(rng))
     assert digest(path) == before
     session.add_step(path, "wand_calibration", make_step(rng, sensors=4))

@@ -124,8 +124,9 @@ def test_non_finite_signals_give_nan_and_unknown_solvers_are_refused():
 def test_the_simulator_reports_with_the_scene_s_tracker_solver():
     with pytest.raises(SceneError, match="tracker"):
         scene_from_dict({"tracker": "magic"})
-    scene = Scene(spheres=[SPHERE], noise=NoiseSpec.none(), tracker="least-squares")
-    assert scene_from_dict({"tracker": "least-squares"}).tracker == "least-squares"
+    scene = Scene(spheres=[SPHERE], noise=NoiseSpec.none(), solver="least-squares")
+    assert scene_from_dict({"solver": "least-squares"}).solver == "least-squares"
+    assert scene_from_dict({"tracker": "least-squares"}).solver == "least-squares"  # the key's old name
     step, truth = Simulator(scene, 0).step("check", 50)
     S = step.signal
     position, rotation = ts.reported_pose(S, "least-squares")
@@ -134,3 +135,14 @@ def test_the_simulator_reports_with_the_scene_s_tracker_solver():
     closed, _ = ts.reported_pose(S, "closed-form")
     assert np.max(np.linalg.norm(closed - position, axis=-1)) > 1e-6
     assert step.attrs["tracker_solver"] == "least-squares"
+    with pytest.raises(SceneError, match="once"):
+        scene_from_dict({"solver": "least-squares", "tracker": "closed-form"})
+    # the simulated device on its own records what the simulator records with it (no noise: the rng draws nothing
+    # that matters)
+    simulator = Simulator(scene, 0)
+    device = simulator.device
+    assert (device.solver, device.rate_hz, device.model) == ("least-squares", scene.sweep_rate_hz, None)
+    again = device.measure(truth.position, truth.quaternion, secondary=simulator.secondary,
+                           rng=np.random.default_rng(1), description=step.description, sensor_prefix="check")
+    np.testing.assert_array_equal(again.signal, step.signal)
+    np.testing.assert_array_equal(again.position, step.position)

@@ -8,13 +8,12 @@ import click
 
 from ivc import lut
 from ivc import session as session_io
-from ivc.cli.options import POSITIVE
+from ivc.cli.options import POSITIVE, solver_option
 from ivc.cli.tracker import tracker_option, with_tracker
 from ivc.correct import Corrector
 from ivc.correct.evaluate import evaluate as evaluate_table
 from ivc.correct.pose_domain import PoseCorrector
 from ivc.correct.solver import MAX_RESIDUAL
-from ivc.dipole.tracker_solver import SOLVERS
 from ivc.lut.grid import INTERPOLATIONS
 
 _COLUMNS = ("p25", "p50", "p75", "p95", "p99", "max")
@@ -65,11 +64,11 @@ def render_table(report: dict) -> str:
               help="Between grid nodes: Catmull-Rom cubic, or trilinear (Himberg 2010's).")
 @click.option("--max-residual", type=POSITIVE, default=MAX_RESIDUAL, show_default=True,
               help="Flag corrections whose rms(M − T S)/rms(S) exceeds this.")
-@click.option("--tracker", type=click.Choice(SOLVERS), help="Check poses reported only: the tracker's own pose "
-              "solver (default: the one the table was fitted for, else closed-form).")
+@solver_option("Check poses reported only: the tracker's own pose solver (default: the one the table was fitted "
+               "for, else closed-form).")
 @click.option("--json", "as_json", is_flag=True, help="Print the table as JSON.")
 @tracker_option
-def evaluate(lut_file, check_file, step, interpolation, max_residual, tracker, as_json, tracker_file):
+def evaluate(lut_file, check_file, step, interpolation, max_residual, solver, as_json, tracker_file):
     """Correct the check poses of CHECK_FILE with LUT_FILE and compare with their truth (Himberg 2010's Table 24)."""
     if session_io.is_recording_csv(check_file):
         raise click.UsageError(f"{check_file}: a recording CSV holds no true poses; evaluate a session .h5 with "
@@ -79,7 +78,7 @@ def evaluate(lut_file, check_file, step, interpolation, max_residual, tracker, a
     if tracker_file is not None and step in check.steps:
         check = with_tracker(check, tracker_file, [step])
     if step in check.steps and check.steps[step].signal is None:
-        corrector = PoseCorrector(table, check.hemisphere, interpolation, tracker)
+        corrector = PoseCorrector(table, check.hemisphere, interpolation, solver)
     else:
         # the tracker's noise, when the table's fit measured it, gives each pose's predicted precision
         corrector = Corrector(table, check.hemisphere, interpolation, max_residual,

@@ -10,11 +10,10 @@ import numpy as np
 
 from ivc import lut
 from ivc import session as session_io
-from ivc.cli.options import POSITIVE
+from ivc.cli.options import POSITIVE, solver_option
 from ivc.cli.paths import check_output
 from ivc.cli.progress import StageBars
 from ivc.cli.tracker import tracker_option, with_tracker
-from ivc.dipole.tracker_solver import SOLVERS
 from ivc.lut.build import FitOptions
 
 
@@ -118,9 +117,8 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
               help="Gate: largest rms(Λ)/rms(S) of sensor 0's solve in the cube.")
 @click.option("--max-error-mm", type=POSITIVE, default=1000 * FitOptions.max_error, show_default=True,
               help="Gate: largest estimated sample error (eq. 101), mm.")
-@click.option("--tracker", type=click.Choice(SOLVERS), default="closed-form", show_default=True,
-              help="A session of reported poses only (no signals): the tracker's own pose solver, whose model the "
-              "map is fitted through.")
+@solver_option("A session of reported poses only (no signals): the tracker's own pose solver, whose model the map "
+               "is fitted through.", dest="tracker", default="closed-form", show_default=True)
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists.")
 @click.option("--json", "as_json", is_flag=True, help="Print the fit report as JSON.")
 @tracker_option

@@ -8,10 +8,9 @@ import click
 from tqdm import tqdm
 
 from ivc import session as session_io
-from ivc.cli.options import POSITIVE
+from ivc.cli.options import POSITIVE, solver_option
 from ivc.cli.progress import ON_TERMINAL
 from ivc.cli.tracker import tracker_option, with_tracker
-from ivc.dipole.tracker_solver import SOLVERS
 from ivc.fixtures import VERTEX_CHOICES
 from ivc.fixtures.build_check import check_session
 from ivc.fixtures.geometry import load_geometries
@@ -122,9 +121,8 @@ def fixtures():
 @click.option("--compare-cubes", type=click.IntRange(0), default=0,
               help="Also compare the cube vertex choices on this many frames.")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
-@click.option("--tracker", "tracker_solver", type=click.Choice(SOLVERS),
-              default="closed-form", show_default=True,
-              help="For a session of reported poses only: the tracker's own pose solver (docs/lut.md).")
+@solver_option("For a session of reported poses only: the tracker's own pose solver (docs/lut.md).",
+               dest="tracker_solver", default="closed-form", show_default=True)
 @click.option("--geometry", "geometry_files", multiple=True, type=click.Path(dir_okay=False),
               help="The printed cube's and/or wand's geometry file (repeat for both): check the calibrated "
                    "sensors against it; the cube's is the ideal cube of --vertices ideal (docs/printing.md).")

@@ -7,6 +7,7 @@ import importlib
 import click
 
 from ivc import __version__
+from ivc.cli.flags import cli_words
 from ivc.errors import IvcError
 
 
@@ -16,7 +17,8 @@ class IvcGroup(click.Group):
     ``IvcError`` (bad input, a malformed file, a missing step) and ``OSError`` (a file
     that cannot be opened or written) are the user's to fix and print as one line.
     Anything else is a bug in ivc and keeps its traceback; ``--debug`` shows the
-    traceback of the one-line errors too.
+    traceback of the one-line errors too. The library's messages name its keyword
+    arguments; the line says the command's flags instead (:func:`ivc.cli.flags.cli_words`).
     """
 
     def list_commands(self, ctx: click.Context) -> list[str]:
@@ -34,7 +36,7 @@ class IvcGroup(click.Group):
         except (IvcError, OSError) as error:
             if ctx.meta.get("ivc.debug"):
                 raise
-            raise click.ClickException(_one_line(error)) from None
+            raise click.ClickException(cli_words(_one_line(error), ctx.invoked_subcommand)) from None
 
 
 def _one_line(error: BaseException) -> str:

@@ -28,3 +28,25 @@ POSITIVE = PositiveFloat()
 #: most frames one simulated step may have: 20 times the protocol's 100,000-frame sweep (memory grows with it)
 MAX_SIM_FRAMES = 2_000_000
 SIM_FRAMES = click.IntRange(1, MAX_SIM_FRAMES)
+
+
+class HiddenAliases(click.Option):
+    """An option whose first name is shown in ``--help`` and whose other names still work, unlisted (an old
+    flag kept for scripts: ``--tracker`` for ``--solver``)."""
+
+    def get_help_record(self, ctx):
+        names = self.opts
+        self.opts = names[:1]
+        try:
+            return super().get_help_record(ctx)
+        finally:
+            self.opts = names
+
+
+def solver_option(help: str, dest: str = "solver", **kwargs):
+    """``--solver closed-form|least-squares``: the tracker's own pose solver (``--tracker``, its old name, still
+    works)."""
+    from ivc.dipole.tracker_solver import SOLVERS
+
+    return click.option("--solver", "--tracker", dest, cls=HiddenAliases, type=click.Choice(SOLVERS), help=help,
+                        **kwargs)

@@ -1,62 +1,6 @@
-"""Input and output paths of the commands: an output is never one of the command's inputs.
+"""The commands' input and output checks: :mod:`ivc.app.paths` (the library's words, which the CLI's error
+handler turns into its flags: ``overwrite=True`` is ``--force``)."""
 
-"The same file" means the same file on disk: the same path, a symbolic link to it, or a
-hard link (the same device and inode), so ``--force`` can never replace a recording or a
-table that the command is reading.
-"""
+from ivc.app.paths import check_output, input_and_output, refuse_inputs_as_outputs, same_file
 
-from __future__ import annotations
-
-import os
-from collections.abc import Iterable, Mapping
-from pathlib import Path
-
-from ivc.errors import InputError
-
-
-def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
-    """Whether paths ``a`` and ``b`` name one file: equal once resolved (symlinks followed), or hard links."""
-    a, b = Path(a), Path(b)
-    try:
-        if os.path.samefile(a, b):  # hard links and symlinks: one device and inode
-            return True
-    except OSError:  # one of them does not exist (yet)
-        pass
-    return a.resolve() == b.resolve()
-
-
-def refuse_inputs_as_outputs(outputs: Mapping[str, str | os.PathLike | None],
-                             inputs: Mapping[str, str | os.PathLike | None]) -> None:
-    """Raise :class:`InputError` when an output names the same file as an input (``--force`` or not).
-
-    ``outputs`` and ``inputs``: {what the user called it (an option or argument name): path};
-    None entries are skipped."""
-    for out_name, out_path in outputs.items():
-        if out_path is None:
-            continue
-        for in_name, in_path in inputs.items():
-            if in_path is not None and same_file(out_path, in_path):
-                how = "" if Path(out_path) == Path(in_path) else f" (the same file as {in_path})"
-                raise InputError(f"{out_name} {out_path} is {in_name}{how}: a command's inputs are never "
-                                 "overwritten, even with --force; choose another output file")
-
-
-def check_output(output: str | os.PathLike, force: bool, inputs: Mapping[str, str | os.PathLike | None],
-                 name: str = "OUTPUT") -> Path:
-    """The output path after the checks: not one of ``inputs``; absent unless ``force``."""
-    refuse_inputs_as_outputs({name: output}, inputs)
-    path = Path(output)
-    if path.exists() and not force:
-        raise FileExistsError(f"{path} exists; pass --force to replace it")
-    return path
-
-
-def input_and_output(input_file: str, output: str, force: bool,
-                     other_inputs: Iterable[tuple[str, str | os.PathLike | None]] = ()) -> tuple[Path, Path]:
-    """(input, output) paths after the checks: the input exists, the output is none of the inputs (raw
-    recordings are never overwritten) and does not exist unless ``force``."""
-    input_path = Path(input_file)
-    if not input_path.exists():
-        raise FileNotFoundError(f"{input_path}: no such file")
-    output_path = check_output(output, force, {"the input": input_file, **dict(other_inputs)})
-    return input_path, output_path
+__all__ = ["check_output", "input_and_output", "refuse_inputs_as_outputs", "same_file"]

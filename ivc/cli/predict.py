@@ -1,25 +1,23 @@
-"""``ivc predict``: predict orientation streams a horizon ahead, or benchmark the predictors on synthetic motion."""
+"""``ivc predict``: predict orientation streams a horizon ahead (:func:`ivc.predict_file`), score the predictors on a
+recording, or benchmark them on synthetic motion."""
 
 from __future__ import annotations
 
 import json
 import re
-from dataclasses import replace
 from pathlib import Path
 
 import click
 import numpy as np
 
 from ivc import session as session_io
+from ivc.app.correct import timing_text
+from ivc.app.predict import PredictOptions, predict_file
+from ivc.cli.flags import echo_report, usage_errors
 from ivc.cli.options import POSITIVE
-from ivc.cli.paths import input_and_output
 from ivc.cli.progress import ON_TERMINAL
-from ivc.collect.checks import rate_warning
 from ivc.collect.imports import read_recording, sniff
-from ivc.collect.plus import is_plus_sequence, read_plus, write_plus
-from ivc.collect.replay import CsvColumns, read_csv_columns, write_csv
-from ivc.predict import DEFAULT_FILTER, FILTERS, TUNABLE, make
-from ivc.predict import steps as steps_lib
+from ivc.predict import DEFAULT_FILTER, FILTERS, make
 from ivc.predict.base import MAX_HORIZON
 from ivc.predict.motion import MOTIONS, head_motion
 from ivc.predict.recording import Score
@@ -32,8 +30,8 @@ from ivc.predict.studies.evaluate import (
     snr_table,
     velocity_table,
 )
-from ivc.predict.tuning import Tuning, synthetic
-from ivc.session import Session, Step
+from ivc.predict.tuning import synthetic
+from ivc.session import Step
 
 #: the benchmark's default filters: the thesis's, Kyger's and the linear ones
 BENCHMARK_FILTERS = ("none", "auto", "direct", "dqekf-cv", "dqekf-ca", "mmdq2", "mmdq3", "q-ekf", "mmae", "alpha-beta",
@@ -59,59 +57,11 @@ def parse_horizons(text: str) -> list[float]:
     return [parse_horizon(part) for part in str(text).split(",") if part.strip()] or [parse_horizon(text)]
 
 
-def tuning_from(path: str) -> Tuning:
-    """:func:`ivc.predict.steps.tuning_from_file`, its summary printed."""
-    tuning = steps_lib.tuning_from_file(path)
-    click.echo(f"--tune-from {path}:\n" + tuning.summary())
-    return tuning
-
-
-def requested_tuning(name: str, tune: bool, tune_from: str | None) -> Tuning | None:
-    """The tuning of ``--tune-from`` (``--tune`` tunes later, per step), after checking the two options.
-
-    Filters without a noise model to tune are predicted as they are, with a note that says so.
-    """
-    if tune and tune_from:
-        raise click.UsageError("give --tune (from the input) or --tune-from FILE, not both")
-    if (tune or tune_from) and name not in TUNABLE:
-        click.echo(f"note: {name} has no noise model to tune (only {', '.join(TUNABLE)} have): predicting without "
-                   "tuning", err=True)
-        return None
-    return tuning_from(tune_from) if tune_from else None
-
-
-def check_tuning_rate(tuning: Tuning, rate_hz: float, what: str) -> None:
-    """Refuse a tuning made at another rate than the stream's, in the words of the CLI's options."""
-    if not tuning.matches_rate(rate_hz):
-        raise click.UsageError(f"--tune-from is a recording at {tuning.rate_hz:g} Hz, {what} is at {rate_hz:g} Hz: "
-                               "tune from a recording at the stream's rate")
-
-
 def echo_timing(label: str, step: Step, valid: np.ndarray | None = None) -> None:
     """The stream's rate, jitter, repeats and gaps, as the predictors will see them."""
-    if step.quaternion is None or step.n_frames < 2:
-        return
-    if not np.all(np.diff(step.time) > 0):
-        click.echo(f"{label}: the time stamps do not increase; frames are taken 1 / {step.sample_rate_hz:g} Hz apart")
-        return
-    click.echo(f"{label}: " + steps_lib.step_timing(step, valid).summary().replace("\n", "\n  "))
-
-
-def predicted_quaternions(step: Step, name: str, horizon: float, valid: np.ndarray | None = None,
-                          tune: bool = False, tuning: Tuning | None = None) -> np.ndarray:
-    """:func:`ivc.predict.steps.predict_quaternions`, printing the tuning estimated with ``tune``."""
-    quaternion, used = steps_lib.predict_quaternions(step, name, horizon, valid, tune, tuning)
-    if tune and used is not None:
-        click.echo(used.summary())
-    return quaternion
-
-
-def predicted_step(step: Step, name: str, horizon: float, tune: bool = False, tuning: Tuning | None = None,
-                   tuning_file: str | None = None) -> Step:
-    out, used = steps_lib.predicted_step(step, name, horizon, tune, tuning, tuning_file)
-    if tune and used is not None:
-        click.echo(used.summary())
-    return replace(out, signal=None, description=f"{step.description} (orientation predicted by ivc)".strip())
+    text = timing_text(label, step, valid)
+    if text:
+        click.echo(text)
 
 
 def run_evaluation(path, step: Step, names: list[str], horizons: list[float], plot: str | None,
@@ -147,26 +97,6 @@ def run_evaluation(path, step: Step, names: list[str], horizons: list[float], pl
         first = next(iter(results))
         plot_scores(results[first], plot, title=f"{Path(path).name}, sensor {first}")
         click.echo(f"wrote {plot}")
-
-
-def _predict_plus(input_path, output_path, name, delta, tune, tuning, tune_from, rate) -> None:
-    """A PLUS sequence in; the sequence with ``<Tool>To<Tracker>Predicted`` transforms added (or a CSV, mm)."""
-    if not (output_path.suffix.lower() == input_path.suffix.lower() or session_io.is_recording_csv(output_path)):
-        raise click.UsageError(f"a PLUS sequence is predicted into a sequence of the same format (-o "
-                               f"FILE{input_path.suffix}) or a CSV (-o FILE.csv)")
-    sequence = read_plus(input_path)
-    step = sequence.step
-    if rate:
-        step.sample_rate_hz = rate
-    out = predicted_step(step, name, delta, tune, tuning, tune_from)
-    with session_io.atomic_path(output_path) as tmp:
-        if session_io.is_recording_csv(output_path):
-            write_csv(out, tmp, length_unit="mm")
-        else:
-            write_plus(sequence, tmp, {"{tool}To{tracker}Predicted": (out.position, out.quaternion, None)})
-    click.echo(f"{input_path.name}: {step.n_frames} frames x {step.n_sensors} sensors predicted "
-               f"{delta * 1e3:g} ms ahead with {name}")
-    click.echo(f"wrote {output_path}")
 
 
 def run_compensators(seed: int, evaluations: int, as_json: bool) -> None:
@@ -308,52 +238,12 @@ def predict(input_file, filters, horizon, evaluate, import_unit, output, steps, 
         raise click.UsageError("give INPUT_FILE and -o OUTPUT (or --benchmark)")
     if len(filters) > 1:
         raise click.UsageError("predict a stream with one --filter")
-    name = filters[0] if filters else DEFAULT_FILTER
-    delta = parse_horizon(horizon)
-    input_path, output_path = input_and_output(input_file, output, force, [("--tune-from", tune_from)])
-    tuning = requested_tuning(name, tune, tune_from)
-    if is_plus_sequence(input_path):
-        _predict_plus(input_path, output_path, name, delta, tune, tuning, tune_from, rate)
-        return
-    if session_io.is_recording_csv(input_path) or sniff(input_path) is not None:
-        if not session_io.is_recording_csv(output_path):
-            raise click.UsageError("a recording is predicted into a recording CSV (-o FILE.csv)")
-        if sniff(input_path) is not None:  # another program's format: its import report, positions in metres
-            step, report = read_recording(input_path, rate, import_unit)
-            click.echo(report.text())
-            columns = CsvColumns()
-        else:
-            step, columns = read_csv_columns(input_path, rate)
-            warning = rate_warning(step) if rate is None else None
-            if warning:
-                click.echo(f"warning: {warning}", err=True)
-        echo_timing(input_path.name, step)
-        out = predicted_step(step, name, delta, tune, tuning, tune_from)
-        with session_io.atomic_path(output_path) as tmp:
-            write_csv(out, tmp, columns.extra, length_unit=columns.length_unit)
-        click.echo(f"{input_path.name}: {step.n_frames} frames x {step.n_sensors} sensors predicted "
-                   f"{delta * 1e3:g} ms ahead with {name}")
-        click.echo(f"wrote {output_path}")
-        return
-    data = session_io.read(input_path)
-    names = list(steps) or list(data.steps)
-    unknown = [n for n in names if n not in data.steps]
-    if unknown:
-        raise click.UsageError(f"{input_path} has no step {', '.join(unknown)} (it has {', '.join(data.steps)})")
-    out_steps = {}
-    for n in names:
-        step = data.steps[n]
-        if rate and not step.sample_rate_hz:
-            step.sample_rate_hz = rate
-        echo_timing(n, step)
-        out_steps[n] = predicted_step(step, name, delta, tune, tuning, tune_from)
-        click.echo(f"{n}: {step.n_frames} frames x {step.n_sensors} sensors predicted {delta * 1e3:g} ms ahead "
-                   f"with {name}")
-    predicted = Session(data.hemisphere, out_steps, {n: data.truth[n] for n in names if n in data.truth},
-                        dict(data.attrs, predicted_with=name, prediction_horizon_s=delta))
-    with session_io.atomic_path(output_path) as tmp:
-        session_io.write(predicted, tmp, overwrite=True)
-    click.echo(f"wrote {output_path}")
+    options = PredictOptions(filter=filters[0] if filters else DEFAULT_FILTER, horizon=parse_horizon(horizon),
+                             steps=steps, rate_hz=rate, import_unit=import_unit, tune=tune, tune_from=tune_from,
+                             overwrite=force)
+    with usage_errors("predict"):
+        result = predict_file(input_file, output, options, report=echo_report("predict"))
+    click.echo(f"wrote {result.output}")
 
 
 def _read_one(path, rate, unit, steps) -> Step:

@@ -156,9 +156,6 @@ def tracker_option(command: Callable) -> Callable:
 
 def with_tracker(data: Session, tracker_file: str | None, steps: list[str] | None = None) -> Session:
     """``data`` (a Session) with ``tracker_file``'s model applied to its steps (all, or ``steps``); None: as is."""
-    if tracker_file is None:
-        return data
-    from ivc.collect.tracker_units import apply_tracker_to_session, load_labelled_tracker
+    from ivc.collect.tracker_units import apply_tracker_file
 
-    model, label = load_labelled_tracker(tracker_file)
-    return apply_tracker_to_session(data, model, label, steps)
+    return apply_tracker_file(data, tracker_file, steps)

@@ -30,7 +30,7 @@ def rate_warning(step: Step) -> str | None:
     rate = step.sample_rate_hz
     if rate < MIN_PLAUSIBLE_RATE_HZ:
         return (f"the sample rate inferred from the times is {rate:.3g} Hz: trackers sample at 10-1000 Hz. If the "
-                "times are in milliseconds, name the column time_ms (or pass --rate)")
+                "times are in milliseconds, name the column time_ms (or pass sample_rate_hz=HZ)")
     if rate > MAX_PLAUSIBLE_RATE_HZ:
         return (f"the sample rate inferred from the times is {rate:.3g} Hz: trackers sample at 10-1000 Hz. Are the "
                 "times in seconds?")

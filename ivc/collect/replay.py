@@ -333,7 +333,7 @@ def _assemble(path, numbers, sensors, valid, has_pose, has_signal, sample_rate_h
     if sample_rate_hz is None:
         steps = np.diff(time)
         if len(steps) == 0 or np.median(steps) <= 0:
-            raise CsvError(f"{path}: cannot infer the sample rate from the times; pass --rate")
+            raise CsvError(f"{path}: cannot infer the sample rate from the times; pass sample_rate_hz=HZ")
         sample_rate_hz = float(f"{1.0 / np.median(steps):.6g}")
     return Step(
         time=np.ascontiguousarray(time),

@@ -74,3 +74,12 @@ def apply_tracker_to_session(data: Session, tracker: Tracker, label: str,
     for name in steps if steps is not None else list(data.steps):
         converted[name] = apply_tracker(data.steps[name], tracker, data.hemisphere, label, name)
     return Session(data.hemisphere, converted, dict(data.truth), dict(data.attrs))
+
+
+def apply_tracker_file(data: Session, path: str | Path | None, steps: list[str] | None = None) -> Session:
+    """:func:`apply_tracker_to_session` with the model of the tracker file ``path`` (what ``--tracker-model FILE``
+    and ``tracker_model=FILE`` do); None: ``data`` as it is."""
+    if path is None:
+        return data
+    model, label = load_labelled_tracker(path)
+    return apply_tracker_to_session(data, model, label, steps)

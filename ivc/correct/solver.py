@@ -53,7 +53,7 @@ def _table_noise(table: LookupTable | GridField) -> float:
     if noise is None:
         raise InputError("the table records no signal noise (fitted from reported poses, from a session without "
                          "static steps of signals, or by an older ivc): give the tracker's noise per signal "
-                         "entry (signal_noise=, ivc correct --signal-noise) to predict precision")
+                         "entry (signal_noise=NOISE) to predict precision")
     return noise
 
 

@@ -267,8 +267,8 @@ FORMATS: dict[str, tuple[Callable[..., None], str, str]] = {
                    "Slicer applies as to-parent with no inversion; needs SimpleITK"),
     "itk": (_itk, ".h5", "the same correction as a standard ITK DisplacementFieldTransform (SimpleITK, ITK, ANTs: "
             "TransformPoint(reported) = corrected); needs SimpleITK"),
-    "vrui": (_vrui, ".grid", "Vrui ForwardGridCalibrator grid over the reported region, in the --unit of the tracker "
-                             "driver, ringed by invalid vertices"),
+    "vrui": (_vrui, ".grid", "Vrui ForwardGridCalibrator grid over the reported region, in the length unit of the "
+                             "tracker driver, ringed by invalid vertices"),
 }
 
 
@@ -290,7 +290,7 @@ def export(table: LookupTable, fmt: str, path: str | os.PathLike, *, unit: str |
     written = [path, csv_sidecar(path)] if fmt == "csv" else [path]
     for p in written:
         if p.exists() and not overwrite:
-            raise FileExistsError(f"{p} exists; pass --force to replace it")
+            raise FileExistsError(f"{p} exists; pass overwrite=True to replace it")
     path.parent.mkdir(parents=True, exist_ok=True)
     FORMATS[fmt][0](table, path, unit, spacing)
     return path
@@ -304,13 +304,13 @@ def resolve_unit(fmt: str, unit: str | None) -> str:
     allowed, default = UNITS[fmt]
     unit = default if unit is None else unit
     if unit is None:
-        raise ExportError("vrui: give the length unit of the tracker driver's poses (--unit in for Vrui's Polhemus "
+        raise ExportError("vrui: give the length unit of the tracker driver's poses (unit=in for Vrui's Polhemus "
                           "drivers, which report inches; m, cm or mm for others): Vrui applies the grid in that "
                           "unit and a mismatch corrects nothing")
     if unit not in LENGTH_UNITS:
         raise ExportError(f"unknown length unit {unit!r}; choose one of {', '.join(LENGTH_UNITS)}")
     if allowed is not None and unit not in allowed:
         why = "the canonical table" if fmt == "hdf5" else "3D Slicer and ITK work in millimetres"
-        raise ExportError(f"{fmt} files are in {allowed[0]} only ({why}); drop --unit {unit}")
+        raise ExportError(f"{fmt} files are in {allowed[0]} only ({why}); drop unit={unit}")
     return unit
 

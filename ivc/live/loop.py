@@ -276,7 +276,7 @@ class LiveCorrector:
             name = f.device_name
             if self.sensors is not None and name not in self.sensors:
                 self.stats.unknown += 1
-                self._once(("unknown", name), f"ignoring unknown sensor {name!r} (not in --sensor)")
+                self._once(("unknown", name), f"ignoring unknown sensor {name!r} (not among the sensors asked for)")
                 continue
             if f.payload is None:
                 continue  # undecodable: counted by the framer

@@ -53,9 +53,10 @@ _ADVICE = {
     "outside the cube": "sensor 0 was mostly outside the cube: redo `ivc collect wand_sweep` keeping wand sensor 0 "
                         "inside the cube",
     "residual too high": "the cube field does not explain sensor 0's signal (rms(Λ) too high): redo "
-                         "`ivc collect cube_survey` (and check the declared cube pose), or raise --max-residual",
+                         "`ivc collect cube_survey` (and check the declared cube pose), or raise the gate "
+                         "(max_residual=)",
     "estimated error too high": "the estimated sample errors exceed the gate: redo `ivc collect wand_calibration` and "
-                                "`ivc collect wand_sweep` more slowly, or raise --max-error-mm",
+                                "`ivc collect wand_sweep` more slowly, or raise the gate (max_error=)",
 }
 
 Progress = Callable[[str, int], Callable[[int], None]]
@@ -141,7 +142,7 @@ def check_grid_memory(shape: tuple[int, int, int], limit: int | None = None) -> 
         nodes = float(np.prod(np.asarray(shape, dtype=float)))
         raise InputError(f"a grid of {' x '.join(str(int(n)) for n in shape)} = {nodes:.3g} nodes needs about "
                          f"{need / 2**30:.3g} GiB (limit {limit / 2**30:.3g} GiB): use a coarser spacing "
-                         "(--grid SPACING, in mm) or fewer nodes")
+                         "(spacing=SPACING) or fewer nodes")
 
 
 def _noop(desc: str, total: int) -> Callable[[int], None]:

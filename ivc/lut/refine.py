@@ -114,7 +114,7 @@ def refine_map(first: MapFit, mapping, model, S: np.ndarray, sweep_valid: np.nda
             break
     for step in history:
         step["kept"] = step["iteration"] == best_iteration
-    return best, history, stopped or f"--max-refinements {max_refinements} reached"
+    return best, history, stopped or f"the limit of {max_refinements} refinements reached"
 
 
 def skew(v: np.ndarray) -> np.ndarray:

@@ -91,7 +91,7 @@ def write(table: LookupTable, path: str | os.PathLike, *, overwrite: bool = Fals
     """Write ``table`` atomically; refuse to replace an existing file unless ``overwrite``."""
     path = Path(path)
     if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} exists; pass --force to replace it")
+        raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
         h5.attrs.update(ivc_format=FORMAT_NAME, ivc_format_version=FORMAT_VERSION, length_unit="m",
                         hemisphere=table.hemisphere, field_unit=FIELD_UNIT)

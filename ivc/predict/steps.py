@@ -64,7 +64,7 @@ def predict_quaternions(step: Step, name: str, horizon: float, valid: np.ndarray
     if step.quaternion is None:
         raise PredictorError("this input has no orientations (signals only): run `ivc correct` first")
     if not step.sample_rate_hz:
-        raise PredictorError("the input does not give its sample rate; pass --rate HZ")
+        raise PredictorError("the input does not give its sample rate; pass rate_hz=HZ")
     ok = step.valid_mask if valid is None else valid & step.valid_mask
     if tune and name in TUNABLE:
         tuning = estimate(step.quaternion, step.sample_rate_hz, valid=ok)

@@ -139,8 +139,8 @@ def build_report(session: Session, table: LookupTable, directory: str | os.PathL
     directory = Path(directory)
     existing = [directory / name for name in REPORT_FILES if (directory / name).exists()]
     if existing and not overwrite:
-        raise FileExistsError(f"{existing[0]} exists; pass overwrite=True (--force) to replace the report, or "
-                              "choose another directory")
+        raise FileExistsError(f"{existing[0]} exists; pass overwrite=True to replace the report, or choose another "
+                              "directory")
     _check_writable(directory)
     names = names or {}
     data = gather(session, table, check, step, thin, max_frames,

@@ -1,6 +1,16 @@
 """The HDF5 session file every command reads and writes (docs/session-format.md)."""
 
-from ivc.session.io import add_step, atomic_path, is_recording_csv, read, write, writer_lock
+from ivc.session.io import (
+    FLAGS_MEANING,
+    StepCorrection,
+    add_step,
+    atomic_path,
+    is_recording_csv,
+    read,
+    read_corrections,
+    write,
+    writer_lock,
+)
 from ivc.session.model import (
     CUBE_SENSORS,
     DECLARED_POSE_ATTRS,
@@ -26,6 +36,7 @@ from ivc.session.model import (
 
 __all__ = [
     "CUBE_SENSORS",
+    "FLAGS_MEANING",
     "DECLARED_POSE_ATTRS",
     "EXTENSION_PREFIX",
     "FIT_STEPS",
@@ -35,6 +46,7 @@ __all__ = [
     "STEP_DESCRIPTIONS",
     "WORKING_VOLUME_ATTRS",
     "Session",
+    "StepCorrection",
     "SessionError",
     "Step",
     "Truth",
@@ -50,5 +62,6 @@ __all__ = [
     "atomic_path",
     "is_recording_csv",
     "read",
+    "read_corrections",
     "write",
 ]

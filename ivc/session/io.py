@@ -13,7 +13,8 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
@@ -33,6 +34,29 @@ from ivc.session.model import (
 _STEP_DATASETS = ("time", "signal", "position", "quaternion", "valid")
 _STEP_ATTRS = ("sample_rate_hz", "sensor_ids", "description")
 _FILE_ATTRS = ("ivc_format", "ivc_format_version", "length_unit", "hemisphere")
+
+#: the flag bits of a corrected pose (``ivc.correct.flags``), as the ``meaning`` attribute of ``flags`` states them
+FLAGS_MEANING = ("0 trusted; bits: 1 outside the mapped volume, 2 not converged, 4 residual too high (reported poses: "
+                 "the map does not produce the pose, or not uniquely), 8 invalid input, 16 predicted precision over "
+                 "the limit")
+_PRECISION_MEANING = ("predicted RMS error of the corrected pose from the tracker's signal noise (Cramér-Rao bound of "
+                      "one frame)")
+
+
+@dataclass
+class StepCorrection:
+    """The datasets a corrected session adds to a step (docs/session-format.md, "Corrected sessions").
+
+    ``flags`` (F, N) int: 0 for a trusted pose, else the bits of :data:`FLAGS_MEANING`; ``residual`` (F, N):
+    rms(M − T S)/rms(S) of each corrected sample (reported poses: the pose-domain misfit); ``precision`` (F, N),
+    metres, and ``orientation_precision`` (F, N), radians: the predicted RMS error of each corrected pose, when it
+    was asked for (else None).
+    """
+
+    flags: np.ndarray
+    residual: np.ndarray
+    precision: np.ndarray | None = None
+    orientation_precision: np.ndarray | None = None
 
 
 @contextlib.contextmanager
@@ -272,24 +296,63 @@ def _write_header(h5: h5py.File, session: Session) -> None:
 
 
 def write(session: Session, path: str | os.PathLike, *, overwrite: bool = False,
-          on_wait: Callable[[str], None] | None = None) -> None:
+          on_wait: Callable[[str], None] | None = None,
+          corrections: Mapping[str, StepCorrection] | None = None) -> None:
     """Write a whole session atomically; refuse to replace an existing file unless ``overwrite``.
-    One writer at a time (:func:`writer_lock`; ``on_wait`` is told when this one waits for another)."""
+
+    ``corrections``: {step name: :class:`StepCorrection`}, the flags, residuals and predicted precision of a
+    corrected session's steps (``ivc correct``), written into those steps' groups. One writer at a time
+    (:func:`writer_lock`; ``on_wait`` is told when this one waits for another).
+    """
     path = Path(path)
     with writer_lock(path, on_wait=on_wait):
-        _write(session, path, overwrite)
+        _write(session, path, overwrite, corrections)
 
 
-def _write(session: Session, path: Path, overwrite: bool) -> None:
+def _write(session: Session, path: Path, overwrite: bool,
+           corrections: Mapping[str, StepCorrection] | None = None) -> None:
     if path.exists() and not overwrite:
-        raise FileExistsError(f"{path}: exists; add steps to it with add_step, or pass overwrite=True (--force)")
+        raise FileExistsError(f"{path}: exists; add steps to it with add_step, or pass overwrite=True")
     session.validate()
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
-        _write_header(h5, session)
-        for name in _ordered(session.steps):
-            _write_step(h5, name, session.steps[name])
-        for name in _ordered(session.truth):
-            _write_truth(h5, name, session.truth[name])
+    unknown = sorted(set(corrections or {}) - set(session.steps))
+    if unknown:
+        raise SessionError(f"corrections of {', '.join(unknown)}: the session has no such step")
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as h5:
+            _write_header(h5, session)
+            for name in _ordered(session.steps):
+                _write_step(h5, name, session.steps[name])
+            for name in _ordered(session.truth):
+                _write_truth(h5, name, session.truth[name])
+        if corrections:
+            with h5py.File(tmp, "a") as h5:
+                for name, correction in corrections.items():
+                    _write_correction(h5[f"steps/{name}"], correction)
+
+
+def _write_correction(group: h5py.Group, correction: StepCorrection) -> None:
+    group["flags"] = correction.flags
+    group["flags"].attrs["meaning"] = FLAGS_MEANING
+    group["residual"] = correction.residual
+    if correction.precision is not None:
+        for key, values, unit in (("precision", correction.precision, "m"),
+                                  ("orientation_precision", correction.orientation_precision, "rad")):
+            group[key] = values
+            group[key].attrs.update(unit=unit, meaning=_PRECISION_MEANING)
+
+
+def read_corrections(path: str | os.PathLike) -> dict[str, StepCorrection]:
+    """{step name: :class:`StepCorrection`} of a corrected session file (``ivc correct``): the steps that carry
+    ``flags`` (none for a session that was not corrected). The session itself is :func:`read`."""
+    found = {}
+    with open_ivc_file(path, FORMAT_NAME, FORMAT_VERSION, "session file") as (h5, _):
+        for name, group in h5.get("steps", {}).items():
+            if "flags" not in group:
+                continue
+            residual = _read_dataset(group, "residual", required=True)
+            found[name] = StepCorrection(_read_dataset(group, "flags"), residual, _read_dataset(group, "precision"),
+                                         _read_dataset(group, "orientation_precision"))
+    return found
 
 
 def _ordered(names) -> list[str]:
@@ -330,7 +393,7 @@ def _add_step(path: Path, name: str, step: Step, truth: Truth | None, hemisphere
             f"{path}: / attribute hemisphere = {existing.hemisphere!r} but this step was solved in {hemisphere!r}"
         )
     if name in existing.steps and not force:
-        raise FileExistsError(f"{path}: step {name!r} is already recorded; pass force=True (--force) to replace it")
+        raise FileExistsError(f"{path}: step {name!r} is already recorded; pass force=True to replace it")
     existing.steps[name] = step
     existing.truth.pop(name, None)
     if truth is not None:

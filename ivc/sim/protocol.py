@@ -19,9 +19,10 @@ from ivc.errors import InputError
 from ivc.fixtures import fixture_frame
 from ivc.fixtures.geometry import FixtureGeometry
 from ivc.session import STEPS, Session, Step, Truth, describe_step, extension_step, is_extension_step, step_order
-from ivc.sim import rig, tracker
+from ivc.sim import rig
 from ivc.sim.field import SecondaryField
 from ivc.sim.scene import Scene
+from ivc.sim.tracker import SimulatedTracker
 
 DEFAULT_FRAMES = {
     "cube_calibration": 2000,
@@ -72,6 +73,13 @@ class Simulator:
     def steps(self) -> list[str]:
         """Every step this scene's protocol records, in recording order."""
         return sorted([*STEPS, *self.extension_steps], key=step_order)
+
+    @property
+    def device(self) -> SimulatedTracker:
+        """The simulated tracker that records each step: the scene's noise, rate, hemisphere and solver, and the
+        device's coil model."""
+        scene = self.scene
+        return SimulatedTracker(scene.noise, scene.sweep_rate_hz, scene.hemisphere, scene.solver, self.tracker)
 
     @cached_property
     def secondary(self) -> SecondaryField:
@@ -148,21 +156,16 @@ class Simulator:
         else:
             positions, quaternions = rig.check_poses(scene, frames, rng)
         distorted = name in ("cube_survey", "wand_sweep", "check") or extension
-        step = tracker.measure(
+        step = self.device.measure(
             positions,
             quaternions,
             secondary=self.secondary if distorted else None,
-            noise=scene.noise,
-            rate_hz=scene.sweep_rate_hz,
-            hemisphere=scene.hemisphere,
             rng=rng,
             description=f"simulated: {describe_step(name)} (scene {scene.name!r}, seed {self.seed})",
             sensor_prefix="cube" if name.startswith("cube") else (
                 "wand" if name.startswith("wand") or extension else "check"),
-            solver=scene.tracker,
-            tracker=self.tracker,
         )
-        step.attrs.update(attrs, tracker_solver=scene.tracker)
+        step.attrs.update(attrs, tracker_solver=scene.solver)
         return step, Truth(positions, quaternions)
 
     def protocol(self, frames: Mapping[str, int | None] | None = None, *, steps: Sequence[str] | None = None,

@@ -158,8 +158,9 @@ class Scene:
     description: str = ""
     frequency_hz: float = 10_000.0
     hemisphere: str = "+x"
-    #: the solver the simulated tracker reports poses with (ivc.dipole.tracker_solver.SOLVERS)
-    tracker: str = "closed-form"
+    #: the pose solver the simulated tracker reports poses with (ivc.dipole.tracker_solver.SOLVERS); scene key
+    #: ``solver`` (``tracker``, its old name, is still read)
+    solver: str = "closed-form"
     conductors: list[Conductor] = field(default_factory=list)
     spheres: list[FerrousSphere] = field(default_factory=list)
     cube: CubeSpec = field(default_factory=CubeSpec)
@@ -234,9 +235,12 @@ def scene_from_dict(data: dict, name: str = "scene", base: Path | None = None) -
     hemisphere = data.get("hemisphere", "+x")
     if hemisphere not in HEMISPHERES:
         raise SceneError(f"{name}: hemisphere {hemisphere!r}; use one of {', '.join(HEMISPHERES)}")
-    tracker = data.get("tracker", "closed-form")
-    if tracker not in SOLVERS:
-        raise SceneError(f"{name}: tracker {tracker!r}; use one of {', '.join(SOLVERS)}")
+    if "solver" in data and "tracker" in data:
+        raise SceneError(f"{name}: give solver (the tracker's pose solver) once; tracker is its old name")
+    key = "tracker" if "tracker" in data else "solver"
+    solver = data.get(key, "closed-form")
+    if solver not in SOLVERS:
+        raise SceneError(f"{name}: {key} {solver!r}; use one of {', '.join(SOLVERS)}")
     cube_t, wand_t, noise_t, sweep_t, extension_t = (data.get(k, {}) for k in ("cube", "wand", "noise", "sweep",
                                                                                  "extension"))
     cube = CubeSpec(
@@ -293,7 +297,7 @@ def scene_from_dict(data: dict, name: str = "scene", base: Path | None = None) -
         description=data.get("description", ""),
         frequency_hz=float(data.get("frequency_hz", 10_000.0)),
         hemisphere=hemisphere,
-        tracker=tracker,
+        solver=solver,
         conductors=conductors,
         spheres=spheres,
         cube=cube,

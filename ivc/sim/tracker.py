@@ -1,4 +1,4 @@
-"""The simulated AC tracker: true sensor poses in, what a tracker reports out.
+"""The simulated AC tracker (:class:`SimulatedTracker`): true sensor poses in, what a tracker reports out.
 
 For each sample it forms ``S = Tᵀ (f_D(r) + G(r))`` (zero G in free space), applies
 the scene's noise model (gain drift, white noise, dropouts, saturation close to the
@@ -14,6 +14,8 @@ ideal tracker (the default) takes exactly the code path it always took.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -78,3 +80,25 @@ def measure(
         sensor_ids=[f"{sensor_prefix}{i}" for i in range(sensors)],
         description=description,
     )
+
+
+@dataclass(frozen=True)
+class SimulatedTracker:
+    """The simulated device: a tracker with ``noise`` sampling at ``rate_hz`` (Hz) in ``hemisphere``, reporting the
+    poses of its pose ``solver`` (``closed-form`` or ``least-squares``); ``model``: an imperfect device's own coil
+    model (:class:`ivc.dipole.tracker.Tracker`; None: ideal dipoles). :meth:`measure` is :func:`measure` with these.
+    """
+
+    noise: NoiseSpec
+    rate_hz: float
+    hemisphere: str = "+x"
+    solver: str = "closed-form"
+    model: Tracker | None = None
+
+    def measure(self, positions: np.ndarray, quaternions: np.ndarray, *, secondary: SecondaryField | None,
+                rng: np.random.Generator, description: str = "", sensor_prefix: str = "sensor") -> Step:
+        """A recording of true sensor poses ``positions`` (F, N, 3) m, ``quaternions`` (F, N, 4), in the
+        secondary field ``secondary`` (None: free space)."""
+        return measure(positions, quaternions, secondary=secondary, noise=self.noise, rate_hz=self.rate_hz,
+                       hemisphere=self.hemisphere, rng=rng, description=description, sensor_prefix=sensor_prefix,
+                       solver=self.solver, tracker=self.model)
