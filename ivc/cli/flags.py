@@ -43,6 +43,9 @@ COMMAND_FLAGS = {
     "correct": {"rate_hz": "--rate-hz"},
     "demo": {"folder": "--keep"},
     "fit": {"spacing": "--grid"},
+    "collect": {"sensors": "--sensors"},
+    "serve": {"sensors": "--sensors"},
+    "predict": {"unit": "--import-unit"},
 }
 
 _KEYWORD = re.compile(r"(?<![\w./\\-])([a-z][a-z0-9_]*)=(True\b)?")

@@ -342,7 +342,7 @@ def collect_step(source, step: str, session: Session | None = None, *, rule: Sto
                     n = batch[0].n_sensors
                     if expected is not None and n != expected:
                         raise InputError(f"{step} records {expected} sensors but the source sends {n}: pass "
-                                         "sensors= (--sensors) naming them in order, sensor 0 first")
+                                         "sensors= naming them in order, sensor 0 first")
                     names = feed.sensor_names if len(feed.sensor_names) == n else None
                     recorder = StepRecorder(n, names)
                     monitor = SensorMonitor(names or [str(k) for k in range(n)], stale_after_s)
@@ -443,7 +443,7 @@ def collect_protocol(source, steps: Sequence[str] = STEPS, session: Session | No
         existing = [s for s in order if s in _steps_in(output)]
         if existing:
             raise FileExistsError(f"{output}: step(s) {', '.join(existing)} already recorded; pass force=True "
-                                  "(--force) to replace them")
+                                  "to replace them")
     feed = source if isinstance(source, SourceFeed) else SourceFeed(source)
     reports = []
     for name in order:

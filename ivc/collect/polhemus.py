@@ -162,7 +162,7 @@ def read_liberty_csv(path: str | Path, unit: str = "in") -> tuple[Step, ImportRe
         likely = min(LENGTH_UNITS, key=lambda name: abs(np.log(raw * LENGTH_UNITS[name] / 0.5)))
         raise CsvError(f"{path}: read as {unit}, the sensors are {typical:.3g} m from the source at the median, "
                        f"beyond any AC tracker's range ({PLAUSIBLE_RANGE_M:g} m). The file does not state its unit: "
-                       f"pass the one the tracker was set to as unit= (--import-unit), likely "
+                       f"pass the one the tracker was set to as unit=, likely "
                        f"{likely} (a Liberty reports inches by default)")
     local = median_filter(distance, size=(DROPOUT_WINDOW, 1), mode="nearest")
     dropout = distance < DROPOUT_FRACTION * local

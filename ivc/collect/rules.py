@@ -461,7 +461,7 @@ class SweepRule:
         n = step.n_sensors
         if n != len(self.model.wand.positions):
             raise InputError(f"wand_sweep: the source sends {n} sensors but the wand calibration has "
-                             f"{len(self.model.wand.positions)}; pass sensors= (--sensors) naming the wand's sensors")
+                             f"{len(self.model.wand.positions)}; pass sensors= naming the wand's sensors")
         session = Session(self.session.hemisphere, {"wand_sweep": step})
         if isinstance(self.model, FixtureModel):
             if step.signal is None:  # a pose-only sweep after signal calibrations: rebuild the signals
@@ -513,7 +513,7 @@ class SweepRule:
             problems.append(f"wand sensor{'s' if len(loose) > 1 else ''} {', '.join(map(str, loose))} "
                             f"{'are' if len(loose) > 1 else 'is'} up to {1e3 * np.nanmax(self.recent_rigidity):.0f} mm "
                             "off the wand calibration's lever arms: a loose sensor, or the sensors in the wrong order "
-                            "(sensors=, --sensors)")
+                            "(sensors=)")
         if self.recent_outside > 0.5:
             problems.append(f"sensor 0 left the cube ({100 * self.recent_outside:.0f} % of the last second's frames): "
                             "keep the wand's tip inside the cube")
