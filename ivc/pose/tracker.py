@@ -1,29 +1,72 @@
 """Sensor pose in free space with a calibrated tracker model (docs/tracker.md).
 
-The start is the closed-form dipole pose (docs/conventions.md) of the gain-corrected
-signal ``B⁻ᵀ S A⁻¹``, exact for concentric coils without noise; Levenberg-Marquardt on
-the full model (coil offsets included) then minimises ``‖S − S_model(r, T)‖_F`` over
-position and a rotation increment ``T ← T exp([ω]×)``, every frame of the batch
-stepping together (:func:`ivc.pose.solver.levenberg_marquardt`). The ideal tracker
-gives the closed-form pose itself, bit for bit. A tracker's output correction, if it
-has one, is applied last.
+The solve minimises ``‖S − S_model(r, T)‖_F`` over position and a rotation increment
+``T ← T exp([ω]×)`` by Levenberg-Marquardt, every frame of the batch stepping together
+(:func:`ivc.pose.solver.levenberg_marquardt`). What makes it hold on any coil geometry is
+the start and the gate:
+
+- **Start.** The closed-form dipole pose of the gain-corrected signal ``B⁻ᵀ (S − bias) A⁻¹``
+  is exact only for concentric coils. With coils tens of millimetres off-centre it can sit
+  in another basin, so the solve follows the model from its concentric approximation
+  (the same moments, all coils at their centroid) to the full model: the coil offsets
+  are scaled by λ = 0, ¼, ½, ¾, 1 and each stage starts from the last one's pose
+  (continuation), a path along which the minimum moves by millimetres per stage.
+- **Gate.** A frame has *converged* only when its relative residual
+  ``‖S − S_model‖_F / ‖S‖_F`` is within the model's own gate (:func:`residual_gate`: the
+  calibration's residue distribution, and the signal noise when the caller knows it).
+  A wrong minimum leaves a residual of percent against the model's tenths, so it fails.
+- **Retry.** A frame that fails the gate is solved again from a few other starts (the
+  continuation's and the closed form's poses turned half a turn about each axis, nearer
+  and farther, both hemispheres' closed forms) and the best residual on the declared side
+  is kept; it is reported converged only if that passes the gate.
+
+The ideal tracker gives the closed-form pose itself, bit for bit. A tracker's output
+correction, if it has one, is applied last, to every frame.
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from ivc import rotations
 from ivc.dipole import closed_form_pose, hemisphere_vector
-from ivc.dipole.tracker import Tracker
+from ivc.dipole.field import field as dipole_field
+from ivc.dipole.tracker import DEFAULT_RESIDUAL_GATE, Tracker
 from ivc.errors import InputError
-from ivc.pose.solver import PoseSolution, levenberg_marquardt
+from ivc.pose.solver import PoseSolution, levenberg_marquardt, procrustes
 
-__all__ = ["tracker_pose"]
+__all__ = ["GATE_FACTOR", "IdealSignals", "ideal_signals", "residual_gate", "tracker_pose"]
+
+#: the gate is this many times the model's own 99th-percentile residual (and the noise's)
+GATE_FACTOR = 4.0
+#: the continuation's offset scales, the last one the full model
+CONTINUATION = (0.0, 0.25, 0.5, 0.75, 1.0)
+_STAGE_ITERATIONS = 8
+_FAR = 100.0  # m: a trial position beyond this has run off (the field there is nothing)
 
 
-def _directions(hemisphere: str | ArrayLike, frames: int) -> np.ndarray:
+def residual_gate(tracker: Tracker, noise_relative: float = 0.0) -> float:
+    """The largest relative residual ``‖S − S_model‖_F / ‖S‖_F`` of a right pose under ``tracker``.
+
+    ``tracker.residual_gate`` (set by a calibration: :data:`GATE_FACTOR` times the 99th
+    percentile of the calibration points' residuals; :data:`DEFAULT_RESIDUAL_GATE` for a
+    model without one), combined with ``GATE_FACTOR · √3 · noise_relative`` for signals whose
+    per-entry noise is ``noise_relative`` of ``‖S‖₂`` (the residual noise leaves after a
+    six-parameter fit of nine entries is at most ``√3`` of that, relative to ``‖S‖_F``).
+    """
+    if not (math.isfinite(noise_relative) and noise_relative >= 0):
+        raise InputError(f"noise_relative must be a fraction >= 0, got {noise_relative}")
+    model = tracker.residual_gate if tracker.residual_gate is not None else DEFAULT_RESIDUAL_GATE
+    return float(math.hypot(model, GATE_FACTOR * math.sqrt(3.0) * noise_relative))
+
+
+def _directions(hemisphere: str | ArrayLike | None, tracker: Tracker, frames: int) -> np.ndarray:
+    if hemisphere is None:
+        hemisphere = tracker.hemisphere if tracker.hemisphere is not None else "+x"
     if isinstance(hemisphere, str):
         return np.broadcast_to(hemisphere_vector(hemisphere), (frames, 3))
     h = np.asarray(hemisphere, dtype=float)
@@ -32,47 +75,154 @@ def _directions(hemisphere: str | ArrayLike, frames: int) -> np.ndarray:
     return np.broadcast_to(h, (frames, 3))
 
 
-def tracker_pose(S: ArrayLike, tracker: Tracker | None = None, hemisphere: str | ArrayLike = "+x", *,
-                 max_iterations: int = 50, step_tolerance: float = 1e-10, correct: bool = True) -> PoseSolution:
+def _scaled(tracker: Tracker, scale: float) -> Tracker:
+    """The model with its coil offsets scaled by ``scale`` (0: its concentric approximation), no output correction."""
+    return Tracker(tracker.source_moments, tracker.sensor_moments, scale * tracker.source_offsets,
+                   scale * tracker.sensor_offsets, bias=tracker.bias)
+
+
+def _refine(S: np.ndarray, tracker: Tracker, r: np.ndarray, T: np.ndarray, idx: np.ndarray, max_iterations: int,
+            step_tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt on frames ``idx`` of (r, T), updated in place; their convergence, iterations,
+    residuals (len, 9) and Jacobian (len, 9, 6)."""
+
+    def residual(rows, r_, T_):
+        with np.errstate(all="ignore"):
+            Sm, dS = tracker.pose_jacobian(r_, T_)
+            e_, J_ = (S[rows] - Sm).reshape(len(rows), 9), -dS.reshape(len(rows), 9, 6)
+        scale = np.linalg.norm(S[rows].reshape(len(rows), 9), axis=1)
+        wild = ~(np.all(np.isfinite(e_), axis=1) & np.all(np.isfinite(J_), axis=(1, 2))
+                 & (np.linalg.norm(r_, axis=1) < _FAR) & (np.abs(J_).max(axis=(1, 2)) > 1e-12 * scale))
+        e_[wild], J_[wild] = np.inf, np.eye(9, 6)  # at a coil's centre or run off to infinity: never accepted
+        return e_, J_
+
+    r_i, T_i = r[idx].copy(), T[idx].copy()
+    e, J = residual(idx, r_i, T_i)
+
+    def trial(rows, step):
+        r_t = r_i[rows] + step[:, :3]
+        T_t = T_i[rows] @ rotations.to_matrix(rotations.from_rotvec(step[:, 3:]))
+        return (r_t, T_t), *residual(idx[rows], r_t, T_t)
+
+    converged, iterations = levenberg_marquardt((r_i, T_i), e, J, np.all(np.isfinite(e), axis=1), trial,
+                                                max_iterations, step_tolerance)
+    r[idx], T[idx] = r_i, T_i
+    return converged, iterations, e, J
+
+
+def _relative(e: np.ndarray, S: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(e, axis=-1) / np.linalg.norm(S.reshape(len(S), 9), axis=-1)
+
+
+def _eigen_starts(Sc: np.ndarray, h: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Dipole poses of gain-corrected signals ``Sc`` (F, 3, 3) along each eigenvector of ``ScᵀSc`` (the
+    closed form takes the principal one; near a source of offset coils the position can lie along
+    another), on the declared side ``h`` (F, 3), each with its least-squares orientation."""
+    B = np.swapaxes(Sc, 1, 2) @ Sc
+    _, vectors = np.linalg.eigh(B)
+    distance = (6.0 / np.trace(B, axis1=1, axis2=2)) ** (1.0 / 6.0)
+    out = []
+    for k in (2, 1, 0):
+        v = vectors[:, :, k]
+        v = np.where((np.einsum("fi,fi->f", v, h) < 0)[:, None], -v, v)
+        r = distance[:, None] * v
+        out.append((r, procrustes(dipole_field(r), Sc)))
+    return out
+
+
+def _candidates(r: np.ndarray, T: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Other starts near a pose: the orientation turned half a turn about each of its axes, the
+    position nearer and farther."""
+    out = []
+    for axis in range(3):
+        turn = rotations.to_matrix(rotations.from_rotvec(np.pi * np.eye(3)[axis]))
+        out.append((r.copy(), T @ turn))
+    for scale in (0.8, 1.25):
+        out.append((scale * r, T.copy()))
+    return out
+
+
+def _solve(S: np.ndarray, tracker: Tracker, h: np.ndarray, gate: float, max_iterations: int, step_tolerance: float,
+           retry: bool):
+    """Poses of finite frames S (F, 3, 3) under the full model; returns r, T, converged (LM), passed (gate),
+    iterations, residual (F,) and the last residuals and Jacobian."""
+    F = len(S)
+    r0, T0 = closed_form_pose(tracker.corrected(S), "+x")
+    flip = np.einsum("fi,fi->f", r0, h) < 0
+    r0[flip] = -r0[flip]
+    r, T = r0.copy(), T0.copy()
+    full = _scaled(tracker, 1.0)
+    converged, iterations, e, J = _refine(S, full, r, T, np.arange(F), max_iterations, step_tolerance)
+    residual = _relative(e, S)
+
+    def attempt(bad, r_s, T_s, path):
+        """Solve frames ``bad`` again from (r_s, T_s) along the models ``path``; keep what lowers the residual."""
+        r_c, T_c = r.copy(), T.copy()
+        r_c[bad], T_c[bad] = r_s, T_s
+        for scale in path[:-1]:
+            iterations[bad] += _refine(S, _scaled(tracker, scale), r_c, T_c, bad, _STAGE_ITERATIONS,
+                                       step_tolerance)[1]
+        conv_c, its_c, e_c, J_c = _refine(S, full, r_c, T_c, bad, max_iterations, step_tolerance)
+        iterations[bad] += its_c
+        res_c = _relative(e_c, S[bad])
+        side = np.einsum("fi,fi->f", r_c[bad], h[bad]) >= 0
+        better = side & np.isfinite(res_c) & (res_c < residual[bad])
+        take = bad[better]
+        r[take], T[take] = r_c[take], T_c[take]
+        converged[take], residual[take] = conv_c[better], res_c[better]
+        e[take], J[take] = e_c[better], J_c[better]
+
+    def failing():
+        return np.flatnonzero(~(converged & (residual <= gate)))
+
+    if retry and not tracker.is_concentric and len(bad := failing()):
+        attempt(bad, r0[bad], T0[bad], CONTINUATION)
+    if retry and len(bad := failing()):
+        for r_s, T_s in _eigen_starts(tracker.corrected(S[bad]), h[bad])[1:]:
+            attempt(bad, r_s, T_s, CONTINUATION)
+    if retry and len(bad := failing()):
+        starts = _candidates(r[bad], T[bad]) + _candidates(r0[bad], T0[bad]) + [(-r0[bad], T0[bad])]
+        for r_s, T_s in starts:
+            attempt(bad, r_s, T_s, (1.0,))
+    passed = residual <= gate
+    return r, T, converged, passed, iterations, residual, e, J
+
+
+def tracker_pose(S: ArrayLike, tracker: Tracker | None = None, hemisphere: str | ArrayLike | None = None, *,
+                 max_iterations: int = 50, step_tolerance: float = 1e-10, correct: bool = True,
+                 noise_relative: float = 0.0, gate: float | None = None, retry: bool = True) -> PoseSolution:
     """Poses of free-space signal matrices ``S`` (F, 3, 3) under ``tracker`` (None: ideal).
 
     ``hemisphere``: a declared side (``"+x"``, ...), or a direction (3,) or one per frame
-    (F, 3); the position is taken on its side. Returns a :class:`ivc.pose.solver.PoseSolution`
-    (position metres, source frame; ``residual`` is rms(S − S_model) / rms(S)). Frames with
-    non-finite signals come back NaN, not converged. ``correct``: apply the tracker's output
-    correction (:meth:`ivc.dipole.tracker.Tracker.correct_pose`), if it has one.
+    (F, 3), in the source frame; the position is taken on its side. None: the side the
+    tracker's calibration recorded (:attr:`Tracker.hemisphere`), else ``"+x"``.
+    Returns a :class:`ivc.pose.solver.PoseSolution` (position metres, source frame;
+    ``residual`` is ``‖S − S_model‖_F / ‖S‖_F``). ``converged`` is True only for a frame whose
+    solve converged *and* whose residual is within ``gate`` (default :func:`residual_gate`
+    of the tracker and ``noise_relative``, the signals' per-entry noise relative to ``‖S‖₂``
+    where known): a wrong minimum is never called converged. ``retry``: solve frames that
+    fail from other starts (module docstring). Frames with non-finite signals come back
+    NaN, not converged. ``correct``: apply the tracker's output correction
+    (:meth:`ivc.dipole.tracker.Tracker.correct_pose`), if it has one.
     """
     S = np.asarray(S, dtype=float)
     if S.ndim != 3 or S.shape[1:] != (3, 3):
         raise InputError(f"S must have shape (F, 3, 3), got {S.shape}")
     F = len(S)
-    h = _directions(hemisphere, F)
     tracker = Tracker.ideal() if tracker is None else tracker
+    h = _directions(hemisphere, tracker, F)
     finite = np.all(np.isfinite(S.reshape(F, -1)), axis=1)
     S = np.where(finite[:, None, None], S, np.eye(3))  # placeholders, never reported
-    r, T = closed_form_pose(tracker.corrected(S), "+x")
-    flip = np.einsum("fi,fi->f", r, h) < 0
-    r[flip] = -r[flip]
     zeros = np.zeros(F)
     if tracker.is_ideal:
+        r, T = closed_form_pose(S, "+x")
+        flip = np.einsum("fi,fi->f", r, h) < 0
+        r[flip] = -r[flip]
         r[~finite], T[~finite] = np.nan, np.nan
         return PoseSolution(r, T, finite.copy(), np.zeros(F, dtype=int), zeros, zeros.copy(), zeros.copy())
-
-    def residual(idx, r_, T_):
-        Sm, dS = tracker.pose_jacobian(r_, T_)
-        return (S[idx] - Sm).reshape(len(idx), 9), -dS.reshape(len(idx), 9, 6)
-
-    every = np.arange(F)
-    e, J = residual(every, r, T)
-
-    def trial(idx, step):
-        r_t = r[idx] + step[:, :3]
-        T_t = T[idx] @ rotations.to_matrix(rotations.from_rotvec(step[:, 3:]))
-        return (r_t, T_t), *residual(idx, r_t, T_t)
-
-    converged, iterations = levenberg_marquardt((r, T), e, J, finite, trial, max_iterations, step_tolerance)
-    rms_s = np.sqrt(np.mean(S**2, axis=(1, 2)))
-    rel = np.sqrt(np.mean(e**2, axis=1)) / rms_s
+    gate = residual_gate(tracker, noise_relative) if gate is None else float(gate)
+    r, T, converged, passed, iterations, rel, e, J = _solve(S, tracker, h, gate, max_iterations, step_tolerance,
+                                                            retry)
     sigma2 = np.sum(e**2, axis=1) / 3.0
     with np.errstate(invalid="ignore"):
         cov = np.linalg.pinv(np.einsum("fki,fkj->fij", J, J)) * sigma2[:, None, None]
@@ -81,4 +231,51 @@ def tracker_pose(S: ArrayLike, tracker: Tracker | None = None, hemisphere: str |
     if correct:
         r, T = tracker.correct_pose(r, T)
     r[~finite], T[~finite] = np.nan, np.nan
-    return PoseSolution(r, T, converged & finite, iterations, rel, pos_sigma, ang_sigma)
+    rel[~finite] = np.nan
+    return PoseSolution(r, T, converged & passed & finite, iterations, rel, pos_sigma, ang_sigma)
+
+
+@dataclass
+class IdealSignals:
+    """Signals in ideal-dipole units (..., 3, 3), and per sample the model's relative residual at the pose
+    the conversion used and whether it passed the gate (:func:`tracker_pose`)."""
+
+    signal: np.ndarray
+    residual: np.ndarray
+    passed: np.ndarray
+
+
+def ideal_signals(S: ArrayLike, tracker: Tracker, hemisphere: str | ArrayLike | None = None, *,
+                  noise_relative: float = 0.0) -> IdealSignals:
+    """What the ideal tracker would read at the same pose (``--tracker-model``; docs/tracker.md).
+
+    Concentric coils: the gain correction ``B⁻ᵀ (S − bias) A⁻¹``, exact for any field (the
+    room's eddy currents are driven by the same source moments); every sample passes.
+    With coil offsets, their share ``D(r, T) = S_model − (Bᵀ Tᵀ f_D(r) A + bias)`` is also
+    removed, at the pose :func:`tracker_pose` solves (geometry-aware start, gate, retry;
+    no output correction): exact in free space, second order in offset and distortion in
+    a distorted room. There a sample's residual also holds what the room adds, so a sample
+    that fails the gate is converted all the same and counted, not dropped.
+    Non-finite matrices stay non-finite (and do not pass).
+    """
+    S = np.asarray(S, dtype=float)
+    if S.shape[-2:] != (3, 3):
+        raise InputError(f"signal matrices must have shape (..., 3, 3), got {S.shape}")
+    lead = S.shape[:-2]
+    flat = S.reshape(-1, 3, 3)
+    finite = np.all(np.isfinite(flat.reshape(len(flat), 9)), axis=1)
+    if tracker.is_ideal or tracker.is_concentric:
+        out = flat.copy() if tracker.is_ideal else tracker.corrected(flat)
+        return IdealSignals(out.reshape(S.shape), np.where(finite, 0.0, np.nan).reshape(lead), finite.reshape(lead))
+    h = hemisphere if hemisphere is None or isinstance(hemisphere, str) else np.broadcast_to(
+        np.asarray(hemisphere, float), S.shape[:-1]).reshape(-1, 3)
+    solution = tracker_pose(flat, tracker, h, correct=False, noise_relative=noise_relative)
+    gains = Tracker(tracker.source_moments, tracker.sensor_moments, bias=tracker.bias)
+    out = np.full(flat.shape, np.nan)
+    ok = np.flatnonzero(finite)
+    r, T = solution.position[ok], solution.rotation[ok]
+    D = tracker.signal(r, T) - gains.signal(r, T)
+    out[ok] = np.linalg.inv(tracker.sensor_moments).T @ (flat[ok] - tracker.bias - D) @ np.linalg.inv(
+        tracker.source_moments)
+    return IdealSignals(out.reshape(S.shape), solution.residual.reshape(lead),
+                        (solution.converged & finite).reshape(lead))
