@@ -33,12 +33,17 @@ from ivc.dipole.field import field as dipole_field
 from ivc.dipole.field import field_jacobian, flat_batch, signal
 from ivc.errors import TrackerError
 
-__all__ = ["DEFAULT_RESIDUAL_GATE", "TRACKER_FORMAT", "TRACKER_VERSION", "Tracker", "load_tracker", "save_tracker"]
+__all__ = ["DEFAULT_RESIDUAL_GATE", "GATE_FACTOR", "MIN_RESIDUAL_GATE", "TRACKER_FORMAT", "TRACKER_VERSION", "Tracker",
+           "load_tracker", "save_tracker"]
 
 TRACKER_FORMAT = "ivc-tracker"
 TRACKER_VERSION = 1
 #: the pose gate of a model without a calibrated one: relative residual ‖S − S_model‖_F / ‖S‖_F
 DEFAULT_RESIDUAL_GATE = 0.01
+#: a calibrated gate is this many times the model's own 99th-percentile residual (and the noise's)
+GATE_FACTOR = 3.0
+#: the smallest calibrated gate (a model fitted to noise-free simulations would otherwise gate at rounding)
+MIN_RESIDUAL_GATE = 1e-4
 
 
 def _matrix(value, name: str) -> np.ndarray:
@@ -125,6 +130,19 @@ class Tracker:
         dr = h @ self.position_correction.T
         dw = h @ self.rotation_correction.T
         return r + dr, rotations.to_matrix(rotations.from_rotvec(dw)) @ T
+
+    def pose_gate(self, noise_relative: float = 0.0) -> float:
+        """The largest relative residual ``‖S − S_model‖_F / ‖S‖_F`` of a right pose under this model.
+
+        :attr:`residual_gate` (a calibration sets it from its own residue; :data:`DEFAULT_RESIDUAL_GATE`
+        without one), combined with ``GATE_FACTOR · √3 · noise_relative`` for signals whose per-entry
+        noise is ``noise_relative`` of ``‖S‖₂`` where the caller knows it (a six-parameter fit of
+        nine entries leaves at most ``√3`` of that, relative to ``‖S‖_F``).
+        """
+        if not (math.isfinite(noise_relative) and noise_relative >= 0):
+            raise TrackerError(f"noise_relative must be a fraction >= 0, got {noise_relative}")
+        own = self.residual_gate if self.residual_gate is not None else DEFAULT_RESIDUAL_GATE
+        return float(math.hypot(own, GATE_FACTOR * math.sqrt(3.0) * noise_relative))
 
     @property
     def is_concentric(self) -> bool:

@@ -12,7 +12,7 @@ the start and the gate:
   are scaled by λ = 0, ¼, ½, ¾, 1 and each stage starts from the last one's pose
   (continuation), a path along which the minimum moves by millimetres per stage.
 - **Gate.** A frame has *converged* only when its relative residual
-  ``‖S − S_model‖_F / ‖S‖_F`` is within the model's own gate (:func:`residual_gate`: the
+  ``‖S − S_model‖_F / ‖S‖_F`` is within the model's own gate (:meth:`Tracker.pose_gate`: the
   calibration's residue distribution, and the signal noise when the caller knows it).
   A wrong minimum leaves a residual of percent against the model's tenths, so it fails.
 - **Retry.** A frame that fails the gate is solved again from a few other starts (the
@@ -26,8 +26,7 @@ correction, if it has one, is applied last, to every frame.
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -35,33 +34,20 @@ from numpy.typing import ArrayLike
 from ivc import rotations
 from ivc.dipole import closed_form_pose, hemisphere_vector
 from ivc.dipole.field import field as dipole_field
-from ivc.dipole.tracker import DEFAULT_RESIDUAL_GATE, Tracker
+from ivc.dipole.tracker import Tracker
 from ivc.errors import InputError
 from ivc.pose.solver import PoseSolution, levenberg_marquardt, procrustes
 
-__all__ = ["GATE_FACTOR", "IdealSignals", "ideal_signals", "residual_gate", "tracker_pose"]
+__all__ = ["GRID_DIRECTIONS", "GRID_RANGES", "GRID_SEPARATION_DEG", "GRID_STARTS", "IdealSignals", "ideal_signals",
+           "tracker_pose"]
 
-#: the gate is this many times the model's own 99th-percentile residual (and the noise's)
-GATE_FACTOR = 4.0
-#: the continuation's offset scales, the last one the full model
-CONTINUATION = (0.0, 0.25, 0.5, 0.75, 1.0)
-_STAGE_ITERATIONS = 8
+#: the start search of a frame that fails the gate: directions on its half sphere, ranges (fractions of
+#: the dipole range of its signal), and how far apart (degrees) the starts it keeps must be
+GRID_DIRECTIONS = 128
+GRID_RANGES = (0.75, 0.85, 0.95, 1.05, 1.15, 1.3)
+GRID_SEPARATION_DEG = 25.0
+GRID_STARTS = 3
 _FAR = 100.0  # m: a trial position beyond this has run off (the field there is nothing)
-
-
-def residual_gate(tracker: Tracker, noise_relative: float = 0.0) -> float:
-    """The largest relative residual ``‖S − S_model‖_F / ‖S‖_F`` of a right pose under ``tracker``.
-
-    ``tracker.residual_gate`` (set by a calibration: :data:`GATE_FACTOR` times the 99th
-    percentile of the calibration points' residuals; :data:`DEFAULT_RESIDUAL_GATE` for a
-    model without one), combined with ``GATE_FACTOR · √3 · noise_relative`` for signals whose
-    per-entry noise is ``noise_relative`` of ``‖S‖₂`` (the residual noise leaves after a
-    six-parameter fit of nine entries is at most ``√3`` of that, relative to ``‖S‖_F``).
-    """
-    if not (math.isfinite(noise_relative) and noise_relative >= 0):
-        raise InputError(f"noise_relative must be a fraction >= 0, got {noise_relative}")
-    model = tracker.residual_gate if tracker.residual_gate is not None else DEFAULT_RESIDUAL_GATE
-    return float(math.hypot(model, GATE_FACTOR * math.sqrt(3.0) * noise_relative))
 
 
 def _directions(hemisphere: str | ArrayLike | None, tracker: Tracker, frames: int) -> np.ndarray:
@@ -73,12 +59,6 @@ def _directions(hemisphere: str | ArrayLike | None, tracker: Tracker, frames: in
     if h.shape not in ((3,), (frames, 3)):
         raise InputError(f"hemisphere must be a name like '+x', a vector (3,) or vectors (F, 3); got {h.shape}")
     return np.broadcast_to(h, (frames, 3))
-
-
-def _scaled(tracker: Tracker, scale: float) -> Tracker:
-    """The model with its coil offsets scaled by ``scale`` (0: its concentric approximation), no output correction."""
-    return Tracker(tracker.source_moments, tracker.sensor_moments, scale * tracker.source_offsets,
-                   scale * tracker.sensor_offsets, bias=tracker.bias)
 
 
 def _refine(S: np.ndarray, tracker: Tracker, r: np.ndarray, T: np.ndarray, idx: np.ndarray, max_iterations: int,
@@ -114,19 +94,61 @@ def _relative(e: np.ndarray, S: np.ndarray) -> np.ndarray:
     return np.linalg.norm(e, axis=-1) / np.linalg.norm(S.reshape(len(S), 9), axis=-1)
 
 
-def _eigen_starts(Sc: np.ndarray, h: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Dipole poses of gain-corrected signals ``Sc`` (F, 3, 3) along each eigenvector of ``ScᵀSc`` (the
-    closed form takes the principal one; near a source of offset coils the position can lie along
-    another), on the declared side ``h`` (F, 3), each with its least-squares orientation."""
-    B = np.swapaxes(Sc, 1, 2) @ Sc
-    _, vectors = np.linalg.eigh(B)
-    distance = (6.0 / np.trace(B, axis1=1, axis2=2)) ** (1.0 / 6.0)
+def _hemisphere_directions(count: int) -> np.ndarray:
+    """``count`` unit vectors spread evenly over the half sphere ``z >= 0`` (a Fibonacci lattice)."""
+    k = np.arange(count) + 0.5
+    z = k / count
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * k
+    rho = np.sqrt(1.0 - z**2)
+    return np.stack([rho * np.cos(phi), rho * np.sin(phi), z], axis=1)
+
+
+_DIRECTIONS = _hemisphere_directions(GRID_DIRECTIONS)
+
+
+def _turn_to(h: np.ndarray) -> np.ndarray:
+    """Rotations (F, 3, 3) taking +z to each unit vector of ``h`` (F, 3)."""
+    h = h / np.linalg.norm(h, axis=1, keepdims=True)
+    helper = np.where((np.abs(h[:, 0]) < 0.9)[:, None], np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+    x = np.cross(helper, h)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    return np.stack([x, np.cross(h, x), h], axis=2)
+
+
+def _grid_starts(S: np.ndarray, tracker: Tracker, h: np.ndarray, count: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The ``count`` best distinct starts (r, T) of each frame from a search over positions on its side.
+
+    With the sensor coils taken at their centroid, ``S ≈ Bᵀ Tᵀ M(r) + bias`` where column ``i``
+    of ``M(r)`` is source coil ``i``'s field ``f_D(r − p_i) a_i`` at ``r``: at a given position
+    the best orientation is the Procrustes rotation of ``M(r)`` onto ``B⁻ᵀ (S − bias)``. The
+    residual left is searched over :data:`GRID_DIRECTIONS` directions on the declared half
+    sphere times the ranges :data:`GRID_RANGES` of the range the signal's size gives, and the
+    best points at least :data:`GRID_SEPARATION_DEG` apart are returned, best first.
+    """
+    Sg = np.linalg.inv(tracker.sensor_moments).T @ (S - tracker.bias)
+    distance = (6.0 / np.sum(tracker.corrected(S) ** 2, axis=(1, 2))) ** (1.0 / 6.0)
+    directions = np.einsum("fab,kb->fka", _turn_to(h), _DIRECTIONS)  # (F, K, 3)
+    F, K = len(S), len(_DIRECTIONS)
+    best_cost = np.full((F, K), np.inf)
+    best_r = np.zeros((F, K, 3))
+    best_T = np.zeros((F, K, 3, 3))
+    p, A = tracker.source_offsets, tracker.source_moments
+    for scale in GRID_RANGES:
+        r = directions * (scale * distance)[:, None, None]
+        M = np.einsum("fkiab,bi->fkai", dipole_field(r[:, :, None, :] - p), A)  # (F, K, 3, 3)
+        T = procrustes(M, Sg[:, None])
+        cost = np.linalg.norm(Sg[:, None] - np.swapaxes(T, -1, -2) @ M, axis=(2, 3))
+        better = cost < best_cost
+        best_cost[better], best_r[better], best_T[better] = cost[better], r[better], T[better]
     out = []
-    for k in (2, 1, 0):
-        v = vectors[:, :, k]
-        v = np.where((np.einsum("fi,fi->f", v, h) < 0)[:, None], -v, v)
-        r = distance[:, None] * v
-        out.append((r, procrustes(dipole_field(r), Sc)))
+    cost = best_cost.copy()
+    cos_limit = np.cos(np.radians(GRID_SEPARATION_DEG))
+    rows = np.arange(F)
+    for _ in range(count):
+        k = np.argmin(cost, axis=1)
+        out.append((best_r[rows, k].copy(), best_T[rows, k].copy()))
+        near = np.einsum("fka,fa->fk", directions, directions[rows, k]) > cos_limit
+        cost[near] = np.inf
     return out
 
 
@@ -151,22 +173,21 @@ def _solve(S: np.ndarray, tracker: Tracker, h: np.ndarray, gate: float, max_iter
     flip = np.einsum("fi,fi->f", r0, h) < 0
     r0[flip] = -r0[flip]
     r, T = r0.copy(), T0.copy()
-    full = _scaled(tracker, 1.0)
+    full = replace(tracker, position_correction=np.zeros((3, 4)), rotation_correction=np.zeros((3, 4)))
     converged, iterations, e, J = _refine(S, full, r, T, np.arange(F), max_iterations, step_tolerance)
     residual = _relative(e, S)
 
-    def attempt(bad, r_s, T_s, path):
-        """Solve frames ``bad`` again from (r_s, T_s) along the models ``path``; keep what lowers the residual."""
+    def attempt(bad, r_s, T_s):
+        """Solve frames ``bad`` again from (r_s, T_s); keep a pose that passes where the last did not, or
+        that lowers the residual."""
         r_c, T_c = r.copy(), T.copy()
         r_c[bad], T_c[bad] = r_s, T_s
-        for scale in path[:-1]:
-            iterations[bad] += _refine(S, _scaled(tracker, scale), r_c, T_c, bad, _STAGE_ITERATIONS,
-                                       step_tolerance)[1]
         conv_c, its_c, e_c, J_c = _refine(S, full, r_c, T_c, bad, max_iterations, step_tolerance)
         iterations[bad] += its_c
         res_c = _relative(e_c, S[bad])
         side = np.einsum("fi,fi->f", r_c[bad], h[bad]) >= 0
-        better = side & np.isfinite(res_c) & (res_c < residual[bad])
+        ok_c, ok = conv_c & (res_c <= gate), converged[bad] & (residual[bad] <= gate)
+        better = side & np.isfinite(res_c) & ((ok_c & ~ok) | ((ok_c == ok) & (res_c < residual[bad])))
         take = bad[better]
         r[take], T[take] = r_c[take], T_c[take]
         converged[take], residual[take] = conv_c[better], res_c[better]
@@ -175,15 +196,16 @@ def _solve(S: np.ndarray, tracker: Tracker, h: np.ndarray, gate: float, max_iter
     def failing():
         return np.flatnonzero(~(converged & (residual <= gate)))
 
-    if retry and not tracker.is_concentric and len(bad := failing()):
-        attempt(bad, r0[bad], T0[bad], CONTINUATION)
-    if retry and len(bad := failing()):
-        for r_s, T_s in _eigen_starts(tracker.corrected(S[bad]), h[bad])[1:]:
-            attempt(bad, r_s, T_s, CONTINUATION)
-    if retry and len(bad := failing()):
-        starts = _candidates(r[bad], T[bad]) + _candidates(r0[bad], T0[bad]) + [(-r0[bad], T0[bad])]
-        for r_s, T_s in starts:
-            attempt(bad, r_s, T_s, (1.0,))
+    if retry:  # each start only for the frames that still fail, until none does
+        plans = [lambda bad: _grid_starts(S[bad], tracker, h[bad], GRID_STARTS),
+                 lambda bad: _candidates(r[bad], T[bad]) + [(-r0[bad], T0[bad])]]
+        for starts in plans:
+            planned = failing()
+            for r_s, T_s in starts(planned) if len(planned) else []:
+                still = np.isin(planned, failing())
+                if not still.any():
+                    break
+                attempt(planned[still], r_s[still], T_s[still])
     passed = residual <= gate
     return r, T, converged, passed, iterations, residual, e, J
 
@@ -198,7 +220,7 @@ def tracker_pose(S: ArrayLike, tracker: Tracker | None = None, hemisphere: str |
     tracker's calibration recorded (:attr:`Tracker.hemisphere`), else ``"+x"``.
     Returns a :class:`ivc.pose.solver.PoseSolution` (position metres, source frame;
     ``residual`` is ``‖S − S_model‖_F / ‖S‖_F``). ``converged`` is True only for a frame whose
-    solve converged *and* whose residual is within ``gate`` (default :func:`residual_gate`
+    solve converged *and* whose residual is within ``gate`` (default :meth:`Tracker.pose_gate`
     of the tracker and ``noise_relative``, the signals' per-entry noise relative to ``‖S‖₂``
     where known): a wrong minimum is never called converged. ``retry``: solve frames that
     fail from other starts (module docstring). Frames with non-finite signals come back
@@ -220,7 +242,7 @@ def tracker_pose(S: ArrayLike, tracker: Tracker | None = None, hemisphere: str |
         r[flip] = -r[flip]
         r[~finite], T[~finite] = np.nan, np.nan
         return PoseSolution(r, T, finite.copy(), np.zeros(F, dtype=int), zeros, zeros.copy(), zeros.copy())
-    gate = residual_gate(tracker, noise_relative) if gate is None else float(gate)
+    gate = tracker.pose_gate(noise_relative) if gate is None else float(gate)
     r, T, converged, passed, iterations, rel, e, J = _solve(S, tracker, h, gate, max_iterations, step_tolerance,
                                                             retry)
     sigma2 = np.sum(e**2, axis=1) / 3.0
