@@ -35,7 +35,6 @@ from benchmarks.harness import HEADER, Figure
 from ivc import rotations
 from ivc.collect.ilemt import SOURCE_SIGN_FIXES, read_ilemt, stack
 from ivc.dipole.calibrate import calibrate, chain, predicted_signal, residue, solve_chain_poses
-from ivc.pose.solver import levenberg_marquardt
 from ivc.pose.tracker import tracker_pose
 
 ILEMT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "ilemt"
@@ -135,21 +134,9 @@ def _folder_figures(folder: Path, s: dict, concentric: bool) -> list[Figure]:
 
 def _floor(S: np.ndarray, tracker, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``tracker``'s solve of ``S`` started at the chain's poses: the single-frame noise floor."""
-    r, T = P[:, :3, 3].copy(), P[:, :3, :3].copy()
-
-    def residual(idx, r_, T_):
-        Sm, dS = tracker.pose_jacobian(r_, T_)
-        return (S[idx] - Sm).reshape(len(idx), 9), -dS.reshape(len(idx), 9, 6)
-
-    e, J = residual(np.arange(len(S)), r, T)
-
-    def trial(idx, step):
-        r_t = r[idx] + step[:, :3]
-        T_t = T[idx] @ rotations.to_matrix(rotations.from_rotvec(step[:, 3:]))
-        return (r_t, T_t), *residual(idx, r_t, T_t)
-
-    levenberg_marquardt((r, T), e, J, np.ones(len(S), bool), trial, 50, 1e-12)
-    return r, T
+    solution = tracker_pose(S, tracker, P[:, :3, 3], correct=False, retry=False, step_tolerance=1e-12,
+                            start=(P[:, :3, 3], P[:, :3, :3]))
+    return solution.position, solution.rotation
 
 
 def _simulated(offset_mm: float, seed: int) -> list[Figure]:

@@ -21,23 +21,9 @@ NOISE = 2e-4
 
 def _truth_started(S, tracker, P):
     """The floor: the same model's solve started at the true pose (no start problem to solve)."""
-    from ivc.pose.solver import levenberg_marquardt
-
-    r, T = P[:, :3, 3].copy(), P[:, :3, :3].copy()
-
-    def residual(idx, r_, T_):
-        Sm, dS = tracker.pose_jacobian(r_, T_)
-        return (S[idx] - Sm).reshape(len(idx), 9), -dS.reshape(len(idx), 9, 6)
-
-    e, J = residual(np.arange(len(S)), r, T)
-
-    def trial(idx, step):
-        r_t = r[idx] + step[:, :3]
-        T_t = T[idx] @ rotations.to_matrix(rotations.from_rotvec(step[:, 3:]))
-        return (r_t, T_t), *residual(idx, r_t, T_t)
-
-    levenberg_marquardt((r, T), e, J, np.ones(len(S), bool), trial, 50, 1e-12)
-    return r, T
+    solution = tracker_pose(S, tracker, P[:, :3, 3], correct=False, retry=False, step_tolerance=1e-12,
+                            start=(P[:, :3, 3], P[:, :3, :3]))
+    return solution.position, solution.rotation
 
 
 @pytest.fixture(scope="module")

@@ -165,14 +165,14 @@ def _candidates(r: np.ndarray, T: np.ndarray) -> list[tuple[np.ndarray, np.ndarr
 
 
 def _solve(S: np.ndarray, tracker: Tracker, h: np.ndarray, gate: float, max_iterations: int, step_tolerance: float,
-           retry: bool):
+           retry: bool, start):
     """Poses of finite frames S (F, 3, 3) under the full model; returns r, T, converged (LM), passed (gate),
     iterations, residual (F,) and the last residuals and Jacobian."""
     F = len(S)
     r0, T0 = closed_form_pose(tracker.corrected(S), "+x")
     flip = np.einsum("fi,fi->f", r0, h) < 0
     r0[flip] = -r0[flip]
-    r, T = r0.copy(), T0.copy()
+    r, T = (r0.copy(), T0.copy()) if start is None else (start[0].copy(), start[1].copy())
     full = replace(tracker, position_correction=np.zeros((3, 4)), rotation_correction=np.zeros((3, 4)))
     converged, iterations, e, J = _refine(S, full, r, T, np.arange(F), max_iterations, step_tolerance)
     residual = _relative(e, S)
@@ -212,7 +212,8 @@ def _solve(S: np.ndarray, tracker: Tracker, h: np.ndarray, gate: float, max_iter
 
 def tracker_pose(S: ArrayLike, tracker: Tracker | None = None, hemisphere: str | ArrayLike | None = None, *,
                  max_iterations: int = 50, step_tolerance: float = 1e-10, correct: bool = True,
-                 noise_relative: float = 0.0, gate: float | None = None, retry: bool = True) -> PoseSolution:
+                 noise_relative: float = 0.0, gate: float | None = None, retry: bool = True,
+                 start: tuple[ArrayLike, ArrayLike] | None = None) -> PoseSolution:
     """Poses of free-space signal matrices ``S`` (F, 3, 3) under ``tracker`` (None: ideal).
 
     ``hemisphere``: a declared side (``"+x"``, ...), or a direction (3,) or one per frame
@@ -223,7 +224,9 @@ def tracker_pose(S: ArrayLike, tracker: Tracker | None = None, hemisphere: str |
     solve converged *and* whose residual is within ``gate`` (default :meth:`Tracker.pose_gate`
     of the tracker and ``noise_relative``, the signals' per-entry noise relative to ``‖S‖₂``
     where known): a wrong minimum is never called converged. ``retry``: solve frames that
-    fail from other starts (module docstring). Frames with non-finite signals come back
+    fail from other starts (module docstring). ``start``: positions (F, 3) m and orientations
+    (F, 3, 3) to start the first pass from instead of the closed form (a previous frame's pose;
+    the true pose, for a noise floor). Frames with non-finite signals come back
     NaN, not converged. ``correct``: apply the tracker's output correction
     (:meth:`ivc.dipole.tracker.Tracker.correct_pose`), if it has one.
     """
@@ -243,8 +246,14 @@ def tracker_pose(S: ArrayLike, tracker: Tracker | None = None, hemisphere: str |
         r[~finite], T[~finite] = np.nan, np.nan
         return PoseSolution(r, T, finite.copy(), np.zeros(F, dtype=int), zeros, zeros.copy(), zeros.copy())
     gate = tracker.pose_gate(noise_relative) if gate is None else float(gate)
+    if start is not None:
+        start = (np.asarray(start[0], dtype=float), np.asarray(start[1], dtype=float))
+        if start[0].shape != (F, 3) or start[1].shape != (F, 3, 3):
+            raise InputError(f"start must be positions (F, 3) and rotations (F, 3, 3) for F = {F}; got "
+                             f"{start[0].shape} and {start[1].shape}")
+        start = (np.where(finite[:, None], start[0], 1.0), np.where(finite[:, None, None], start[1], np.eye(3)))
     r, T, converged, passed, iterations, rel, e, J = _solve(S, tracker, h, gate, max_iterations, step_tolerance,
-                                                            retry)
+                                                            retry, start)
     sigma2 = np.sum(e**2, axis=1) / 3.0
     with np.errstate(invalid="ignore"):
         cov = np.linalg.pinv(np.einsum("fki,fkj->fij", J, J)) * sigma2[:, None, None]
