@@ -2,7 +2,7 @@
 
 :func:`apply_tracker` is what ``--tracker-model FILE`` does in ``ivc collect``, ``fixtures``,
 ``fit``, ``correct`` and ``evaluate``: every signal matrix of a step becomes
-:meth:`ivc.dipole.tracker.Tracker.to_ideal` of itself, and a step that also held the
+:func:`ivc.pose.tracker.to_ideal` of itself, and a step that also held the
 device's own reported poses gets the closed-form poses of the converted signals instead.
 The step's ``tracker`` attribute names the model applied, so that it is never applied twice;
 ``tracker_gate_failed`` counts the samples whose model pose failed the model's residual gate

@@ -178,29 +178,6 @@ class Tracker:
             return S.copy()
         return np.linalg.inv(self.sensor_moments).T @ (S - self.bias) @ np.linalg.inv(self.source_moments)
 
-    def to_ideal(self, S: ArrayLike, hemisphere: str | ArrayLike | None = None) -> np.ndarray:
-        """Signals (..., 3, 3) in ideal-dipole units: what the ideal tracker would read at the same pose.
-
-        The one place where a tracker model enters ivc's primary-field path: every later stage
-        (fixtures, table, correction) then sees ``Tᵀ (f_D(r) + G)``, so the secondary field is
-        what the room adds, not what the coils get wrong. For concentric coils this is the
-        gain correction ``B⁻ᵀ (S − bias) A⁻¹``, exact for any field. With coil offsets, their
-        share of the signal is also removed at the pose the full model gives
-        (:func:`ivc.pose.tracker.ideal_signals`, which also says which samples passed the gate).
-        ``hemisphere``: None for the side the calibration recorded (:attr:`hemisphere`), else ``+x``.
-        Non-finite matrices stay non-finite. The output correction is not applied (it acts on poses).
-        """
-        S = np.asarray(S, dtype=float)
-        if S.shape[-2:] != (3, 3):
-            raise TrackerError(f"signal matrices must have shape (..., 3, 3), got {S.shape}")
-        if self.is_ideal:
-            return S.copy()
-        if self.is_concentric:
-            return self.corrected(S)
-        from ivc.pose.tracker import ideal_signals  # the pose stage solves the model; it imports this module
-
-        return ideal_signals(S, self, hemisphere).signal
-
     def pose_jacobian(self, r: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``S`` (F, 3, 3) and ``∂S/∂(r, ω)`` (F, 3, 3, 6) with ``T ← T exp([ω]×)``, ``r ← r + δr``."""
         S, parts = model(np.asarray(T, float), np.asarray(r, float), self, parts=True)

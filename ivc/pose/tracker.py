@@ -39,7 +39,7 @@ from ivc.errors import InputError
 from ivc.pose.solver import PoseSolution, levenberg_marquardt, procrustes
 
 __all__ = ["GRID_DIRECTIONS", "GRID_RANGES", "GRID_SEPARATION_DEG", "GRID_STARTS", "IdealSignals", "ideal_signals",
-           "tracker_pose"]
+           "to_ideal", "tracker_pose"]
 
 #: the start search of a frame that fails the gate: directions on its half sphere, ranges (fractions of
 #: the dipole range of its signal), and how far apart (degrees) the starts it keeps must be
@@ -310,3 +310,15 @@ def ideal_signals(S: ArrayLike, tracker: Tracker, hemisphere: str | ArrayLike | 
         tracker.source_moments)
     return IdealSignals(out.reshape(S.shape), solution.residual.reshape(lead),
                         (solution.converged & finite).reshape(lead))
+
+
+def to_ideal(S: ArrayLike, tracker: Tracker, hemisphere: str | ArrayLike | None = None) -> np.ndarray:
+    """Signals (..., 3, 3) in ideal-dipole units: what the ideal tracker would read at the same pose.
+
+    The one place where a tracker model enters ivc's primary-field path: every later stage
+    (fixtures, table, correction) then sees ``Tᵀ (f_D(r) + G)``, so the secondary field is
+    what the room adds, not what the coils get wrong (:func:`ideal_signals`, which also says
+    which samples passed the gate). ``hemisphere``: None for the side the calibration
+    recorded (:attr:`Tracker.hemisphere`), else ``+x``. The output correction is not applied.
+    """
+    return ideal_signals(S, tracker, hemisphere).signal
