@@ -3,22 +3,23 @@
 The solve minimises ``‖S − S_model(r, T)‖_F`` over position and a rotation increment
 ``T ← T exp([ω]×)`` by Levenberg-Marquardt, every frame of the batch stepping together
 (:func:`ivc.pose.solver.levenberg_marquardt`). What makes it hold on any coil geometry is
-the start and the gate:
+the gate and the start the retry takes:
 
-- **Start.** The closed-form dipole pose of the gain-corrected signal ``B⁻ᵀ (S − bias) A⁻¹``
-  is exact only for concentric coils. With coils tens of millimetres off-centre it can sit
-  in another basin, so the solve follows the model from its concentric approximation
-  (the same moments, all coils at their centroid) to the full model: the coil offsets
-  are scaled by λ = 0, ¼, ½, ¾, 1 and each stage starts from the last one's pose
-  (continuation), a path along which the minimum moves by millimetres per stage.
-- **Gate.** A frame has *converged* only when its relative residual
-  ``‖S − S_model‖_F / ‖S‖_F`` is within the model's own gate (:meth:`Tracker.pose_gate`: the
-  calibration's residue distribution, and the signal noise when the caller knows it).
-  A wrong minimum leaves a residual of percent against the model's tenths, so it fails.
-- **Retry.** A frame that fails the gate is solved again from a few other starts (the
-  continuation's and the closed form's poses turned half a turn about each axis, nearer
-  and farther, both hemispheres' closed forms) and the best residual on the declared side
-  is kept; it is reported converged only if that passes the gate.
+- **First pass.** The closed-form dipole pose of the gain-corrected signal
+  ``B⁻ᵀ (S − bias) A⁻¹`` is the start: exact for concentric coils without noise, but with
+  coils tens of millimetres off-centre it can be 100 degrees off and the solve from it can
+  end in a wrong minimum.
+- **Gate.** A frame has *converged* only when the solve converged and its relative
+  residual ``‖S − S_model‖_F / ‖S‖_F`` is within the model's own gate
+  (:meth:`Tracker.pose_gate`: the calibration's residue distribution, and the signal noise
+  when the caller knows it). A wrong minimum leaves a residual of percent against the
+  model's tenths, so it fails.
+- **Retry, from a start that knows the coil geometry.** A frame that fails the gate is
+  solved again from the best points of a search over positions on its side, each with
+  the orientation that is best there in closed form (:func:`_grid_starts`), then from a
+  few more starts (half turns about each axis, nearer and farther, the other
+  hemisphere's closed form); a pose that passes, else the lowest residual on the declared
+  side, is kept. Only the frames that still fail are tried again.
 
 The ideal tracker gives the closed-form pose itself, bit for bit. A tracker's output
 correction, if it has one, is applied last, to every frame.
