@@ -96,12 +96,9 @@ def test_cli_tracker_option_through_collect_and_fixtures(tmp_path):
     assert converted.steps["check"].attrs[TRACKER_ATTR] == tracker_label(tracker_file)
 
 
-@pytest.mark.slow
-def test_pipeline_on_a_calibrated_45_mm_source(tmp_path):
-    """Calibrate a source with coils 45 mm off-centre on a simulated rig, then collect, fit and evaluate with
-    ``--tracker-model``: the table corrects as well as on an ideal device, and without the model it cannot."""
-    import json
-
+@pytest.fixture(scope="module")
+def calibrated_45_mm_source(tmp_path_factory):
+    """A source with coils 45 mm off-centre, calibrated on a simulated rig: the tracker file of its model."""
     from ivc.dipole.calibrate import calibrate
     from ivc.sim.coil_trackers import offset_tracker
     from ivc.sim.stage import stage_pattern, stage_recording
@@ -112,34 +109,55 @@ def test_pipeline_on_a_calibrated_45_mm_source(tmp_path):
     J_so, J_st = stage_pattern()
     S = stage_recording(device, rig_fixtures(rng), J_so, J_st, noise_relative=1e-4, rng=rng)
     model = calibrate(S, J_so, J_st).tracker  # the device as its calibration knows it (its own frames)
-    tracker_file = tmp_path / "device.json"
-    save_tracker(model, tracker_file)
-    runner = CliRunner()
-    # free space, no noise: collect converts to ideal units and the closed form gives the true poses
+    path = tmp_path_factory.mktemp("tracker") / "device.json"
+    save_tracker(model, path)
+    return model, path
+
+
+def test_collect_with_a_calibrated_45_mm_source(tmp_path, calibrated_45_mm_source):
+    """Free space, no noise: ``collect --tracker-model`` converts to ideal units and the poses are the true ones."""
+    _, tracker_file = calibrated_45_mm_source
     free = tmp_path / "free.toml"
     free.write_text('[noise]\nsignal_relative = 0.0\ndropout_rate = 0.0\n')
     session = tmp_path / "free.h5"
-    result = runner.invoke(cli, ["collect", "check", "--source", f"sim:{free}", "--frames", "40", "-o", str(session),
-                                 "--tracker-model", str(tracker_file)])
+    result = CliRunner().invoke(cli, ["collect", "check", "--source", f"sim:{free}", "--frames", "40", "-o",
+                                      str(session), "--tracker-model", str(tracker_file)])
     assert result.exit_code == 0, result.output
     data = session_io.read(session)
     assert np.abs(data.steps["check"].position - data.truth["check"].position).max() < 1e-9
     assert data.steps["check"].attrs["tracker_gate_failed"] == 0
-    # next to a plate: the same protocol from the ideal device and from this one
+
+
+@pytest.mark.slow
+def test_fit_and_evaluate_with_a_calibrated_45_mm_source(tmp_path, calibrated_45_mm_source):
+    """Next to a plate, the same protocol from the ideal device and from this one: with ``--tracker-model`` the
+    table corrects as well as on the ideal device; without it, it cannot."""
+    import json
+
+    model, tracker_file = calibrated_45_mm_source
+    runner = CliRunner()
     scene = quiet_plate_scene()
-    frames = {"cube_calibration": 400, "cube_survey": 100, "wand_calibration": 100, "wand_sweep": 1500, "check": 150}
+    frames = {"cube_calibration": 1000, "cube_survey": 200, "wand_calibration": 200, "wand_sweep": 3000,
+              "check": 300}
     ideal_file, device_file = tmp_path / "ideal.h5", tmp_path / "device.h5"
     session_io.write(Simulator(scene, seed=5).protocol(frames), ideal_file)
     session_io.write(Simulator(scene, seed=5, tracker=model).protocol(frames), device_file)
     errors = {}
-    for name, recording, extra in (("ideal", ideal_file, []), ("model", device_file, ["--tracker-model",
-                                                                                        str(tracker_file)]),
-                                   ("raw", device_file, [])):
+    for name, recording, extra in (("ideal", ideal_file, []),
+                                   ("model", device_file, ["--tracker-model", str(tracker_file)])):
         table = tmp_path / f"{name}.lut.h5"
         result = runner.invoke(cli, ["fit", str(recording), "-o", str(table), "--min-support", "5", *extra])
-        assert result.exit_code == 0, result.output
+        assert result.exit_code == 0, (name, result.output)
         result = runner.invoke(cli, ["evaluate", str(table), str(recording), "--json", *extra])
-        assert result.exit_code == 0, result.output
+        assert result.exit_code == 0, (name, result.output)
         errors[name] = json.loads(result.stdout)["ivc"]["position_mm"]["p50"]
-    assert errors["model"] < 1.5 * errors["ideal"] + 0.2
-    assert errors["raw"] > 3 * errors["model"]
+    assert errors["model"] < 1.5 * errors["ideal"] + 0.2, errors
+    # without the model the device's signals are not the ideal units the cube and the wand assume: the fit
+    # refuses them, or its table corrects far worse
+    raw = tmp_path / "raw.lut.h5"
+    result = runner.invoke(cli, ["fit", str(device_file), "-o", str(raw), "--min-support", "5"])
+    if result.exit_code == 0:
+        result = runner.invoke(cli, ["evaluate", str(raw), str(device_file), "--json"])
+        assert json.loads(result.stdout)["ivc"]["position_mm"]["p50"] > 3 * errors["model"]
+    else:
+        assert "passed the gates" in result.output
