@@ -9,7 +9,15 @@ import pytest
 from click.testing import CliRunner
 
 from ivc.cli import cli
-from ivc.collect.ilemt import compensate_stage, fixture_rotation, read_ilemt, stack
+from ivc.collect.ilemt import (
+    OPTIONS_FILE,
+    SOURCE_SIGN_FIXES,
+    compensate_stage,
+    fixture_rotation,
+    parse_sign_fix,
+    read_ilemt,
+    stack,
+)
 from ivc.dipole.calibrate import Fixtures, calibrate, rigid_transform
 from ivc.dipole.tracker import Tracker, load_tracker
 from ivc.errors import CsvError, InputError
@@ -63,13 +71,27 @@ def test_complex_to_real_convention():
 def test_source_sign_fixes():
     path = _file("soZoutYup_seYoutZup_md.dat")
     raw = complex(path.read_text().split("\t")[6].replace("i", "j"))
-    fixed = read_ilemt(path)
+    assert np.all(read_ilemt(path).source_signs == 1)  # no fix unless told
+    fixed = read_ilemt(path, sign_fixes=SOURCE_SIGN_FIXES)
     np.testing.assert_array_equal(fixed.source_signs, [-1, -1, 1])
     assert fixed.coupling[0, 0, 0] == -raw
-    plain = read_ilemt(path, sign_fixes=())
+    plain = read_ilemt(path)
     np.testing.assert_array_equal(plain.coupling[:, :2], -fixed.coupling[:, :2])
     np.testing.assert_array_equal(plain.coupling[:, 2], fixed.coupling[:, 2])
-    assert np.all(read_ilemt(_file("soZoutYup_seYoutZup_source.dat")).source_signs == 1)
+    assert np.all(read_ilemt(_file("soZoutYup_seYoutZup_source.dat"), sign_fixes=SOURCE_SIGN_FIXES).source_signs == 1)
+
+
+@needs_data
+@pytest.mark.slow
+def test_the_concentric_sets_sign_fixes_are_found_in_its_data():
+    """Read as recorded, the md files of every source fixturing: exactly the authors' two md fixes are found."""
+    from ivc.dipole.coil_signs import find_sign_flips
+
+    names = ["soYoutZup_seYoutZup_md.dat", "soZoutYup_seYoutZup_md.dat", "soXoutZup_seYoutZup_md.dat",
+             "soXinYup_seYoutZup_md.dat"]
+    S, J_so, J_st, index = stack([read_ilemt(_file(n)) for n in names])
+    found = {names[f.group]: f.signs.tolist() for f in find_sign_flips(S, J_so, J_st, index)}
+    assert found == {"soZoutYup_seYoutZup_md.dat": [-1, -1, 1], "soXoutZup_seYoutZup_md.dat": [-1, -1, 1]}
 
 
 @needs_data
@@ -253,3 +275,55 @@ def test_recording_as_a_session_step(tmp_path, rng):
     closed = np.linalg.norm(ideal.poses(hemisphere)[0][:, 0] - P[:, :3, 3], axis=1)
     assert np.median(closed) < 3e-3 and np.median(np.linalg.norm(solved.position - P[:, :3, 3], axis=1)) < 3e-3
     assert recs[0].to_step()[1] is None
+
+
+def test_reader_applies_no_sign_fix_unless_told(tmp_path, rng):
+    paths = _synthetic_recordings(tmp_path, rng)
+    plain = read_ilemt(paths[0])
+    assert np.all(plain.source_signs == 1) and np.all(plain.sensor_signs == 1)
+    told = read_ilemt(paths[0], sign_fixes=[parse_sign_fix("seYoutZup_md=-1,1,-1/1,-1,1")])
+    np.testing.assert_array_equal(told.source_signs, [-1, 1, -1])
+    np.testing.assert_array_equal(told.sensor_signs, [1, -1, 1])
+    # coupling C(source, sensor): source rows and sensor columns negated
+    np.testing.assert_array_equal(told.coupling, plain.coupling * np.array([-1, 1, -1])[:, None] * [1, -1, 1])
+    assert np.all(read_ilemt(paths[1], sign_fixes=[parse_sign_fix("seYoutZup_md=-1,1,-1")]).source_signs == 1)
+    # the folder's options file is the data set telling
+    (tmp_path / OPTIONS_FILE).write_text('[[sign_fix]]\nfiles = "seZinYup_md\\\\.dat$"\nsource = [-1, -1, 1]\n')
+    np.testing.assert_array_equal(read_ilemt(paths[1]).source_signs, [-1, -1, 1])
+    assert np.all(read_ilemt(paths[0]).source_signs == 1)
+    assert np.all(read_ilemt(paths[1], sign_fixes=()).source_signs == 1)
+    for bad in ("seYoutZup=-1,1", "=1,1,1", "x=1,2,1", "(=1,1,1", "a=1,1,1/1,1,1/1,1,1"):
+        with pytest.raises(InputError, match="sign fix"):
+            parse_sign_fix(bad)
+    (tmp_path / OPTIONS_FILE).write_text("[[sign_fix]]\nsource = [1, 1, 1]\n")
+    with pytest.raises(InputError, match="files ="):
+        read_ilemt(paths[1])
+
+
+@pytest.mark.slow
+def test_cli_warns_of_a_flipped_coil_and_takes_a_sign_fix(tmp_path, rng):
+    paths = _synthetic_recordings(tmp_path, rng)
+    lines = paths[2].read_text().splitlines()
+    flipped = []
+    for line in lines:  # negate source coil x (values k = 0, 3, 6 of each carrier: C[0, sensor])
+        fields = line.split("\t")
+        for k in (0, 3, 6, 9, 12, 15):
+            value = fields[6 + k]
+            fields[6 + k] = ("-" if value[0] == "+" else "+") + value[1:].replace("+", "#").replace("-", "+").replace(
+                "#", "-")
+        flipped.append("\t".join(fields))
+    paths[2].write_text("\n".join(flipped) + "\n")
+    out = tmp_path / "t.json"
+    runner = CliRunner()
+    result = runner.invoke(cli, ["tracker", "calibrate", *map(str, paths), "-o", str(out), "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert [f["recording"] for f in report["sign_findings"]] == [paths[2].name]
+    assert report["sign_findings"][0]["source_signs"] == [-1, 1, 1]
+    fix = f"{paths[2].stem}=-1,1,1"
+    result = runner.invoke(cli, ["tracker", "calibrate", *map(str, paths), "-o", str(out), "--force", "--json",
+                                 "--sign-fix", fix])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["sign_findings"] == [] and report["calibration"]["residue_rms_percent"] < 0.01
+    assert load_tracker(out).calibration["sign_fixes"] == [[paths[2].stem, [-1.0, 1.0, 1.0]]]

@@ -12,7 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ivc.cli.progress import ON_TERMINAL
-from ivc.collect.ilemt import read_ilemt, stack
+from ivc.collect.ilemt import folder_sign_fixes, parse_sign_fix, read_ilemt, stack
 from ivc.collect.rig_csv import read_rig_csv
 from ivc.dipole.calibrate import calibrate as fit_tracker
 from ivc.dipole.tracker import load_tracker, save_tracker
@@ -20,17 +20,46 @@ from ivc.dipole.tracker_check import check_tracker, fixtures_of
 from ivc.session import Session
 
 
-def _load(paths, carrier: str, compensate: bool):
-    """Points of ILEMT .dat files and rig CSVs (docs/tracker.md), stacked."""
+def _load(paths, carrier: str, compensate: bool, sign_fixes=()):
+    """Points of ILEMT .dat files and rig CSVs (docs/tracker.md), stacked, and each point's file index.
+
+    ``sign_fixes`` (``--sign-fix``) come first; a folder's options file adds its own after them.
+    """
     parts = []
     for p in paths:
         if str(p).lower().endswith(".csv"):
             parts.append(read_rig_csv(p))
         else:
-            S, J_so, J_st, _ = stack([read_ilemt(p, carrier=carrier, compensate=compensate)])
+            fixes = tuple(sign_fixes) + folder_sign_fixes(Path(p).parent)
+            S, J_so, J_st, _ = stack([read_ilemt(p, carrier=carrier, compensate=compensate, sign_fixes=fixes)])
             parts.append((S, J_so, J_st))
     S, J_so, J_st = (np.concatenate([part[k] for part in parts]) for k in range(3))
-    return None, S, J_so, J_st
+    index = np.concatenate([np.full(len(part[0]), k) for k, part in enumerate(parts)])
+    return index, S, J_so, J_st
+
+
+def _sign_findings(paths, index, S, J_so, J_st) -> list[dict]:
+    """What :func:`ivc.dipole.coil_signs.find_sign_flips` says of the recordings (JSON-ready)."""
+    from ivc.dipole.coil_signs import find_sign_flips
+
+    if len(paths) < 2:
+        return []
+    return [{"recording": Path(paths[f.group]).name, "source_signs": [int(v) for v in f.signs],
+             "reference": Path(paths[0]).name, "joint_residue_percent": 100 * f.joint,
+             "flipped_residue_percent": 100 * f.flipped, "reference_residue_percent": 100 * f.reference}
+            for f in find_sign_flips(S, J_so, J_st, index)]
+
+
+def _sign_warning(findings: list[dict]) -> str:
+    lines = []
+    for f in findings:
+        signs = ",".join(str(v) for v in f["source_signs"])
+        stem = Path(f["recording"]).stem
+        lines.append(f"WARNING: {f['recording']}: its source coil signs disagree with {f['reference']}'s: its residue "
+                     f"in a joint fit is {f['joint_residue_percent']:.2f} %, {f['flipped_residue_percent']:.2f} % with "
+                     f"source signs {signs}. If its phase reference was wrong, read it with "
+                     f"--sign-fix '{stem}={signs}' (or a [[sign_fix]] in the folder's ivc-ilemt.toml).")
+    return "\n".join(lines)
 
 
 def render(title: str, report: dict) -> str:
@@ -45,7 +74,17 @@ def render(title: str, report: dict) -> str:
             p = report[key]
             lines.append(f"  {label}: position rms {p['position_rms_mm']:.3f} mm (max {p['position_max_mm']:.3f}), "
                          f"orientation rms {p['angle_rms_deg']:.3f} deg (max {p['angle_max_deg']:.3f}); "
-                         f"converged {100 * p['converged_fraction']:.1f} %")
+                         f"converged {100 * p['converged_fraction']:.1f} % (gate {p['residual_gate_percent']:.2f} %)")
+    p = report.get("pose")
+    if p and p["failed"]:
+        where = ", ".join(f"{row['failed']}/{row['points']} at {row['range_mm'][0]:.0f}-{row['range_mm'][1]:.0f} mm"
+                          for row in p["failed_by_range"])
+        angles = ", ".join(f"{row['failed']}/{row['points']} at {row['angle_deg'][0]:.0f}-{row['angle_deg'][1]:.0f} "
+                           "deg" for row in p["failed_by_off_axis_angle"])
+        lines.append(f"  WARNING: {p['failed']} poses failed the model's residual gate (left out of the output "
+                     f"correction): by range {where}; by off-axis angle {angles}")
+    if p and p["converged_wrong"]:
+        lines.append(f"  WARNING: {p['converged_wrong']} converged poses are more than 10 mm or 5 deg off the chain's")
     return "\n".join(lines)
 
 
@@ -62,6 +101,10 @@ _carrier = click.option("--carrier", type=click.Choice(["high", "low"]), default
                         help="Which ILEMT carrier's couplings to use.")
 _compensation = click.option("--no-stage-compensation", is_flag=True,
                              help="Use the commanded stage poses as they are (without the stage's measured errors).")
+_sign_fix = click.option("--sign-fix", "sign_fixes", multiple=True, metavar="PATTERN=sx,sy,sz[/tx,ty,tz]",
+                         help="Negate coils of ILEMT files whose name matches PATTERN (a regular expression): signs "
+                              "per source coil, optionally '/' and per sensor coil (repeatable; none by default; "
+                              "a folder's ivc-ilemt.toml adds its own).")
 
 
 @tracker.command()
@@ -77,10 +120,13 @@ _compensation = click.option("--no-stage-compensation", is_flag=True,
               help="A held-out recording to score with the fitted model and fixtures (repeatable).")
 @_carrier
 @_compensation
+@_sign_fix
+@click.option("--no-sign-check", is_flag=True,
+              help="Skip comparing the recordings' coil signs (a few one-centre fits per recording).")
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists.")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 def calibrate(recordings, output, one_centre, bias, no_output_correction, source_motions, tests, carrier,
-              no_stage_compensation, force, as_json):
+              no_stage_compensation, sign_fixes, no_sign_check, force, as_json):
     """Fit the tracker model to RECORDINGS and write it to OUTPUT.
 
     RECORDINGS are ILEMT .dat files, or rig CSVs of (known motion, signal) rows for any
@@ -96,7 +142,9 @@ def calibrate(recordings, output, one_centre, bias, no_output_correction, source
     if output_path.exists() and not force:
         raise FileExistsError(f"{output_path} exists; pass --force to replace it")
     compensate = not no_stage_compensation
-    _, S, J_so, J_st = _load(recordings, carrier, compensate)
+    fixes = tuple(parse_sign_fix(text) for text in sign_fixes)
+    index, S, J_so, J_st = _load(recordings, carrier, compensate, fixes)
+    findings = [] if no_sign_check else _sign_findings(recordings, index, S, J_so, J_st)
     start = time.perf_counter()
     with tqdm(desc="calibrating", unit="iteration", leave=False, disable=True if as_json else ON_TERMINAL) as bar:
         result = fit_tracker(S, J_so, J_st, offsets=not one_centre, bias=bias,
@@ -104,9 +152,10 @@ def calibrate(recordings, output, one_centre, bias, no_output_correction, source
                              progress=lambda iteration, cost: bar.update(1))
     seconds = time.perf_counter() - start
     report = {"calibration": check_tracker(result.tracker, result.fixtures, S, J_so, J_st),
-              "seconds": seconds, "iterations": result.iterations, "converged": result.converged}
+              "seconds": seconds, "iterations": result.iterations, "converged": result.converged,
+              "sign_findings": findings}
     if tests:
-        _, S_t, J_so_t, J_st_t = _load(tests, carrier, compensate)
+        _, S_t, J_so_t, J_st_t = _load(tests, carrier, compensate, fixes)
         report["test"] = check_tracker(result.tracker, result.fixtures, S_t, J_so_t, J_st_t)
     result.tracker.calibration = {
         "model": "one centre" if one_centre else "per-coil offsets",
@@ -115,6 +164,7 @@ def calibrate(recordings, output, one_centre, bias, no_output_correction, source
         "output_correction": not no_output_correction,
         "carrier": carrier,
         "stage_compensation": compensate,
+        "sign_fixes": [list(fix) for fix in fixes],
         "recordings": [Path(p).name for p in recordings],
         "test_recordings": [Path(p).name for p in tests],
         "fixtures": result.fixtures.to_dict(),
@@ -130,6 +180,8 @@ def calibrate(recordings, output, one_centre, bias, no_output_correction, source
     click.echo(render("Calibration points", report["calibration"]))
     if tests:
         click.echo(render("Held-out points", report["test"]))
+    if findings:
+        click.echo(_sign_warning(findings), err=True)
 
 
 @tracker.command()
@@ -137,12 +189,14 @@ def calibrate(recordings, output, one_centre, bias, no_output_correction, source
 @click.argument("recordings", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
 @_carrier
 @_compensation
+@_sign_fix
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
-def check(tracker_file, recordings, carrier, no_stage_compensation, as_json):
+def check(tracker_file, recordings, carrier, no_stage_compensation, sign_fixes, as_json):
     """Score TRACKER_FILE on RECORDINGS made on the rig it was calibrated on: residue and pose error."""
     model = load_tracker(tracker_file)
     fixtures = fixtures_of(model)
-    _, S, J_so, J_st = _load(recordings, carrier, not no_stage_compensation)
+    fixes = tuple(parse_sign_fix(text) for text in sign_fixes)
+    _, S, J_so, J_st = _load(recordings, carrier, not no_stage_compensation, fixes)
     report = check_tracker(model, fixtures, S, J_so, J_st)
     click.echo(json.dumps(report, indent=2) if as_json else render("Points", report))
 

@@ -19,15 +19,15 @@ homogeneous transforms in metres.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ivc.errors import CsvError, InputError
 
-__all__ = ["FIXTURES", "SOURCE_SIGN_FIXES", "IlemtRecording", "compensate_stage", "fixture_rotation",
-           "read_ilemt", "real_coupling", "stack", "stage_transforms"]
+__all__ = ["FIXTURES", "OPTIONS_FILE", "SOURCE_SIGN_FIXES", "IlemtRecording", "compensate_stage", "fixture_rotation",
+           "folder_sign_fixes", "parse_sign_fix", "read_ilemt", "real_coupling", "stack", "stage_transforms"]
 
 #: fixture code -> the mover axes that lie along fixture +Y ("out") and fixture +Z ("up")
 FIXTURES = {
@@ -39,12 +39,19 @@ FIXTURES = {
     "XinYup": ((-1, 0, 0), (0, 1, 0)),
 }
 
-#: source-coil sign fixes of the ``cal_9_15_premo_cmu`` set (its phase reference was
-#: taken in the wrong fixture for these files): file-name pattern -> sign per source coil
+#: the source-coil sign fixes the ILEMT authors list for the ``cal_9_15_premo_cmu`` set only (its
+#: phase reference was taken in the wrong fixture for these files; their ``local_cal_options.m``):
+#: file-name pattern -> sign per source coil. A property of that data set: the reader applies
+#: it only when told (``sign_fixes=SOURCE_SIGN_FIXES``, ``--sign-fix``, the folder's options file).
 SOURCE_SIGN_FIXES = (
     (r"soZoutYup_seYoutZup_(md|ld)\.dat$", (-1.0, -1.0, 1.0)),
     (r"soXoutZup_seYoutZup_md\.dat$", (-1.0, -1.0, 1.0)),
 )
+
+#: a folder's own reading options (TOML), next to its recordings: ``[[sign_fix]]`` tables with
+#: ``files`` (a regular expression searched in the file name), ``source`` and optionally ``sensor``
+#: (a sign per coil)
+OPTIONS_FILE = "ivc-ilemt.toml"
 
 _NAME = re.compile(r"so(?P<source>[A-Za-z]+)_se(?P<sensor>[A-Za-z]+)_(?P<pattern>.+)\.dat$")
 _NUMBER = r"[0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?"
@@ -146,7 +153,8 @@ class IlemtRecording:
 
     ``stage`` (N, 6) commanded stage poses [mm, degrees]; ``stage_compensated`` the same
     with the measured stage errors added; ``coupling`` (N, 3, 3) complex ``C(source,
-    sensor)`` of the chosen carrier with the sign fixes applied; ``signal`` (N, 3, 3) the
+    sensor)`` of the chosen carrier with the sign fixes applied (``source_signs``,
+    ``sensor_signs``, (3,) each; ones when none was asked for); ``signal`` (N, 3, 3) the
     real signal matrix ``sign(Re C)|C|`` transposed (row = sensor coil); ``J_so`` (4, 4)
     and ``J_st`` (N, 4, 4) the known transforms of the pose chain (metres); ``home``
     (N,) marks the rows at the stage's zero pose (the first and the last, a drift check).
@@ -165,6 +173,7 @@ class IlemtRecording:
     J_so: np.ndarray
     J_st: np.ndarray
     home: np.ndarray
+    sensor_signs: np.ndarray = field(default_factory=lambda: np.ones(3))
 
     @property
     def n_points(self) -> int:
@@ -213,14 +222,66 @@ def _parse_complex(token: str, where: str) -> complex:
     return complex(float(m.group(1)), float(m.group(2) or 0.0))
 
 
-def _source_signs(name: str, fixes) -> np.ndarray:
-    for pattern, signs in fixes:
-        if re.search(pattern, name):
-            return np.asarray(signs, dtype=float)
-    return np.ones(3)
+def _signs(value, where: str) -> tuple[float, float, float]:
+    try:
+        signs = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        signs = ()
+    if len(signs) != 3 or any(v not in (-1.0, 1.0) for v in signs):
+        raise InputError(f"{where}: a sign fix is three signs, one per coil, each 1 or -1; got {value!r}")
+    return signs
 
 
-def read_ilemt(path: str | Path, *, carrier: str = "high", sign_fixes=SOURCE_SIGN_FIXES,
+def parse_sign_fix(text: str) -> tuple:
+    """``PATTERN=sx,sy,sz`` (source coils) or ``PATTERN=sx,sy,sz/tx,ty,tz`` (then sensor coils) as a sign
+    fix entry ``(pattern, source signs[, sensor signs])``; PATTERN is a regular expression searched in
+    the file name."""
+    pattern, sep, signs = text.rpartition("=")
+    if not sep or not pattern:
+        raise InputError(f"sign fix {text!r}: write PATTERN=sx,sy,sz (e.g. 'soZoutYup_seYoutZup_md=-1,-1,1')")
+    try:
+        re.compile(pattern)
+    except re.error as error:
+        raise InputError(f"sign fix {text!r}: {pattern!r} is not a regular expression ({error})") from None
+    parts = signs.split("/")
+    if len(parts) > 2:
+        raise InputError(f"sign fix {text!r}: at most source signs and sensor signs, separated by '/'")
+    return (pattern, *(_signs(part.split(","), f"sign fix {text!r}") for part in parts))
+
+
+def folder_sign_fixes(folder: str | Path) -> tuple:
+    """The sign fixes of a folder's options file (:data:`OPTIONS_FILE`), or ``()`` when it has none."""
+    import tomllib
+
+    path = Path(folder) / OPTIONS_FILE
+    if not path.is_file():
+        return ()
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as error:
+        raise InputError(f"{path}: not valid TOML ({error})") from None
+    fixes = []
+    for k, entry in enumerate(data.get("sign_fix", [])):
+        where = f"{path} sign_fix {k + 1}"
+        if not isinstance(entry, dict) or not isinstance(entry.get("files"), str) or "source" not in entry:
+            raise InputError(f"{where}: needs files = \"<regular expression>\" and source = [sx, sy, sz]")
+        fix = (entry["files"], _signs(entry["source"], where))
+        if "sensor" in entry:
+            fix += (_signs(entry["sensor"], where),)
+        fixes.append(fix)
+    return tuple(fixes)
+
+
+def _coil_signs(name: str, fixes) -> tuple[np.ndarray, np.ndarray]:
+    """Source and sensor signs (3,) each of the first fix whose pattern the file name matches."""
+    for fix in fixes:
+        if re.search(fix[0], name):
+            sensor = fix[2] if len(fix) > 2 else (1.0, 1.0, 1.0)
+            return np.asarray(fix[1], dtype=float), np.asarray(sensor, dtype=float)
+    return np.ones(3), np.ones(3)
+
+
+def read_ilemt(path: str | Path, *, carrier: str = "high", sign_fixes=None,
                compensate: bool = True) -> IlemtRecording:
     """Read one ILEMT calibration file.
 
@@ -228,8 +289,10 @@ def read_ilemt(path: str | Path, *, carrier: str = "high", sign_fixes=SOURCE_SIG
     ----------
     path : the ``so<A>_se<B>_<pattern>.dat`` file; A and B are fixture codes of :data:`FIXTURES`.
     carrier : ``"high"`` (columns 7-15) or ``"low"`` (columns 16-24).
-    sign_fixes : (file-name regex, per-source-coil signs) pairs; the first that matches is
-        applied (default: the fixes of the ``cal_9_15_premo_cmu`` set). ``()`` for none.
+    sign_fixes : entries ``(file-name regex, source signs[, sensor signs])`` (:func:`parse_sign_fix`);
+        the first that matches is applied. None (default): the fixes of the folder's options
+        file (:data:`OPTIONS_FILE`) if it has one, else none; ``()``: none. No fix is ever
+        applied by file name alone (:data:`SOURCE_SIGN_FIXES` are one data set's, passed explicitly).
     compensate : add the stage's measured axis errors to the commanded poses (default).
     """
     path = Path(path)
@@ -263,8 +326,9 @@ def read_ilemt(path: str | Path, *, carrier: str = "high", sign_fixes=SOURCE_SIG
         raise CsvError(f"{path.name}: non-finite stage poses or couplings")
     block = values[:, :9] if carrier == "high" else values[:, 9:]
     C = block.reshape(-1, 3, 3).transpose(0, 2, 1)  # column-major: value k is C[k % 3, k // 3]
-    signs = _source_signs(path.name, sign_fixes)
-    C = C * signs[None, :, None]
+    fixes = folder_sign_fixes(path.parent) if sign_fixes is None else sign_fixes
+    signs, sensor_signs = _coil_signs(path.name, fixes)
+    C = C * signs[None, :, None] * sensor_signs[None, None, :]
     compensated = compensate_stage(stage) if compensate else stage.copy()
     J_so = np.eye(4)
     J_so[:3, :3] = fixture_rotation(m["source"])
@@ -272,6 +336,7 @@ def read_ilemt(path: str | Path, *, carrier: str = "high", sign_fixes=SOURCE_SIG
         path=path, source_fixture=m["source"], sensor_fixture=m["sensor"], pattern=m["pattern"], carrier=carrier,
         stage=stage, stage_compensated=compensated, coupling=C,
         signal=np.ascontiguousarray(np.swapaxes(real_coupling(C), 1, 2)), source_signs=signs,
+        sensor_signs=sensor_signs,
         J_so=J_so, J_st=stage_transforms(compensated, m["sensor"]), home=np.all(stage == 0.0, axis=1),
     )
 

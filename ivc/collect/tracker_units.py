@@ -2,9 +2,11 @@
 
 :func:`apply_tracker` is what ``--tracker-model FILE`` does in ``ivc collect``, ``fixtures``,
 ``fit``, ``correct`` and ``evaluate``: every signal matrix of a step becomes
-:meth:`ivc.dipole.tracker.Tracker.to_ideal` of itself, and a step that also held the
+:func:`ivc.pose.tracker.to_ideal` of itself, and a step that also held the
 device's own reported poses gets the closed-form poses of the converted signals instead.
-The step's ``tracker`` attribute names the model applied, so that it is never applied twice.
+The step's ``tracker`` attribute names the model applied, so that it is never applied twice;
+``tracker_gate_failed`` counts the samples whose model pose failed the model's residual gate
+(converted all the same: in a distorted room the residual also holds what the room adds).
 """
 
 from __future__ import annotations
@@ -19,12 +21,16 @@ from ivc import rotations
 from ivc.dipole import closed_form_pose
 from ivc.dipole.tracker import Tracker, load_tracker
 from ivc.errors import TrackerError
+from ivc.pose.tracker import ideal_signals
 from ivc.session import Session, Step
 
-__all__ = ["TRACKER_ATTR", "apply_tracker", "apply_tracker_to_session", "tracker_label", "load_labelled_tracker"]
+__all__ = ["GATE_ATTR", "TRACKER_ATTR", "apply_tracker", "apply_tracker_to_session", "load_labelled_tracker",
+           "tracker_label"]
 
 #: the step attribute that names the tracker model its signals were converted with
 TRACKER_ATTR = "tracker"
+#: the step attribute that counts the samples whose model pose failed the gate in the conversion
+GATE_ATTR = "tracker_gate_failed"
 
 
 def tracker_label(path: str | Path) -> str:
@@ -41,8 +47,9 @@ def load_labelled_tracker(path: str | Path) -> tuple[Tracker, str]:
 def apply_tracker(step: Step, tracker: Tracker, hemisphere: str, label: str, name: str = "step") -> Step:
     """``step`` with its signals in ideal-dipole units (a new step; the input is not changed).
 
-    A step already converted with the same model comes back as it is; one converted with
-    another model, or holding reported poses only (a tracker that calibrates itself), is an error.
+    ``hemisphere``: the session's declared side, in the tracker's source frame. A step already
+    converted with the same model comes back as it is; one converted with another model, or
+    holding reported poses only (a tracker that calibrates itself), is an error.
     """
     done = step.attrs.get(TRACKER_ATTR)
     if done is not None:
@@ -54,9 +61,9 @@ def apply_tracker(step: Step, tracker: Tracker, hemisphere: str, label: str, nam
                            "(a device that reports poses has calibrated its coils itself)")
     valid = step.valid_mask
     signal = np.where(valid[..., None, None], step.signal, np.nan)
-    ideal = tracker.to_ideal(signal, hemisphere)
-    ideal = np.where(valid[..., None, None], ideal, step.signal)  # invalid samples keep what they had
-    attrs = dict(step.attrs, **{TRACKER_ATTR: label})
+    converted = ideal_signals(signal, tracker, hemisphere)
+    ideal = np.where(valid[..., None, None], converted.signal, step.signal)  # invalid samples keep what they had
+    attrs = dict(step.attrs, **{TRACKER_ATTR: label, GATE_ATTR: int(np.sum(valid & ~converted.passed))})
     if step.position is None:
         return replace(step, signal=ideal, attrs=attrs)
     with np.errstate(invalid="ignore"):

@@ -21,17 +21,18 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ivc import rotations
 from ivc.dipole.field import field as dipole_field
-from ivc.dipole.tracker import Tracker, model
+from ivc.dipole.tracker import GATE_FACTOR, MIN_RESIDUAL_GATE, Tracker, model
 from ivc.errors import TrackerError
 
 __all__ = ["CalibrationResult", "Fixtures", "ParameterLayout", "calibrate", "calibration_jacobian", "canonical_gauge",
-           "chain", "fit_output_correction", "pose_errors", "predicted_signal", "residue", "solve_chain_poses"]
+           "chain", "fit_output_correction", "model_gate", "pose_errors", "predicted_signal", "residue",
+           "solve_chain_poses"]
 
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
@@ -132,6 +133,25 @@ def predicted_signal(tracker: Tracker, fixtures: Fixtures, J_so: np.ndarray, J_s
 def residue(S: np.ndarray, S_pred: np.ndarray) -> np.ndarray:
     """Per-point residue ``‖S − S_pred‖_F / ‖S‖₂`` (N,), dimensionless (the ILEMT authors' measure)."""
     return np.linalg.norm(S - S_pred, axis=(1, 2)) / np.linalg.norm(S, ord=2, axis=(1, 2))
+
+
+def model_gate(tracker: Tracker, fixtures: Fixtures, S: np.ndarray, J_so: np.ndarray, J_st: np.ndarray) -> Tracker:
+    """``tracker`` with the pose gate and hemisphere its calibration points give (docs/tracker.md).
+
+    The gate is :data:`ivc.dipole.tracker.GATE_FACTOR` times the 99th percentile of the points'
+    relative residuals ``‖S − S_pred‖_F / ‖S‖_F`` at the chain's poses (what the model leaves at
+    a right pose, noise included; a solved pose leaves less), and at least
+    :data:`ivc.dipole.tracker.MIN_RESIDUAL_GATE` (no real device's model is better). The hemisphere is the direction
+    of the points' mean position in the source frame, when every point lies on its side.
+    """
+    P = chain(fixtures, J_so, J_st)
+    pred = model(P[:, :3, :3], P[:, :3, 3], tracker)[0]
+    relative = np.linalg.norm(S - pred, axis=(1, 2)) / np.linalg.norm(S, axis=(1, 2))
+    gate = GATE_FACTOR * float(np.quantile(relative, 0.99))
+    mean = P[:, :3, 3].mean(axis=0)
+    side = mean / np.linalg.norm(mean)
+    hemisphere = side if np.all(P[:, :3, 3] @ side > 0) else None
+    return replace(tracker, residual_gate=max(gate, MIN_RESIDUAL_GATE), hemisphere=hemisphere)
 
 
 def _qr_rotation(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -459,6 +479,7 @@ def calibrate(
     covariance = np.linalg.pinv(Jw.T @ Jw) * sigma2
     std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     parameter_sigma = dict(zip(layout.names(), std[: layout.fix].tolist(), strict=True))
+    tracker = model_gate(tracker, fixtures, S, J_so, J_st)
     if output_correction:
         tracker = fit_output_correction(tracker, fixtures, S, J_so, J_st)
     pred = predicted_signal(tracker, fixtures, J_so, J_st)
@@ -467,11 +488,16 @@ def calibrate(
 
 def solve_chain_poses(tracker: Tracker, fixtures: Fixtures, S: np.ndarray, J_so: np.ndarray, J_st: np.ndarray,
                       correct: bool = True):
-    """Solve each point's pose with ``tracker`` (hemisphere from the chain); also return the chain's poses."""
+    """Solve each point's pose with ``tracker``; also return the chain's poses.
+
+    The hemisphere is the one the tracker's calibration recorded (:attr:`Tracker.hemisphere`),
+    else each point's own side from the chain. Nothing else of the chain enters the solve.
+    """
     from ivc.pose.tracker import tracker_pose
 
     P = chain(fixtures, J_so, J_st)
-    return tracker_pose(S, tracker, P[:, :3, 3], correct=correct), P
+    side = tracker.hemisphere if tracker.hemisphere is not None else P[:, :3, 3]
+    return tracker_pose(S, tracker, side, correct=correct), P
 
 
 def pose_errors(tracker: Tracker, fixtures: Fixtures, S: np.ndarray, J_so: np.ndarray, J_st: np.ndarray,
@@ -484,22 +510,25 @@ def pose_errors(tracker: Tracker, fixtures: Fixtures, S: np.ndarray, J_so: np.nd
 
 
 def fit_output_correction(tracker: Tracker, fixtures: Fixtures, S: np.ndarray, J_so: np.ndarray,
-                          J_st: np.ndarray) -> Tracker:
+                          J_st: np.ndarray, solution=None) -> Tracker:
     """``tracker`` with the affine output correction that best takes its solved poses to the chain's.
 
-    Least squares over the points: ``r_chain − r ≈ W_p [r; 1]`` and
-    ``log(T_chain Tᵀ) ≈ W_r [r; 1]`` (rotation vectors, source frame).
+    Least squares over the points whose pose passed the gate (``converged``; a wrong minimum
+    never enters): ``r_chain − r ≈ W_p [r; 1]`` and ``log(T_chain Tᵀ) ≈ W_r [r; 1]`` (rotation
+    vectors, source frame). ``solution``: the points' poses solved without correction
+    (:class:`ivc.pose.solver.PoseSolution`), if the caller has them.
     """
-    plain = Tracker(tracker.source_moments, tracker.sensor_moments, tracker.source_offsets, tracker.sensor_offsets,
-                    dict(tracker.calibration), tracker.bias)
-    solution, P = solve_chain_poses(plain, fixtures, S, J_so, J_st, correct=False)
+    plain = replace(tracker, position_correction=np.zeros((3, 4)), rotation_correction=np.zeros((3, 4)))
+    P = chain(fixtures, J_so, J_st)
+    if solution is None:
+        solution, _ = solve_chain_poses(plain, fixtures, S, J_so, J_st, correct=False)
     ok = solution.converged & np.all(np.isfinite(solution.position), axis=1)
     if ok.sum() < 12:
-        raise TrackerError(f"only {int(ok.sum())} calibration poses solved; cannot fit an output correction")
+        raise TrackerError(f"only {int(ok.sum())} calibration poses passed the gate; cannot fit an output "
+                           "correction (calibrate with output_correction=False, or check the recordings)")
     r = solution.position[ok]
     h = np.concatenate([r, np.ones((len(r), 1))], axis=1)
     W_p = np.linalg.lstsq(h, P[ok, :3, 3] - r, rcond=None)[0].T
     dw = rotations.to_rotvec(rotations.from_matrix(P[ok, :3, :3] @ np.swapaxes(solution.rotation[ok], 1, 2)))
     W_r = np.linalg.lstsq(h, dw, rcond=None)[0].T
-    return Tracker(plain.source_moments, plain.sensor_moments, plain.source_offsets, plain.sensor_offsets,
-                   dict(tracker.calibration), plain.bias, W_p, W_r)
+    return replace(plain, calibration=dict(tracker.calibration), position_correction=W_p, rotation_correction=W_r)

@@ -33,10 +33,17 @@ from ivc.dipole.field import field as dipole_field
 from ivc.dipole.field import field_jacobian, flat_batch, signal
 from ivc.errors import TrackerError
 
-__all__ = ["TRACKER_FORMAT", "TRACKER_VERSION", "Tracker", "load_tracker", "save_tracker"]
+__all__ = ["DEFAULT_RESIDUAL_GATE", "GATE_FACTOR", "MIN_RESIDUAL_GATE", "TRACKER_FORMAT", "TRACKER_VERSION", "Tracker",
+           "load_tracker", "save_tracker"]
 
 TRACKER_FORMAT = "ivc-tracker"
 TRACKER_VERSION = 1
+#: the pose gate of a model without a calibrated one: relative residual ‖S − S_model‖_F / ‖S‖_F
+DEFAULT_RESIDUAL_GATE = 0.01
+#: a calibrated gate is this many times the model's own 99th-percentile residual (and the noise's)
+GATE_FACTOR = 3.0
+#: the smallest calibrated gate (a model fitted to noise-free simulations would otherwise gate at rounding)
+MIN_RESIDUAL_GATE = 1e-4
 
 
 def _matrix(value, name: str) -> np.ndarray:
@@ -68,6 +75,8 @@ class Tracker:
     bias: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     position_correction: np.ndarray = field(default_factory=lambda: np.zeros((3, 4)))
     rotation_correction: np.ndarray = field(default_factory=lambda: np.zeros((3, 4)))
+    residual_gate: float | None = None
+    hemisphere: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.source_moments = _matrix(self.source_moments, "source_moments")
@@ -83,6 +92,15 @@ class Tracker:
         for name in ("source_moments", "sensor_moments"):
             if not np.linalg.cond(getattr(self, name)) < 1e10:
                 raise TrackerError(f"{name} is singular: three coils must span three directions")
+        if self.residual_gate is not None:
+            self.residual_gate = float(self.residual_gate)
+            if not (math.isfinite(self.residual_gate) and self.residual_gate > 0):
+                raise TrackerError(f"residual_gate must be a fraction > 0, got {self.residual_gate}")
+        if self.hemisphere is not None:
+            h = np.array(self.hemisphere, dtype=float)
+            if h.shape != (3,) or not np.all(np.isfinite(h)) or not np.linalg.norm(h) > 0:
+                raise TrackerError(f"hemisphere must be a non-zero 3-vector, got {self.hemisphere!r}")
+            self.hemisphere = h / np.linalg.norm(h)
 
     @classmethod
     def ideal(cls) -> Tracker:
@@ -112,6 +130,19 @@ class Tracker:
         dr = h @ self.position_correction.T
         dw = h @ self.rotation_correction.T
         return r + dr, rotations.to_matrix(rotations.from_rotvec(dw)) @ T
+
+    def pose_gate(self, noise_relative: float = 0.0) -> float:
+        """The largest relative residual ``‖S − S_model‖_F / ‖S‖_F`` of a right pose under this model.
+
+        :attr:`residual_gate` (a calibration sets it from its own residue; :data:`DEFAULT_RESIDUAL_GATE`
+        without one), combined with ``GATE_FACTOR · √3 · noise_relative`` for signals whose per-entry
+        noise is ``noise_relative`` of ``‖S‖₂`` where the caller knows it (a six-parameter fit of
+        nine entries leaves at most ``√3`` of that, relative to ``‖S‖_F``).
+        """
+        if not (math.isfinite(noise_relative) and noise_relative >= 0):
+            raise TrackerError(f"noise_relative must be a fraction >= 0, got {noise_relative}")
+        own = self.residual_gate if self.residual_gate is not None else DEFAULT_RESIDUAL_GATE
+        return float(math.hypot(own, GATE_FACTOR * math.sqrt(3.0) * noise_relative))
 
     @property
     def is_concentric(self) -> bool:
@@ -147,49 +178,6 @@ class Tracker:
             return S.copy()
         return np.linalg.inv(self.sensor_moments).T @ (S - self.bias) @ np.linalg.inv(self.source_moments)
 
-    def to_ideal(self, S: ArrayLike, hemisphere: str = "+x", max_iterations: int = 30,
-                 tolerance: float = 1e-12) -> np.ndarray:
-        """Signals (..., 3, 3) in ideal-dipole units: what the ideal tracker would read at the same pose.
-
-        The one place where a tracker model enters ivc's primary-field path: every later stage
-        (fixtures, table, correction) then sees ``Tᵀ (f_D(r) + G)``, so the secondary field is
-        what the room adds, not what the coils get wrong. For concentric coils this is the
-        gain correction ``B⁻ᵀ (S − bias) A⁻¹``, exact for any field. With coil offsets, the
-        offsets' share of the signal, ``D(r, T) = S_model − (Bᵀ Tᵀ f_D(r) A + bias)``, is also
-        removed at the pose the corrected signal gives (closed form), by fixed-point iteration
-        (each gains about a factor 10 for millimetre offsets at 0.2 m; it stops when no matrix
-        changes by more than ``tolerance`` relative); in a distorted room this is exact to
-        second order in the distortion.
-        Non-finite matrices stay non-finite. The output correction is not applied (it acts on poses).
-        """
-        S = np.asarray(S, dtype=float)
-        if S.shape[-2:] != (3, 3):
-            raise TrackerError(f"signal matrices must have shape (..., 3, 3), got {S.shape}")
-        if self.is_ideal:
-            return S.copy()
-        from ivc.dipole.pose import closed_form_pose
-
-        concentric = self.corrected(S)
-        if self.is_concentric:
-            return concentric
-        flat = concentric.reshape(-1, 3, 3)
-        raw = S.reshape(-1, 3, 3)
-        ok = np.all(np.isfinite(flat.reshape(len(flat), 9)), axis=1)
-        A_inv, B_inv_t = np.linalg.inv(self.source_moments), np.linalg.inv(self.sensor_moments).T
-        gains = Tracker(self.source_moments, self.sensor_moments, bias=self.bias)
-        out = flat.copy()
-        idx = np.flatnonzero(ok)
-        for _ in range(max_iterations):
-            if len(idx) == 0:
-                break
-            r, T = closed_form_pose(out[idx], hemisphere)
-            D = model(T, r, self)[0] - gains.signal(r, T)
-            new = B_inv_t @ (raw[idx] - self.bias - D) @ A_inv
-            change = np.linalg.norm(new - out[idx], axis=(1, 2)) / np.linalg.norm(new, axis=(1, 2))
-            out[idx] = new
-            idx = idx[change > tolerance]
-        return out.reshape(S.shape)
-
     def pose_jacobian(self, r: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``S`` (F, 3, 3) and ``∂S/∂(r, ω)`` (F, 3, 3, 6) with ``T ← T exp([ω]×)``, ``r ← r + δr``."""
         S, parts = model(np.asarray(T, float), np.asarray(r, float), self, parts=True)
@@ -210,6 +198,8 @@ class Tracker:
             "bias": self.bias.tolist(),
             "position_correction": self.position_correction.tolist(),
             "rotation_correction": self.rotation_correction.tolist(),
+            "residual_gate": self.residual_gate,
+            "hemisphere": None if self.hemisphere is None else self.hemisphere.tolist(),
             "calibration": self.calibration,
         }
 
@@ -228,7 +218,8 @@ class Tracker:
             return cls(data["source_moments"], data["sensor_moments"], data.get("source_offsets", np.zeros((3, 3))),
                        data.get("sensor_offsets", np.zeros((3, 3))), dict(data.get("calibration", {})),
                        data.get("bias", np.zeros((3, 3))), data.get("position_correction", np.zeros((3, 4))),
-                       data.get("rotation_correction", np.zeros((3, 4))))
+                       data.get("rotation_correction", np.zeros((3, 4))), data.get("residual_gate"),
+                       data.get("hemisphere"))
         except TrackerError as error:
             raise TrackerError(f"{where}: {error}") from None
         except (TypeError, ValueError) as error:

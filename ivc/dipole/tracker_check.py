@@ -3,7 +3,10 @@
 The residue of a point is ``‖S − S_pred‖_F / ‖S‖₂`` with ``S_pred`` the model's signal at the
 chain's pose; the pose error compares the pose solved from ``S`` with the tracker model
 (:func:`ivc.pose.tracker.tracker_pose`) with the chain's pose. The residue's spread
-against range is reported in range quartiles.
+against range is reported in range quartiles, and so is the share of points whose solved pose
+failed the model's gate (not converged), also against the off-axis angle (the angle between a
+point's direction and the calibration's hemisphere). A converged pose more than
+:data:`WRONG_MM` or :data:`WRONG_DEG` off the chain's is counted as a wrong minimum.
 """
 
 from __future__ import annotations
@@ -15,7 +18,11 @@ from ivc.dipole.calibrate import Fixtures, chain, predicted_signal, residue, sol
 from ivc.dipole.tracker import Tracker
 from ivc.errors import TrackerError
 
-__all__ = ["check_tracker", "fixtures_of"]
+__all__ = ["WRONG_DEG", "WRONG_MM", "check_tracker", "fixtures_of"]
+
+#: a converged pose this far from the chain's (mm, degrees) sits in a wrong minimum
+WRONG_MM = 10.0
+WRONG_DEG = 5.0
 
 
 def fixtures_of(tracker: Tracker) -> Fixtures:
@@ -31,28 +38,52 @@ def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x)))) if len(x) else float("nan")
 
 
+def _quartiles(values: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """Bin edges at the quantiles of ``values`` and each value's bin."""
+    edges = np.quantile(values, np.linspace(0.0, 1.0, bins + 1))
+    return edges, np.clip(np.searchsorted(edges, values, side="right") - 1, 0, bins - 1)
+
+
+def _failures(failed: np.ndarray, values: np.ndarray, bins: int, key: str, scale: float) -> list[dict]:
+    edges, which = _quartiles(values, bins)
+    return [{key: [scale * edges[k], scale * edges[k + 1]], "points": int(np.sum(which == k)),
+             "failed": int(np.sum(failed[which == k]))} for k in range(bins)]
+
+
 def check_tracker(tracker: Tracker, fixtures: Fixtures, S: np.ndarray, J_so: np.ndarray, J_st: np.ndarray,
                   bins: int = 4) -> dict:
-    """Residue and pose-error figures of the points (a JSON-ready dict; lengths in mm, angles in degrees)."""
+    """Residue and pose-error figures of the points (a JSON-ready dict; lengths in mm, angles in degrees).
+
+    ``pose``: errors over every point, over the points that passed the gate, the share that
+    failed it (by range and off-axis angle quartiles) and the converged poses in a wrong minimum.
+    """
     S = np.asarray(S, dtype=float)
     if not np.all(np.isfinite(S)):
         raise TrackerError("signals must be finite")
     res = residue(S, predicted_signal(tracker, fixtures, J_so, J_st))
     P = chain(fixtures, J_so, J_st)
     ranges = np.linalg.norm(P[:, :3, 3], axis=1)
-    edges = np.quantile(ranges, np.linspace(0.0, 1.0, bins + 1))
-    which = np.clip(np.searchsorted(edges, ranges, side="right") - 1, 0, bins - 1)
+    edges, which = _quartiles(ranges, bins)
     by_range = [{"range_mm": [1e3 * edges[k], 1e3 * edges[k + 1]], "points": int(np.sum(which == k)),
                  "residue_rms_percent": 100 * _rms(res[which == k])} for k in range(bins)]
     out = {"points": int(len(S)), "residue_rms_percent": 100 * _rms(res), "residue_max_percent": 100 * float(res.max()),
            "residue_by_range": by_range}
+    side = tracker.hemisphere if tracker.hemisphere is not None else P[:, :3, 3].mean(axis=0)
+    off_axis = np.degrees(np.arccos(np.clip(P[:, :3, 3] @ side / (ranges * np.linalg.norm(side)), -1.0, 1.0)))
     for label, correct in (("pose", True), ("pose_uncorrected", False)):
         if label == "pose_uncorrected" and not tracker.has_output_correction:
             continue
         solution, _ = solve_chain_poses(tracker, fixtures, S, J_so, J_st, correct)
         position = 1e3 * np.linalg.norm(solution.position - P[:, :3, 3], axis=1)
         angle = np.degrees(rotations.angle_between_matrices(solution.rotation, P[:, :3, :3]))
+        ok = solution.converged
+        wrong = ok & ((position > WRONG_MM) | (angle > WRONG_DEG))
         out[label] = {"position_rms_mm": _rms(position), "position_max_mm": float(np.max(position)),
                       "angle_rms_deg": _rms(angle), "angle_max_deg": float(np.max(angle)),
-                      "converged_fraction": float(np.mean(solution.converged))}
+                      "converged_fraction": float(np.mean(ok)),
+                      "converged_position_rms_mm": _rms(position[ok]), "converged_angle_rms_deg": _rms(angle[ok]),
+                      "failed": int(np.sum(~ok)), "converged_wrong": int(np.sum(wrong)),
+                      "residual_gate_percent": 100 * tracker.pose_gate(),
+                      "failed_by_range": _failures(~ok, ranges, bins, "range_mm", 1e3),
+                      "failed_by_off_axis_angle": _failures(~ok, off_axis, bins, "angle_deg", 1.0)}
     return out
