@@ -10,7 +10,6 @@ with the lowest score is the one kept.
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from datetime import UTC, datetime
@@ -20,6 +19,7 @@ import numpy as np
 
 from ivc import __version__, dipole
 from ivc.errors import InputError
+from ivc.files import file_digest  # noqa: F401 (public here before ivc.files)
 from ivc.fixtures.mapping import DROP_REASONS, FixtureModel, Gates, map_sweep
 from ivc.lut.fitter import FITTERS, Fitter, make_fitter
 from ivc.lut.grid import DEFAULT_SPACING, Grid
@@ -146,14 +146,6 @@ def check_grid_memory(shape: tuple[int, int, int], limit: int | None = None) -> 
 
 def _noop(desc: str, total: int) -> Callable[[int], None]:
     return lambda n: None
-
-
-def file_digest(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _check_enough(kept: int, total: int, dropped: dict[str, int]) -> None:

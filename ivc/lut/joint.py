@@ -485,7 +485,8 @@ def fit_joint_lut(session: Session, options=None, source=None, progress=None) ->
     from datetime import UTC, datetime
 
     from ivc import __version__
-    from ivc.lut.build import FitOptions, file_digest
+    from ivc.files import file_digest
+    from ivc.lut.build import FitOptions
 
     options = options or FitOptions()
     joint = fit_joint(session, JointOptions(spacing=options.spacing, min_support=options.min_support,

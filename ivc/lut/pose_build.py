@@ -19,9 +19,10 @@ import numpy as np
 from ivc import __version__
 from ivc.dipole.tracker_solver import check_solver
 from ivc.errors import InputError
+from ivc.files import file_digest
 from ivc.fixtures.pose_mapping import DROP_REASONS, PoseFixtureModel, map_sweep_poses
 from ivc.lut import harmonics
-from ivc.lut.build import MIN_KEPT_FRACTION, MIN_SAMPLES, FitOptions, file_digest
+from ivc.lut.build import MIN_KEPT_FRACTION, MIN_SAMPLES, FitOptions
 from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
 from ivc.lut.grid import Grid
 from ivc.lut.pose_fit import fit_through_tracker

@@ -17,8 +17,8 @@ import h5py
 import numpy as np
 
 from ivc.errors import IvcError, LutError
+from ivc.files import atomic_path
 from ivc.lut.grid import Grid, GridField
-from ivc.session import atomic_path
 from ivc.session.io import open_ivc_file
 
 FORMAT_NAME = "lut"

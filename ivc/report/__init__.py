@@ -16,6 +16,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from ivc import __version__
+from ivc.files import atomic_path
 from ivc.fixtures.cube import NOMINAL_EDGE
 from ivc.lut.table import LookupTable
 from ivc.report import html
@@ -30,7 +31,7 @@ from ivc.report.compute import (
     summary,
 )
 from ivc.report.figures import FIGURES
-from ivc.session import Session, atomic_path
+from ivc.session import Session
 
 __all__ = ["FIGURES", "REPORT_FILES", "Report", "box_section", "build_report", "gather", "summary"]
 
