@@ -17,7 +17,6 @@ from ivc.collect.replay import write_csv
 from ivc.correct import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE, Corrector
 from ivc.correct.evaluate import check_errors, evaluate, rigid_alignment, summarise
 from ivc.correct.pose_domain import PoseCorrector
-from ivc.dipole.tracker_solver import distortion
 from ivc.errors import InputError
 from ivc.fixtures.pose_report import pose_fixture_report
 from ivc.fixtures.report import fixture_report
@@ -25,6 +24,7 @@ from ivc.live import LiveCorrector
 from ivc.live.igtl import Framer
 from ivc.lut import FitOptions, HarmonicFit
 from ivc.pose.reported import invert_distortion
+from ivc.pose.tracker_solver import distortion
 from ivc.report.compute import POSE_ONLY, check_view, gather
 from ivc.session import Session
 from tests.helpers import CENTRE, ball, quadratic_field

@@ -28,9 +28,9 @@ from ivc.correct.solver import (
     OUTSIDE,
     Correction,
 )
-from ivc.dipole.tracker_solver import SOLVERS
 from ivc.lut.build import file_digest
 from ivc.lut.grid import INTERPOLATIONS
+from ivc.pose.tracker_solver import SOLVERS
 from ivc.predict import DEFAULT_FILTER, FILTERS, Tuning
 from ivc.predict.steps import predicted_step
 from ivc.session import Session, Step

@@ -14,8 +14,8 @@ from ivc.cli.options import POSITIVE
 from ivc.cli.paths import check_output
 from ivc.cli.progress import StageBars
 from ivc.cli.tracker import tracker_option, with_tracker
-from ivc.dipole.tracker_solver import SOLVERS
 from ivc.lut.build import FitOptions
+from ivc.pose.tracker_solver import SOLVERS
 
 
 def parse_grid(value: str | None) -> dict:

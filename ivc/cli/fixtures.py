@@ -11,7 +11,6 @@ from ivc import session as session_io
 from ivc.cli.options import POSITIVE
 from ivc.cli.progress import ON_TERMINAL
 from ivc.cli.tracker import tracker_option, with_tracker
-from ivc.dipole.tracker_solver import SOLVERS
 from ivc.fixtures import VERTEX_CHOICES
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import Gates
@@ -19,6 +18,7 @@ from ivc.fixtures.pose_mapping import has_signals
 from ivc.fixtures.pose_report import pose_fixture_report
 from ivc.fixtures.report import fixture_report
 from ivc.pose import METHODS
+from ivc.pose.tracker_solver import SOLVERS
 
 
 def _row(label: str, values: dict, unit: str) -> str:

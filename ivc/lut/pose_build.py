@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 
 from ivc import __version__
-from ivc.dipole.tracker_solver import check_solver
 from ivc.errors import InputError
 from ivc.files import file_digest
 from ivc.fixtures.pose_mapping import DROP_REASONS, PoseFixtureModel, map_sweep_poses
@@ -28,6 +27,7 @@ from ivc.lut.grid import Grid
 from ivc.lut.pose_fit import fit_through_tracker
 from ivc.lut.support import mapped_nodes, node_support
 from ivc.lut.table import LookupTable
+from ivc.pose.tracker_solver import check_solver
 from ivc.session import Session, SessionError
 
 #: the largest harmonic degree tried (cross-validated below it)
@@ -56,7 +56,7 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
                  max_pairs: int = MAX_PAIRS) -> LookupTable:
     """Build the look-up table of a pose-only ``session`` (fixture steps and sweep as reported poses).
 
-    ``solver``: the tracker's own pose solver (``ivc.dipole.tracker_solver.SOLVERS``), recorded in the
+    ``solver``: the tracker's own pose solver (``ivc.pose.tracker_solver.SOLVERS``), recorded in the
     table so that corrections invert the same model. ``options``: as :func:`ivc.lut.fit_lut` (the
     fitter must be a :class:`~ivc.lut.fit_harmonic.HarmonicFit`, whose ``degree`` (None: cross-validated
     up to MAX_DEGREE) and number of folds apply; ``refine`` does not apply).

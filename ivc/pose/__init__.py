@@ -13,7 +13,9 @@ from ivc.pose.solver import (
     solve_pose,
 )
 from ivc.pose.tracker import tracker_pose
+from ivc.pose.tracker_solver import SOLVERS as TRACKER_SOLVERS
+from ivc.pose.tracker_solver import distortion, reported_pose, reported_pose_jacobian
 
-__all__ = ["METHODS", "Inversion", "PoseSolution", "damped_step", "dipole_plus", "invert_distortion",
+__all__ = ["METHODS", "TRACKER_SOLVERS", "Inversion", "PoseSolution", "damped_step", "dipole_plus", "invert_distortion",
            "levenberg_marquardt", "pose_covariance", "pose_precision", "procrustes", "signal_residual", "solve_pose",
-           "tracker_pose"]
+           "tracker_pose", "distortion", "reported_pose", "reported_pose_jacobian"]

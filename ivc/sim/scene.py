@@ -18,8 +18,8 @@ from scipy.spatial.transform import Rotation
 
 from ivc import rotations
 from ivc.dipole import HEMISPHERES
-from ivc.dipole.tracker_solver import SOLVERS
 from ivc.errors import SceneError
+from ivc.pose.tracker_solver import SOLVERS
 from ivc.sim import eddy, meshes
 from ivc.sim.field import FerrousSphere, SecondaryField
 
@@ -158,7 +158,7 @@ class Scene:
     description: str = ""
     frequency_hz: float = 10_000.0
     hemisphere: str = "+x"
-    #: the solver the simulated tracker reports poses with (ivc.dipole.tracker_solver.SOLVERS)
+    #: the solver the simulated tracker reports poses with (ivc.pose.tracker_solver.SOLVERS)
     tracker: str = "closed-form"
     conductors: list[Conductor] = field(default_factory=list)
     spheres: list[FerrousSphere] = field(default_factory=list)
