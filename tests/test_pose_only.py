@@ -16,7 +16,7 @@ from ivc.cli.main import cli
 from ivc.collect.replay import write_csv
 from ivc.correct import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE, Corrector
 from ivc.correct.evaluate import check_errors, evaluate, rigid_alignment, summarise
-from ivc.correct.pose_domain import PoseCorrector
+from ivc.correct.reported import PoseCorrector
 from ivc.errors import InputError
 from ivc.fixtures.pose_report import pose_fixture_report
 from ivc.fixtures.report import fixture_report

@@ -18,7 +18,7 @@ from ivc.collect.checks import rate_warning
 from ivc.collect.plus import is_plus_sequence, read_plus, write_plus
 from ivc.collect.replay import read_csv_columns, write_csv
 from ivc.correct import Corrector, describe
-from ivc.correct.pose_domain import PoseCorrector
+from ivc.correct.reported import PoseCorrector
 from ivc.correct.solver import (
     HIGH_RESIDUAL,
     INVALID_INPUT,

@@ -12,7 +12,7 @@ from ivc.cli.options import POSITIVE
 from ivc.cli.tracker import tracker_option, with_tracker
 from ivc.correct import Corrector
 from ivc.correct.evaluate import evaluate as evaluate_table
-from ivc.correct.pose_domain import PoseCorrector
+from ivc.correct.reported import PoseCorrector
 from ivc.correct.solver import MAX_RESIDUAL
 from ivc.lut.grid import INTERPOLATIONS
 from ivc.pose.tracker_solver import SOLVERS

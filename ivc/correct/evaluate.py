@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ivc import rotations
-from ivc.correct.pose_domain import PoseCorrector
+from ivc.correct.reported import PoseCorrector
 from ivc.correct.solver import FLAG_NAMES, Corrector
 from ivc.dipole import closed_form_pose
 from ivc.lut.table import LookupTable

@@ -4,7 +4,7 @@ Stages (docs/lut.md, "Pose-only trackers"): the cube's field is fitted through t
 from the survey's vertex poses and wand sensor 0 solved in it (:mod:`ivc.fixtures.pose_mapping`);
 the wand's other sensors give (true pose, reported pose) pairs over the room; a harmonic
 secondary field ``G`` is fitted so that the tracker model of ``f_D + G`` reproduces the reported
-poses (:mod:`ivc.lut.pose_fit`); and ``G`` is tabulated on the grid. The table is the same kind of
+poses (:mod:`ivc.pose.reported_fit`); and ``G`` is tabulated on the grid. The table is the same kind of
 table as the signal path's (the secondary field), so it corrects signals and poses alike.
 """
 
@@ -24,9 +24,9 @@ from ivc.lut import harmonics
 from ivc.lut.build import MIN_KEPT_FRACTION, MIN_SAMPLES, FitOptions
 from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
 from ivc.lut.grid import Grid
-from ivc.lut.pose_fit import fit_through_tracker
 from ivc.lut.support import mapped_nodes, node_support
 from ivc.lut.table import LookupTable
+from ivc.pose.reported_fit import fit_through_tracker
 from ivc.pose.tracker_solver import check_solver
 from ivc.session import Session, SessionError
 

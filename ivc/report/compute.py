@@ -15,7 +15,7 @@ import numpy as np
 
 from ivc import dipole
 from ivc.correct.evaluate import CheckErrors, check_errors, summarise
-from ivc.correct.pose_domain import PoseCorrector
+from ivc.correct.reported import PoseCorrector
 from ivc.correct.solver import Corrector
 from ivc.errors import InputError
 from ivc.fixtures.cube import CUBE_BITS, NOMINAL_EDGE, declared_pose, placed_vertices

@@ -34,7 +34,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ivc import compiled, rotations
-from ivc.correct import pose_kernels as _pose_kernels
+from ivc.correct import reported_kernels as _pose_kernels
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, Correction
 from ivc.dipole.pose import hemisphere_vector
 from ivc.errors import InputError
@@ -270,7 +270,7 @@ class PoseCorrector:
         (keyed by ``sensors``, default 0..N−1), or from the reported position.
 
         For the closed-form solver, a frame whose sensors all continue a track (or any frame without the
-        ambiguity test) is corrected by one compiled call (:func:`ivc.correct.pose_kernels.stream_kernel`),
+        ambiguity test) is corrected by one compiled call (:func:`ivc.correct.reported_kernels.stream_kernel`),
         the same steps as :meth:`batch` from another start; other frames go through the batch's path.
         """
         v = np.ascontiguousarray(np.asarray(position, dtype=float).reshape(-1, 3))
