@@ -20,7 +20,7 @@ from ivc import lut
 from ivc import session as session_io
 from ivc.correct import Corrector
 from ivc.correct.evaluate import evaluate
-from ivc.lut.build import FitOptions, Progress
+from ivc.lut.options import FitOptions, Progress
 from ivc.lut.table import LookupTable
 from ivc.session import Session, Step
 from ivc.sim import Scene, Simulator, load_scene

@@ -14,7 +14,7 @@ from ivc.cli.options import POSITIVE
 from ivc.cli.paths import check_output
 from ivc.cli.progress import StageBars
 from ivc.cli.tracker import tracker_option, with_tracker
-from ivc.lut.build import FitOptions
+from ivc.lut.options import FitOptions
 from ivc.pose.tracker_solver import SOLVERS
 
 

@@ -480,13 +480,13 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
 
 def fit_joint_lut(session: Session, options=None, source=None, progress=None) -> LookupTable:
     """:func:`fit_joint` as ``ivc fit`` runs it on a session with extension sweeps: the grid spacing,
-    support, gates and cube-sweep decimation from ``options`` (:class:`ivc.lut.build.FitOptions`; its
+    support, gates and cube-sweep decimation from ``options`` (:class:`ivc.lut.options.FitOptions`; its
     fitter and refinement do not apply: the map is always equivalent sources, re-solved jointly)."""
     from datetime import UTC, datetime
 
     from ivc import __version__
     from ivc.files import file_digest
-    from ivc.lut.build import FitOptions
+    from ivc.lut.options import FitOptions
 
     options = options or FitOptions()
     joint = fit_joint(session, JointOptions(spacing=options.spacing, min_support=options.min_support,
