@@ -18,7 +18,7 @@ import numpy as np
 
 from benchmarks.harness import Figure
 from ivc.collect.ilemt import read_ilemt, stack
-from ivc.dipole.calibrate import calibrate, pose_errors, predicted_signal, residue
+from ivc.pose.calibrate import calibrate, pose_errors, predicted_signal, residue
 
 ILEMT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "ilemt"
 CONCENTRIC = "cal_9_15_premo_cmu"

@@ -124,7 +124,7 @@ _EXPORTS = {
     "Tracker": ("ivc.dipole", "Tracker"),
     "load_tracker": ("ivc.dipole", "load_tracker"),
     "save_tracker": ("ivc.dipole", "save_tracker"),
-    "calibrate_tracker": ("ivc.dipole.calibrate", "calibrate"),
+    "calibrate_tracker": ("ivc.pose.calibrate", "calibrate"),
     # subpackages a script uses by name
     "collect": ("ivc.collect", None),
     "correct": ("ivc.correct", None),

@@ -10,9 +10,9 @@ from click.testing import CliRunner
 
 from ivc.cli import cli
 from ivc.collect.ilemt import compensate_stage, fixture_rotation, read_ilemt, stack
-from ivc.dipole.calibrate import Fixtures, calibrate, rigid_transform
 from ivc.dipole.tracker import Tracker, load_tracker
 from ivc.errors import CsvError, InputError
+from ivc.pose.calibrate import Fixtures, calibrate, rigid_transform
 from ivc.sim.stage import stage_recording
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "ilemt" / "cal_9_15_premo_cmu"
@@ -228,7 +228,7 @@ def test_rig_csv_errors(tmp_path):
 def test_recording_as_a_session_step(tmp_path, rng):
     from ivc import session as session_io
     from ivc.collect.tracker_units import apply_tracker
-    from ivc.dipole.calibrate import chain
+    from ivc.pose.calibrate import chain
     from ivc.pose.tracker import tracker_pose
     from ivc.session import Session
 

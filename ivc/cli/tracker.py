@@ -14,9 +14,9 @@ from tqdm import tqdm
 from ivc.cli.progress import ON_TERMINAL
 from ivc.collect.ilemt import read_ilemt, stack
 from ivc.collect.rig_csv import read_rig_csv
-from ivc.dipole.calibrate import calibrate as fit_tracker
 from ivc.dipole.tracker import load_tracker, save_tracker
-from ivc.dipole.tracker_check import check_tracker, fixtures_of
+from ivc.pose.calibrate import calibrate as fit_tracker
+from ivc.pose.tracker_check import check_tracker, fixtures_of
 from ivc.session import Session
 
 
