@@ -16,7 +16,7 @@ from ivc.dipole.pose import closed_form_pose
 from ivc.export import FORMATS, SLICER_TO_PARENT_CLASS, VRUI_MARGIN, ExportError, csv_sidecar, distortion, export
 from ivc.lut import Grid, LookupTable
 from ivc.lut import write as write_lut
-from ivc.lut.table import COMPONENTS
+from ivc.table.lookup import COMPONENTS
 from tests.helpers import CENTRE, quadratic_field
 
 MM = 1000.0

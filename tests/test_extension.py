@@ -171,7 +171,7 @@ def test_joint_fit_grows_the_map_and_reports_it(tmp_path):
     # fine as the grid its support is counted on, so a mapped table cell need not hold a sample itself (its
     # support cell does): most of the mapped volume lies in cells with samples, nearly all of it at the support grid
     assert sum(r["mapped_litres_reached"] for r in regions) > 0.6 * joint.report["mapped_litres"]
-    from ivc.lut.grid import Grid
+    from ivc.table.grid import Grid
 
     assert joint.report["table_subdivision"] == 2 and joint.report["sample_selection"] == "even"
     assert joint.report["error_floor_mm"] == pytest.approx(1000 * JointOptions().error_floor)  # the joint's ε₀

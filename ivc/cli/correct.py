@@ -29,11 +29,11 @@ from ivc.correct.solver import (
     Correction,
 )
 from ivc.lut.build import file_digest
-from ivc.lut.grid import INTERPOLATIONS
 from ivc.pose.tracker_solver import SOLVERS
 from ivc.predict import DEFAULT_FILTER, FILTERS, Tuning
 from ivc.predict.steps import predicted_step
 from ivc.session import Session, Step
+from ivc.table.grid import INTERPOLATIONS
 from ivc.units import LENGTH_UNITS
 
 #: the name of the corrected transforms added to a PLUS sequence

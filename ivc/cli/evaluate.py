@@ -14,8 +14,8 @@ from ivc.correct import Corrector
 from ivc.correct.evaluate import evaluate as evaluate_table
 from ivc.correct.reported import PoseCorrector
 from ivc.correct.solver import MAX_RESIDUAL
-from ivc.lut.grid import INTERPOLATIONS
 from ivc.pose.tracker_solver import SOLVERS
+from ivc.table.grid import INTERPOLATIONS
 
 _COLUMNS = ("p25", "p50", "p75", "p95", "p99", "max")
 

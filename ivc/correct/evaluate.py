@@ -23,8 +23,8 @@ from ivc import rotations
 from ivc.correct.reported import PoseCorrector
 from ivc.correct.solver import FLAG_NAMES, Corrector
 from ivc.dipole import closed_form_pose
-from ivc.lut.table import LookupTable
 from ivc.session import Session, SessionError
+from ivc.table.lookup import LookupTable
 from ivc.truth import DECLARED_FRAME, RAW_FRAME, declared_frame_map, percentiles, pose_errors
 
 

@@ -38,10 +38,10 @@ from ivc.correct import reported_kernels as _pose_kernels
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, Correction
 from ivc.dipole.pose import hemisphere_vector
 from ivc.errors import InputError
-from ivc.lut.grid import GridField
-from ivc.lut.table import LookupTable
 from ivc.pose.reported import invert_distortion
 from ivc.pose.tracker_solver import check_solver, distortion
+from ivc.table.grid import GridField
+from ivc.table.lookup import LookupTable
 
 #: the inversion stops when it reproduces the reported position to this (m)
 TOLERANCE = 1e-11

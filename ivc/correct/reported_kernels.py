@@ -23,7 +23,7 @@ import numpy as np
 from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
 from ivc.dipole.kernels import closed_form_one, closed_form_position, field_matrix
 from ivc.linalg import quaternion_of
-from ivc.lut.kernels import grid_value
+from ivc.table.kernels import grid_value
 
 # The helpers below are plain compiled functions, not numba-inlined: inlined three and four times over into
 # one function they made its first compile take over a minute. ``error_model="numpy"`` keeps the arithmetic

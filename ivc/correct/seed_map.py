@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ivc.lut.grid import Grid, GridField
+from ivc.table.grid import Grid, GridField
 
 #: map nodes per table cell edge (1 where that would give more than MAX_NODES nodes)
 SUBDIVISION = 2

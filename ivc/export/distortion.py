@@ -27,8 +27,8 @@ from scipy import ndimage
 from ivc import dipole, rotations
 from ivc.dipole.pose import closed_form_pose
 from ivc.errors import ExportError
-from ivc.lut.grid import Grid, GridField
-from ivc.lut.table import LookupTable
+from ivc.table.grid import Grid, GridField
+from ivc.table.lookup import LookupTable
 
 #: default node spacing of a grid over the reported region: the table's spacing divided by this
 REPORTED_SUBDIVISION = 4

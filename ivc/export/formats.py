@@ -41,8 +41,8 @@ from ivc import __version__, dipole
 from ivc.errors import ExportError
 from ivc.export import distortion
 from ivc.files import atomic_path
-from ivc.lut.table import COMPONENTS, FIELD_UNIT, LookupTable
-from ivc.lut.table import write as write_hdf5
+from ivc.table.lookup import COMPONENTS, FIELD_UNIT, LookupTable
+from ivc.table.lookup import write as write_hdf5
 from ivc.units import LENGTH_UNITS
 
 #: units each format can be written in (None: any of LENGTH_UNITS), and the default

@@ -37,9 +37,9 @@ from ivc.correct import reported_kernels as _pose_kernels
 from ivc.correct.reported import PoseCorrector
 from ivc.dipole import kernels as _dipole_kernels
 from ivc.live.igtl import Framer, TrackingDataMessage, encode_transforms
-from ivc.lut import kernels as _lut_kernels
 from ivc.predict import Tuning
 from ivc.predict import make as make_predictor
+from ivc.table import kernels as _lut_kernels
 
 log = logging.getLogger("ivc.live")
 #: a client whose queue grows beyond this many bytes loses its oldest messages

@@ -12,12 +12,12 @@ from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
 from ivc.lut.fit_poly import PolyFit
 from ivc.lut.fit_sources import SourceModel, SourcesFit
 from ivc.lut.fitter import FITTERS, Fitter, fit_table, make_fitter, register
-from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
 from ivc.lut.joint import JointMap, JointOptions, fit_joint, solve_wand, solve_wand_table
 from ivc.lut.refine import MapFit, fit_map, refine_map
 from ivc.lut.samples import FieldSamples
 from ivc.lut.signal_noise import SignalNoise, measure_signal_noise
-from ivc.lut.table import LookupTable, LutError, read, write
+from ivc.table.grid import DEFAULT_SPACING, Grid, GridField
+from ivc.table.lookup import LookupTable, LutError, read, write
 
 __all__ = ["DEFAULT_SPACING", "FITTERS", "METHODS", "BlockedKFold", "FieldSamples", "FitOptions", "Fitter", "Grid",
            "GridField", "HarmonicFit", "HarmonicModel", "JointMap", "JointOptions", "LookupTable", "LutError",

@@ -19,7 +19,6 @@ import numpy as np
 from ivc import __version__, dipole
 from ivc.files import file_digest  # noqa: F401 (public here before ivc.files)
 from ivc.fixtures.mapping import DROP_REASONS, FixtureModel, Gates, map_sweep
-from ivc.lut.grid import Grid
 from ivc.lut.options import (  # noqa: F401 (public here before ivc.lut.options)
     METHODS,
     MIN_KEPT_FRACTION,
@@ -32,8 +31,9 @@ from ivc.lut.options import (  # noqa: F401 (public here before ivc.lut.options)
 from ivc.lut.refine import fit_map, refine_map
 from ivc.lut.samples import FieldSamples
 from ivc.lut.signal_noise import measure_signal_noise
-from ivc.lut.table import LookupTable
 from ivc.session import Session, SessionError, extension_steps
+from ivc.table.grid import Grid
+from ivc.table.lookup import LookupTable
 
 #: what to redo when most samples fail a gate
 _ADVICE = {

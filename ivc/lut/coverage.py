@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ivc.errors import InputError
-from ivc.lut.grid import GridField
+from ivc.table.grid import GridField
 
 #: lattice step (m) at which the box is probed
 STEP = 0.01

@@ -39,13 +39,13 @@ from ivc.lut.fit_sources import (
     normal_equations,
     solve_normal_equations,
 )
-from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
 from ivc.lut.refine import skew
 from ivc.lut.samples import FieldSamples, leverage
 from ivc.lut.support import MIN_SUPPORT, node_support
-from ivc.lut.table import LookupTable
 from ivc.pose import levenberg_marquardt, signal_residual
 from ivc.session import Session, SessionError, Step, extension_steps
+from ivc.table.grid import DEFAULT_SPACING, Grid, GridField
+from ivc.table.lookup import LookupTable
 
 #: the joint map's inner shell of equivalent sources lies this far beyond the samples' bounding box (m)
 SOURCE_STANDOFF = 0.09

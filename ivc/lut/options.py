@@ -14,8 +14,8 @@ import numpy as np
 from ivc.errors import InputError
 from ivc.fixtures.mapping import Gates
 from ivc.lut.fitter import FITTERS, Fitter, make_fitter
-from ivc.lut.grid import DEFAULT_SPACING
 from ivc.lut.support import MIN_SUPPORT
+from ivc.table.grid import DEFAULT_SPACING
 
 make_fitter("harmonic")  # registers the built-in fitters
 #: the fit methods (:data:`ivc.lut.fitter.FITTERS`' names)

@@ -22,13 +22,13 @@ from ivc.files import file_digest
 from ivc.fixtures.pose_mapping import DROP_REASONS, PoseFixtureModel, map_sweep_poses
 from ivc.lut import harmonics
 from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
-from ivc.lut.grid import Grid
 from ivc.lut.options import MIN_KEPT_FRACTION, MIN_SAMPLES, FitOptions
 from ivc.lut.support import mapped_nodes, node_support
-from ivc.lut.table import LookupTable
 from ivc.pose.reported_fit import fit_through_tracker
 from ivc.pose.tracker_solver import check_solver
 from ivc.session import Session, SessionError
+from ivc.table.grid import Grid
+from ivc.table.lookup import LookupTable
 
 #: the largest harmonic degree tried (cross-validated below it)
 MAX_DEGREE = 8

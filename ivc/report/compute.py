@@ -24,12 +24,12 @@ from ivc.fixtures.mapping import FixtureModel, Gates, SweepMapping, map_sweep
 from ivc.fixtures.pose_mapping import has_signals
 from ivc.fixtures.report import SweepErrors, sweep_errors
 from ivc.lut.coverage import box_coverage, box_points
-from ivc.lut.grid import GridField
 from ivc.lut.joint import JointOptions, extension_part, extension_samples
 from ivc.lut.options import FitOptions
 from ivc.lut.support import MIN_SUPPORT
-from ivc.lut.table import LookupTable
 from ivc.session import Session, extension_steps, working_volume
+from ivc.table.grid import GridField
+from ivc.table.lookup import LookupTable
 from ivc.truth import declared_frame_map, percentiles
 
 #: horizontal slices drawn at most

@@ -18,8 +18,8 @@ import numpy as np
 
 from ivc.errors import IvcError, LutError
 from ivc.files import atomic_path
-from ivc.lut.grid import Grid, GridField
 from ivc.session.io import open_ivc_file
+from ivc.table.grid import Grid, GridField
 
 FORMAT_NAME = "lut"
 FORMAT_VERSION = 1
