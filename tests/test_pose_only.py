@@ -149,6 +149,10 @@ def test_mapping_from_reported_poses_alone(small_session, pose_only_table):
     poses, table = pose_only_table
     assert table.fit["input"] == "reported poses" and table.fit["tracker_solver"] == "closed-form"
     assert table.fit["cube"]["vertex_position_rms_mm"] < 0.1
+    typed = table.report  # the fit report, typed as every fit path's
+    assert typed.input == "reported poses" and typed.reported_poses.tracker_solver == "closed-form"
+    assert typed.reported_poses.vertex_position_rms_mm == table.fit["cube"]["vertex_position_rms_mm"]
+    assert typed.degree == 5 and typed.refinement == () and typed.to_dict() == table.fit
     report = evaluate(table, poses)
     assert report["input"] == "reported poses"
     # the same session with its signals, through the signal path, for comparison
