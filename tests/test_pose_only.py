@@ -18,8 +18,7 @@ from ivc.correct import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE, Co
 from ivc.correct.evaluate import check_errors, evaluate, rigid_alignment, summarise
 from ivc.correct.reported import PoseCorrector
 from ivc.errors import InputError
-from ivc.fixtures.pose_report import pose_fixture_report
-from ivc.fixtures.report import fixture_report
+from ivc.fixtures.report import fixture_report, pose_fixture_report
 from ivc.live import LiveCorrector
 from ivc.live.igtl import Framer
 from ivc.lut import FitOptions, HarmonicFit

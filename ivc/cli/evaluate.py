@@ -10,10 +10,10 @@ from ivc import lut
 from ivc import session as session_io
 from ivc.cli.options import POSITIVE
 from ivc.cli.tracker import tracker_option, with_tracker
-from ivc.correct import Corrector
 from ivc.correct.evaluate import evaluate as evaluate_table
-from ivc.correct.reported import PoseCorrector
+from ivc.correct.measured import corrector_for
 from ivc.correct.solver import MAX_RESIDUAL
+from ivc.fixtures.measurement import PoseInput, SignalInput, measurement_of
 from ivc.pose.tracker_solver import SOLVERS
 from ivc.table.grid import INTERPOLATIONS
 
@@ -78,11 +78,11 @@ def evaluate(lut_file, check_file, step, interpolation, max_residual, tracker, a
     check = session_io.read(check_file)
     if tracker_file is not None and step in check.steps:
         check = with_tracker(check, tracker_file, [step])
-    if step in check.steps and check.steps[step].signal is None:
-        corrector = PoseCorrector(table, check.hemisphere, interpolation, tracker)
-    else:
-        # the tracker's noise, when the table's fit measured it, gives each pose's predicted precision
-        corrector = Corrector(table, check.hemisphere, interpolation, max_residual,
-                              precision=table.signal_noise is not None)
+    measurement = measurement_of(check.steps[step]) if step in check.steps else SignalInput()
+    if isinstance(measurement, PoseInput):
+        options = {"solver": tracker}
+    else:  # the tracker's noise, when the table's fit measured it, gives each pose's predicted precision
+        options = {"max_residual": max_residual, "precision": table.signal_noise is not None}
+    corrector = corrector_for(measurement, table, check.hemisphere, interpolation, **options)
     report = evaluate_table(corrector, check, step)
     click.echo(json.dumps(report, indent=2) if as_json else render_table(report))

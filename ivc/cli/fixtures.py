@@ -14,9 +14,7 @@ from ivc.cli.tracker import tracker_option, with_tracker
 from ivc.fixtures import VERTEX_CHOICES
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import Gates
-from ivc.fixtures.pose_mapping import has_signals
-from ivc.fixtures.pose_report import pose_fixture_report
-from ivc.fixtures.report import fixture_report
+from ivc.fixtures.measurement import PoseInput, measurement_of
 from ivc.pose import METHODS
 from ivc.pose.tracker_solver import SOLVERS
 
@@ -115,8 +113,9 @@ def fixtures(session_file, vertices, interpolant, method, max_residual, max_erro
     data = with_tracker(session_io.read(session_file), tracker_file)
     frames = data.steps["wand_sweep"].n_frames if "wand_sweep" in data.steps else 0
     gates = Gates(max_residual=max_residual, max_error=max_error_mm / 1000)
-    pose_only = not has_signals(data)
-    if pose_only:
+    measurement = measurement_of(data, solver=tracker_solver, gates=gates, method=method, interpolant=interpolant,
+                                 compare_cubes=compare_cubes)
+    if isinstance(measurement, PoseInput):
         ignored = [name for name, value, default in (("--interpolant", interpolant, "harmonic"),
                                                      ("--method", method, "joint"),
                                                      ("--compare-cubes", compare_cubes, 0))
@@ -125,9 +124,5 @@ def fixtures(session_file, vertices, interpolant, method, max_residual, max_erro
             raise click.UsageError(f"{', '.join(ignored)} apply to signals; {session_file} holds reported poses only")
     with tqdm(total=frames, desc="solving the sweep", unit="frame", leave=False,
               disable=True if as_json else ON_TERMINAL) as bar:
-        if pose_only:
-            report = pose_fixture_report(data, vertices, tracker_solver, progress=bar.update)
-        else:
-            report = fixture_report(data, vertices, method, gates, compare_cubes, progress=bar.update,
-                                    interpolant=interpolant)
+        report = measurement.fixture_report(data, vertices, progress=bar.update)
     click.echo(json.dumps(report, indent=2) if as_json else render(report))

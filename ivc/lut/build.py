@@ -11,14 +11,17 @@ with the lowest score is the one kept.
 from __future__ import annotations
 
 from collections.abc import Callable
-from datetime import UTC, datetime
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from ivc import __version__, dipole
+from ivc import dipole
 from ivc.files import file_digest  # noqa: F401 (public here before ivc.files)
-from ivc.fixtures.mapping import DROP_REASONS, FixtureModel, Gates, map_sweep
+from ivc.fixtures.mapping import DROP_REASONS, Gates
+from ivc.fixtures.measurement import PoseInput, SignalInput, measurement_of
+from ivc.lut.fit_steps import check_enough, decimated, provenance
+from ivc.lut.joint import fit_joint_lut
 from ivc.lut.options import (  # noqa: F401 (public here before ivc.lut.options)
     METHODS,
     MIN_KEPT_FRACTION,
@@ -29,6 +32,7 @@ from ivc.lut.options import (  # noqa: F401 (public here before ivc.lut.options)
     grid_memory,
 )
 from ivc.lut.refine import fit_map, refine_map
+from ivc.lut.reported_build import fit_pose_lut
 from ivc.lut.samples import FieldSamples
 from ivc.lut.signal_noise import measure_signal_noise
 from ivc.session import Session, SessionError, extension_steps
@@ -51,16 +55,6 @@ _ADVICE = {
 
 def _noop(desc: str, total: int) -> Callable[[int], None]:
     return lambda n: None
-
-
-def _check_enough(kept: int, total: int, dropped: dict[str, int]) -> None:
-    if kept >= MIN_SAMPLES and kept >= MIN_KEPT_FRACTION * total:
-        return
-    reason = max(DROP_REASONS, key=lambda k: dropped.get(k, 0))
-    detail = ", ".join(f"{n} {k}" for k, n in dropped.items() if n)
-    raise SessionError(f"only {kept} of {total} wand samples passed the gates (dropped: {detail}); need at least "
-                       f"{max(MIN_SAMPLES, int(MIN_KEPT_FRACTION * total))}. Most were dropped as {reason!r}: "
-                       f"{_ADVICE[reason]}")
 
 
 def _check_data_grid(session: Session, spacing: float) -> None:
@@ -86,37 +80,33 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
     """Build the look-up table of ``session`` (which must hold the fixture steps and the sweep).
 
     ``source``: the session's file, recorded (with its SHA-256) in the table's provenance.
-    ``progress(description, total)`` returns an update callback per stage. A session whose cube
-    survey or sweep holds reported poses only is fitted from them through the model of the
-    tracker's solver ``tracker`` (:func:`ivc.lut.pose_build.fit_pose_lut`); one with extension sweeps
-    is mapped over the whole working volume by the joint solve (:func:`ivc.lut.joint.fit_joint_lut`).
+    ``progress(description, total)`` returns an update callback per stage. The path is the session's
+    measurement's (:func:`ivc.fixtures.measurement.measurement_of`, :data:`FIT_PATHS`): a session whose cube
+    survey and sweep hold reported poses only is fitted from them through the model of the tracker's solver
+    ``tracker`` (:func:`ivc.lut.reported_build.fit_pose_lut`); one with signals by the chosen fitter, or, with
+    extension sweeps, over the whole working volume by the joint solve (:func:`ivc.lut.joint.fit_joint_lut`).
     """
-    from ivc.fixtures.pose_mapping import has_signals
+    measurement = measurement_of(session, solver=tracker) if not session.missing_for_fit() else SignalInput()
+    return FIT_PATHS[type(measurement)](session, measurement, options or FitOptions(), source, progress or _noop)
 
-    if not session.missing_for_fit() and not has_signals(session):
-        from ivc.lut.pose_build import fit_pose_lut
 
-        return fit_pose_lut(session, options, source, progress, solver=tracker)
+def _fit_signals(session: Session, measurement: SignalInput, options: FitOptions, source: str | Path | None,
+                 progress: Progress) -> LookupTable:
+    """The signal path: the sweep mapped through the cube, fitted, refined (or the joint solve, with extension
+    sweeps)."""
     if extension_steps(session.steps):  # the whole working volume: the joint solve (ivc.lut.joint)
-        from ivc.lut.joint import fit_joint_lut
-
-        return _with_signal_noise(fit_joint_lut(session, options or FitOptions(), source, progress), session)
-    options = options or FitOptions()
-    progress = progress or _noop
+        return _with_signal_noise(fit_joint_lut(session, options, source, progress), session)
     missing = session.missing_for_fit()
     if missing:
         raise SessionError("cannot fit a map; the session is missing:\n  " + "\n  ".join(missing))
     if options.origin is None:
         _check_data_grid(session, options.spacing)
-    model = FixtureModel.from_session(session)
-    recorded = session.steps["wand_sweep"].n_frames
-    stride = max(1, -(-recorded // options.max_frames))
-    if stride > 1:
-        session = session.select_frames("wand_sweep", slice(None, None, stride))
+    measurement = replace(measurement, gates=Gates(max_residual=options.max_residual, max_error=options.max_error))
+    model = measurement.fixture_model(session)
+    session, recorded, stride = decimated(session, options.max_frames)
     sweep = session.steps["wand_sweep"]
-    gates = Gates(max_residual=options.max_residual, max_error=options.max_error)
-    mapping = map_sweep(session, model, gates, progress=progress("solving the sweep in the cube", sweep.n_frames))
-    _check_enough(mapping.kept, mapping.keep.size, mapping.dropped)
+    mapping = measurement.map_sweep(session, model, progress("solving the sweep in the cube", sweep.n_frames))
+    check_enough(mapping.kept, mapping.keep.size, mapping.dropped, DROP_REASONS, _ADVICE)
     samples = FieldSamples.from_mapping(mapping)
     if options.origin is not None:
         grid = Grid(np.asarray(options.origin, float), options.spacing, tuple(options.shape))
@@ -143,16 +133,20 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
         "min_support": options.min_support,
         "valid_nodes": int(valid.sum()),
     }
-    provenance = {
-        "ivc_version": __version__,
-        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "parameters": options.describe(),
-        "fixtures": {"vertices": model.vertices, "interpolant": type(model.interpolant).__name__},
-    }
-    if source is not None:
-        provenance.update(input=str(source), input_sha256=file_digest(source))
-    return _with_signal_noise(LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance),
-                              session)
+    fixtures = {"vertices": model.vertices, "interpolant": type(model.interpolant).__name__}
+    return _with_signal_noise(LookupTable(grid, values, valid, support, session.hemisphere, fit,
+                                          provenance(options.describe(), source, fixtures)), session)
+
+
+def _fit_reported(session: Session, measurement: PoseInput, options: FitOptions, source: str | Path | None,
+                  progress: Progress) -> LookupTable:
+    """The reported-pose path (:func:`ivc.lut.reported_build.fit_pose_lut`)."""
+    return fit_pose_lut(session, options, source, progress, solver=measurement.solver)
+
+
+#: the fit path of each kind of measurement (:mod:`ivc.fixtures.measurement`): ``(session, measurement, options,
+#: source, progress) -> LookupTable``; a new kind of input registers its path here
+FIT_PATHS = {SignalInput: _fit_signals, PoseInput: _fit_reported}
 
 
 def _with_signal_noise(table: LookupTable, session: Session) -> LookupTable:

@@ -1,7 +1,7 @@
 """A look-up table from reported poses alone (``ivc fit`` on a session without signals).
 
 Stages (docs/lut.md, "Pose-only trackers"): the cube's field is fitted through the tracker model
-from the survey's vertex poses and wand sensor 0 solved in it (:mod:`ivc.fixtures.pose_mapping`);
+from the survey's vertex poses and wand sensor 0 solved in it (:mod:`ivc.fixtures.reported_mapping`);
 the wand's other sensors give (true pose, reported pose) pairs over the room; a harmonic
 secondary field ``G`` is fitted so that the tracker model of ``f_D + G`` reproduces the reported
 poses (:mod:`ivc.pose.reported_fit`); and ``G`` is tabulated on the grid. The table is the same kind of
@@ -11,18 +11,17 @@ table as the signal path's (the secondary field), so it corrects signals and pos
 from __future__ import annotations
 
 from collections.abc import Callable
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
-from ivc import __version__
 from ivc.errors import InputError
-from ivc.files import file_digest
-from ivc.fixtures.pose_mapping import DROP_REASONS, PoseFixtureModel, map_sweep_poses
+from ivc.fixtures.measurement import PoseInput
+from ivc.fixtures.reported_mapping import DROP_REASONS
 from ivc.lut import harmonics
 from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
-from ivc.lut.options import MIN_KEPT_FRACTION, MIN_SAMPLES, FitOptions
+from ivc.lut.fit_steps import check_enough, decimated, provenance
+from ivc.lut.options import FitOptions
 from ivc.lut.support import mapped_nodes, node_support
 from ivc.pose.reported_fit import fit_through_tracker
 from ivc.pose.tracker_solver import check_solver
@@ -70,18 +69,13 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
     missing = session.missing_for_fit()
     if missing:
         raise SessionError("cannot fit a map; the session is missing:\n  " + "\n  ".join(missing))
-    model = PoseFixtureModel.from_session(session, solver)
-    recorded = session.steps["wand_sweep"].n_frames
-    stride = max(1, -(-recorded // options.max_frames))
-    if stride > 1:
-        session = session.select_frames("wand_sweep", slice(None, None, stride))
+    measurement = PoseInput(solver)
+    model = measurement.fixture_model(session)
+    session, recorded, stride = decimated(session, options.max_frames)
     sweep = session.steps["wand_sweep"]
-    mapping = map_sweep_poses(session, model, progress("tracing sensor 0 into the cube", sweep.n_frames))
+    mapping = measurement.map_sweep(session, model, progress("tracing sensor 0 into the cube", sweep.n_frames))
     total = int(mapping.keep.size)
-    if mapping.kept < MIN_SAMPLES or mapping.kept < MIN_KEPT_FRACTION * total:
-        reason = max(DROP_REASONS, key=lambda k: mapping.dropped.get(k, 0))
-        raise SessionError(f"only {mapping.kept} of {total} wand samples passed the gates; most were dropped as "
-                           f"{reason!r}: {_ADVICE[reason]}")
+    check_enough(mapping.kept, total, mapping.dropped, DROP_REASONS, _ADVICE)
     pairs = mapping.pairs
     thin = max(1, -(-len(pairs) // max_pairs))
     used = pairs.subset(slice(None, None, thin)) if thin > 1 else pairs
@@ -119,12 +113,6 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
         "min_support": options.min_support,
         "valid_nodes": int(valid.sum()),
     }
-    provenance = {
-        "ivc_version": __version__,
-        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "parameters": {**options.describe(), "tracker_solver": solver, "max_pairs": max_pairs},
-        "fixtures": {"vertices": model.vertices, "interpolant": "HarmonicField (through the tracker model)"},
-    }
-    if source is not None:
-        provenance.update(input=str(source), input_sha256=file_digest(source))
-    return LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance)
+    fixtures = {"vertices": model.vertices, "interpolant": "HarmonicField (through the tracker model)"}
+    parameters = {**options.describe(), "tracker_solver": solver, "max_pairs": max_pairs}
+    return LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance(parameters, source, fixtures))
