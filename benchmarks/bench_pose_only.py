@@ -34,7 +34,7 @@ from ivc.correct.evaluate import check_errors, summarise
 from ivc.correct.reported import PoseCorrector
 from ivc.export import distortion, export
 from ivc.export.formats import LPS, SUBDIVISION
-from ivc.fixtures.pose_mapping import PoseFixtureModel, map_sweep_poses
+from ivc.fixtures.reported_mapping import PoseFixtureModel, map_sweep_poses
 from ivc.lut import FitOptions, fit_lut
 from ivc.lut.correction_table import fit_pose_domain_table
 from ivc.pose.reported import invert_distortion
