@@ -7,13 +7,13 @@ import pytest
 from ivc import lut
 from ivc.cli.fit import render_fit
 from ivc.errors import LutError
-from ivc.lut import FitOptions, HarmonicFit, PolyFit
+from ivc.lut import FitOptions, HarmonicFit
 from ivc.table import FitReport
 
 
 @pytest.mark.parametrize("options", [FitOptions(fitter=HarmonicFit(), min_support=5, refine=True, max_refinements=1),
-                                     FitOptions(fitter=PolyFit(), min_support=5, refine=False)],
-                         ids=["harmonic", "poly"])
+                                     FitOptions(fitter=HarmonicFit(degree=4), min_support=5, refine=False)],
+                         ids=["refined", "fixed-degree"])
 def test_a_single_sweep_fit_reports_typed_fields(small_session, options, tmp_path):
     _, session = small_session
     table = lut.fit_lut(session, options)

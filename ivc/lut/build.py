@@ -20,7 +20,7 @@ from ivc import dipole
 from ivc.files import file_digest  # noqa: F401 (public here before ivc.files)
 from ivc.fixtures.mapping import DROP_REASONS, Gates
 from ivc.fixtures.measurement import PoseInput, SignalInput, measurement_of
-from ivc.lut.fit_steps import check_enough, decimated, provenance
+from ivc.lut.fit_steps import ADVICE, check_enough, decimated, provenance
 from ivc.lut.joint import fit_joint_lut
 from ivc.lut.options import (  # noqa: F401 (public here before ivc.lut.options)
     METHODS,
@@ -39,19 +39,6 @@ from ivc.session import Session, SessionError, extension_steps
 from ivc.table.grid import Grid
 from ivc.table.lookup import LookupTable
 
-#: what to redo when most samples fail a gate
-_ADVICE = {
-    "invalid sample": "the sweep's samples are mostly invalid (dropped or saturated): redo `ivc collect wand_sweep`",
-    "sensor 0 invalid": "wand sensor 0 was mostly invalid: redo `ivc collect wand_sweep`",
-    "not converged": "sensor 0's pose did not converge in the cube: check `ivc fixtures` and redo cube_survey or "
-                     "wand_sweep",
-    "outside the cube": "sensor 0 was mostly outside the cube: redo `ivc collect wand_sweep` keeping wand sensor 0 "
-                        "inside the cube",
-    "residual too high": "the cube field does not explain sensor 0's signal (rms(Λ) too high): redo "
-                         "`ivc collect cube_survey` (and check the declared cube pose), or raise --max-residual",
-    "estimated error too high": "the estimated sample errors exceed the gate: redo `ivc collect wand_calibration` and "
-                                "`ivc collect wand_sweep` more slowly, or raise --max-error-mm",
-}
 
 def _noop(desc: str, total: int) -> Callable[[int], None]:
     return lambda n: None
@@ -106,7 +93,7 @@ def _fit_signals(session: Session, measurement: SignalInput, options: FitOptions
     session, recorded, stride = decimated(session, options.max_frames)
     sweep = session.steps["wand_sweep"]
     mapping = measurement.map_sweep(session, model, progress("solving the sweep in the cube", sweep.n_frames))
-    check_enough(mapping.kept, mapping.keep.size, mapping.dropped, DROP_REASONS, _ADVICE)
+    check_enough(mapping.kept, mapping.keep.size, mapping.dropped, DROP_REASONS, ADVICE)
     samples = FieldSamples.from_mapping(mapping)
     if options.origin is not None:
         grid = Grid(np.asarray(options.origin, float), options.spacing, tuple(options.shape))

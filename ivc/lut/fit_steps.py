@@ -11,7 +11,21 @@ from ivc.files import file_digest
 from ivc.lut.options import MIN_KEPT_FRACTION, MIN_SAMPLES
 from ivc.session import Session, SessionError
 
-__all__ = ["check_enough", "decimated", "provenance"]
+__all__ = ["ADVICE", "check_enough", "decimated", "provenance"]
+
+#: what to redo when most samples fail a gate (the signal path's gates, :data:`ivc.fixtures.mapping.DROP_REASONS`)
+ADVICE = {
+    "invalid sample": "the sweep's samples are mostly invalid (dropped or saturated): redo `ivc collect wand_sweep`",
+    "sensor 0 invalid": "wand sensor 0 was mostly invalid: redo `ivc collect wand_sweep`",
+    "not converged": "sensor 0's pose did not converge in the cube: check `ivc fixtures` and redo cube_survey or "
+                     "wand_sweep",
+    "outside the cube": "sensor 0 was mostly outside the cube: redo `ivc collect wand_sweep` keeping wand sensor 0 "
+                        "inside the cube",
+    "residual too high": "the cube field does not explain sensor 0's signal (rms(Λ) too high): redo "
+                         "`ivc collect cube_survey` (and check the declared cube pose), or raise --max-residual",
+    "estimated error too high": "the estimated sample errors exceed the gate: redo `ivc collect wand_calibration` and "
+                                "`ivc collect wand_sweep` more slowly, or raise --max-error-mm",
+}
 
 
 def decimated(session: Session, max_frames: int) -> tuple[Session, int, int]:

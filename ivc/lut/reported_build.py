@@ -20,7 +20,7 @@ from ivc.fixtures.measurement import PoseInput
 from ivc.fixtures.reported_mapping import DROP_REASONS
 from ivc.lut import harmonics
 from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
-from ivc.lut.fit_steps import check_enough, decimated, provenance
+from ivc.lut.fit_steps import ADVICE, check_enough, decimated, provenance
 from ivc.lut.options import FitOptions
 from ivc.lut.support import mapped_nodes, node_support
 from ivc.pose.reported_fit import fit_through_tracker
@@ -36,14 +36,10 @@ MAX_PAIRS = 40_000
 
 Progress = Callable[[str, int], Callable[[int], None]]
 
-_ADVICE = {
-    "invalid sample": "the sweep's samples are mostly invalid (dropped or saturated): redo `ivc collect wand_sweep`",
-    "sensor 0 invalid": "wand sensor 0 was mostly invalid: redo `ivc collect wand_sweep`",
-    "not converged": "sensor 0's reported poses could not be traced back into the cube: check the declared cube "
-                     "pose and redo cube_survey",
-    "outside the cube": "sensor 0 was mostly outside the cube: redo `ivc collect wand_sweep` keeping wand sensor 0 "
-                        "inside the cube",
-}
+#: what to redo when most samples fail a gate: the signal path's advice, but for sensor 0's inversion
+_ADVICE = {**{reason: ADVICE[reason] for reason in DROP_REASONS},
+           "not converged": "sensor 0's reported poses could not be traced back into the cube: check the declared "
+                            "cube pose and redo cube_survey"}
 
 
 def _noop(desc: str, total: int) -> Callable[[int], None]:
