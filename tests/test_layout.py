@@ -114,7 +114,8 @@ def _ivc_modules() -> dict[str, Path]:
 
 
 def _import_graph() -> dict[str, set[str]]:
-    """Module -> the ivc modules it imports (a ``from package import name`` names the submodule when it is one)."""
+    """Module -> the ivc modules it imports (a ``from package import name`` names the submodule when it is one),
+    with the package of a module imported from another package (its ``__init__`` runs first)."""
     modules = _ivc_modules()
     graph = {}
     for name, path in modules.items():
@@ -126,6 +127,9 @@ def _import_graph() -> dict[str, set[str]]:
                 for alias in node.names:
                     sub = f"{node.module}.{alias.name}"
                     targets.add(sub if sub in modules else node.module)
+        # importing ivc.a.b first runs ivc.a's __init__: from another package, that is an import of the package too
+        home = ".".join(name.split(".")[:2])
+        targets |= {".".join(t.split(".")[:2]) for t in targets if ".".join(t.split(".")[:2]) != home}
         graph[name] = {t for t in targets if t != name and t in modules}
     return graph
 
