@@ -56,7 +56,7 @@ def test_no_product_module_imports_another_modules_private_name():
 #: the stages from the ground up; a module may import its own stage and the stages below it, never one above.
 #: Stages on one row are peers and do not import each other.
 STAGES = (
-    ("rotations", "linalg", "errors", "compiled", "units", "files"),
+    ("rotations", "linalg", "errors", "compiled", "units", "files", "igtl"),
     ("dipole",),
     ("session",),
     ("pose",),
@@ -68,7 +68,7 @@ STAGES = (
     ("lut",),
     ("predict",),
     ("live", "export", "report"),
-    ("demo", "warmup"),
+    ("demo", "warmup", "app"),
     ("cli",),
 )
 #: modules outside a stage's package that belong to it: ivc.truth is the fixtures' evaluation against the declared
@@ -76,7 +76,7 @@ STAGES = (
 MEMBERS = {"truth": "fixtures"}
 #: the data side (collect, sim) is imported by the data side and the application only, never by the map and
 #: correction stages: a table and a correction do not depend on how their data was collected
-DATA_SIDE = {"collect": {"sim", "predict", "demo", "warmup", "cli"}, "sim": {"demo", "warmup", "cli"}}
+DATA_SIDE = {"collect": {"sim", "predict", "demo", "warmup", "app", "cli"}, "sim": {"demo", "warmup", "cli"}}
 #: the one deliberate import circle: the fitter registry (ivc.lut.fitter registers the built-in fitters, whose
 #: modules import the Fitter base and ``register`` from it)
 REGISTRY = {"ivc.lut.fitter", "ivc.lut.fit_harmonic", "ivc.lut.fit_poly", "ivc.lut.fit_sources"}
