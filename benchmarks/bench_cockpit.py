@@ -31,13 +31,13 @@ from ivc.correct import Corrector
 from ivc.correct.evaluate import check_errors, summarise
 from ivc.lut import FitOptions, fit_lut
 from ivc.lut.coverage import box_coverage, box_points
-from ivc.lut.grid import Grid, GridField
 from ivc.lut.joint import mapped_litres
 from ivc.lut.support import MIN_SUPPORT, node_support
 from ivc.session import extension_steps
 from ivc.sim import Simulator, load_scene, rig
 from ivc.sim.noise_floor import finite_difference_jacobian, pose_noise_floor
 from ivc.sim.tracker import noise_sigma
+from ivc.table.grid import Grid, GridField
 
 TARGETS_MM = {"p50": 0.2, "p95": 1.0, "max": 5.0}
 TARGET_MRAD = 1.0

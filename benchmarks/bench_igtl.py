@@ -22,8 +22,8 @@ import numpy as np
 
 from benchmarks.harness import Figure
 from ivc import rotations
+from ivc.app.serve import IgtlServer
 from ivc.collect.igtl import IgtlSource
-from ivc.collect.serve import IgtlServer
 from ivc.collect.stream import Sample, SessionSource
 from ivc.session import Session, Step
 

@@ -31,12 +31,12 @@ from ivc import dipole, rotations
 from ivc.cli.evaluate import render_table
 from ivc.correct import Corrector
 from ivc.correct.evaluate import check_errors, summarise
-from ivc.correct.pose_domain import PoseCorrector
+from ivc.correct.reported import PoseCorrector
 from ivc.export import distortion, export
 from ivc.export.formats import LPS, SUBDIVISION
-from ivc.fixtures.pose_mapping import PoseFixtureModel, map_sweep_poses
+from ivc.fixtures.reported_mapping import PoseFixtureModel, map_sweep_poses
 from ivc.lut import FitOptions, fit_lut
-from ivc.lut.pose_domain import fit_pose_domain_table
+from ivc.lut.correction_table import fit_pose_domain_table
 from ivc.pose.reported import invert_distortion
 from ivc.session import Session
 from ivc.sim import Simulator, load_scene
@@ -84,7 +84,7 @@ def _accuracy_figures(label: str, report: dict, baseline: dict | None, targets: 
 
 
 def _pose_domain_figures(session: Session, matched: dict) -> list[Figure]:
-    """The alternative: a table of the correction itself over the reported positions (ivc.lut.pose_domain),
+    """The alternative: a table of the correction itself over the reported positions (ivc.lut.correction_table),
     fitted to the same wand pairs, on the same check poses."""
     stride = max(1, -(-session.steps["wand_sweep"].n_frames // FitOptions().max_frames))
     thinned = session.select_frames("wand_sweep", slice(None, None, stride))

@@ -16,9 +16,9 @@ import time
 from dataclasses import replace
 
 from benchmarks.harness import Figure
+from ivc.app.serve import IgtlServer
 from ivc.collect.guide import collect_protocol
 from ivc.collect.igtl import IgtlSource
-from ivc.collect.serve import IgtlServer
 from ivc.collect.stream import SessionSource
 from ivc.correct.evaluate import evaluate
 from ivc.lut import fit_lut

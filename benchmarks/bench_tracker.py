@@ -34,7 +34,7 @@ import numpy as np
 from benchmarks.harness import HEADER, Figure
 from ivc import rotations
 from ivc.collect.ilemt import SOURCE_SIGN_FIXES, read_ilemt, stack
-from ivc.dipole.calibrate import calibrate, chain, predicted_signal, residue, solve_chain_poses
+from ivc.pose.calibrate import calibrate, chain, predicted_signal, residue, solve_chain_poses
 from ivc.pose.tracker import tracker_pose
 
 ILEMT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "ilemt"
@@ -140,7 +140,7 @@ def _floor(S: np.ndarray, tracker, P: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 
 def _simulated(offset_mm: float, seed: int) -> list[Figure]:
-    from ivc.dipole.calibrate import Fixtures, rigid_transform
+    from ivc.pose.calibrate import Fixtures, rigid_transform
     from ivc.sim.coil_trackers import offset_tracker
     from ivc.sim.stage import stage_pattern, stage_recording
 

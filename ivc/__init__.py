@@ -21,24 +21,26 @@ A real tracker's recording enters as a session file (:func:`read_session`) or a
 recording CSV (:func:`ivc.collect.replay`). Docs: docs/python.md walks through the same
 job; docs/conventions.md gives units (metres, seconds, quaternions ``[w, x, y, z]``).
 
-The package is laid out as the pipeline it implements:
+The package is laid out as the pipeline it implements, each stage importing only those above it in
+this list (docs/architecture.md; tests/test_layout.py checks it):
 
-``rotations``  quaternion and rotation-matrix conventions
-``truth``      evaluation against truth: percentiles, pose errors, the declared-frame map
+``rotations``  quaternion and rotation-matrix conventions (with ``linalg``, ``errors``, ``compiled``, ``units``)
+``files``      atomic writes and file digests
 ``dipole``     the AC dipole field model, the closed-form pose solver, the tracker's own coil model
 ``session``    the HDF5 session file every command reads and writes
-``sim``        a simulated tracker in a distorted room
+``pose``       the batched pose solver with a known secondary field; the tracker's own solvers and calibration
+``fixtures``   cube and wand calibration, the sweep solved through the cube, the measurement model
+``truth``      evaluation against truth: percentiles, pose errors, the declared-frame map
 ``collect``    recording protocol steps from the simulator or a tracker's recording
-``fixtures``   cube and wand calibration, the sweep solved through the cube
-``pose``       the batched pose solver with a known secondary field
-``lut``        the secondary-field look-up table: fit, grid, file
+``sim``        a simulated tracker in a distorted room
+``table``      the look-up table itself: grid, interpolation, file, fit report
 ``correct``    corrected poses from signals or reported poses (pose-only trackers); evaluation against truth
+``lut``        fitting the secondary-field look-up table
 ``predict``    head-motion prediction filters
 ``live``       live correction of OpenIGTLink streams
 ``export``     the table for firmware, ParaView, 3D Slicer and Vrui
 ``report``     figures and an HTML page on a table
 ``demo``       the whole pipeline on a simulated room in one call
-``errors``     every deliberate error, under :class:`IvcError`
 ``warmup``     the compiled kernels built ahead of their first use (``ivc warmup``)
 ``compiled``   compiled kernels, or their NumPy / interpreted forms for small inputs on a cold cache
 ``app``        each command as a call: :func:`correct_file`, :func:`predict_file` with their options
@@ -136,7 +138,7 @@ _EXPORTS = {
     "Tracker": ("ivc.dipole", "Tracker"),
     "load_tracker": ("ivc.dipole", "load_tracker"),
     "save_tracker": ("ivc.dipole", "save_tracker"),
-    "calibrate_tracker": ("ivc.dipole.calibrate", "calibrate"),
+    "calibrate_tracker": ("ivc.pose.calibrate", "calibrate"),
     # subpackages a script uses by name
     "collect": ("ivc.collect", None),
     "correct": ("ivc.correct", None),

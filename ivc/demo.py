@@ -20,10 +20,10 @@ from ivc import lut
 from ivc import session as session_io
 from ivc.correct import Corrector
 from ivc.correct.evaluate import evaluate
-from ivc.lut.build import FitOptions, Progress
-from ivc.lut.table import LookupTable
+from ivc.lut.options import FitOptions, Progress
 from ivc.session import Session, Step
 from ivc.sim import Scene, Simulator, load_scene
+from ivc.table.lookup import LookupTable
 
 __all__ = ["DemoResult", "SESSION_NAME", "TABLE_NAME", "demo_files", "run", "without_signals"]
 

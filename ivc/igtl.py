@@ -1,7 +1,7 @@
 """OpenIGTLink on a byte stream: framing, and the codec of the tracking messages both sides of ivc speak.
 
 One codec for the live correction loop (:mod:`ivc.live`) and the collection client and server
-(:mod:`ivc.collect.igtl`, :mod:`ivc.collect.serve`); it imports nothing of ivc but its errors.
+(:mod:`ivc.collect.igtl`, :mod:`ivc.app.serve`); it imports nothing of ivc but its errors.
 Message layouts: the OpenIGTLink protocol description v3.0 (openigtlink/OpenIGTLink,
 ``Documents/Protocol/``: header.md, transform.md, position.md, trackingdata.md, qtrackingdata.md,
 ndarray.md); the v2/v3 extended header and metadata: header.md's "Version 2/3" sections.

@@ -35,7 +35,7 @@ def cache_location() -> Path:
 
 def _table():
     """A small table of a smooth secondary field around (0.4, 0, 0) m, every node valid."""
-    from ivc.lut.grid import Grid, GridField
+    from ivc.table.grid import Grid, GridField
 
     grid = Grid(np.array([0.3, -0.1, -0.1]), 0.05, (5, 5, 5))
     nodes = grid.nodes()

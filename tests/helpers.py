@@ -4,10 +4,10 @@ import numpy as np
 
 from ivc import dipole, rotations
 from ivc import rotations as R
-from ivc.dipole.calibrate import Fixtures, rigid_transform
 from ivc.dipole.tracker import Tracker
 from ivc.lut import harmonics
 from ivc.lut.samples import FieldSamples
+from ivc.pose.calibrate import Fixtures, rigid_transform
 from ivc.predict.delta import delta_q
 from ivc.session import Session, Step, Truth
 from ivc.sim.scene import NoiseSpec

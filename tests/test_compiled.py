@@ -8,9 +8,9 @@ from ivc.correct import Corrector, PoseCorrector, pose_kernels
 from ivc.correct import kernels as correct_kernels
 from ivc.dipole import kernels as dipole_kernels
 from ivc.dipole import numpy_kernels
-from ivc.lut import grid_numpy
-from ivc.lut import kernels as lut_kernels
-from ivc.lut.grid import Grid, GridField
+from ivc.table import grid_numpy
+from ivc.table import kernels as lut_kernels
+from ivc.table.grid import Grid, GridField
 
 
 def _table():

@@ -7,12 +7,12 @@ import pytest
 from ivc import session as session_io
 from ivc.errors import InputError
 from ivc.lut.coverage import box_coverage, box_points
-from ivc.lut.grid import Grid, GridField
 from ivc.lut.support import node_support
 from ivc.report import box_section
 from ivc.session import SessionError, working_volume
 from ivc.sim import Simulator, load_scene, rig
 from ivc.sim.scene import SceneError, scene_from_dict
+from ivc.table.grid import Grid, GridField
 
 CENTER, SIZE = np.array([0.55, 0.0, 0.0]), np.array([0.8, 0.6, 0.5])
 

@@ -8,7 +8,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 TEXT_SUFFIXES = {".py", ".md", ".toml", ".txt", ".cfg"}
 SCANNED = ["README.md", "pyproject.toml", "ivc", "docs", "tests", "benchmarks", "sample_data", ".ci"]
-#: a path inside the repository named in prose: docs/lut.md, ivc/lut/table.py, sample_data/README.md
+#: a path inside the repository named in prose: docs/lut.md, ivc/table/lookup.py, sample_data/README.md
 REPO_PATH = re.compile(r"(?<![\w./-])((?:docs|ivc|tests|benchmarks|sample_data|\.ci)/[\w./-]*\w)")
 #: a bare Markdown file name: MATH.md, lut-format.md
 BARE_MD = re.compile(r"(?<![\w./-])([\w-]+\.md)\b")

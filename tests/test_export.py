@@ -11,12 +11,12 @@ from click.testing import CliRunner
 
 from ivc import dipole, rotations
 from ivc.cli import cli
-from ivc.correct.pose_domain import PoseCorrector
+from ivc.correct.reported import PoseCorrector
 from ivc.dipole.pose import closed_form_pose
 from ivc.export import FORMATS, SLICER_TO_PARENT_CLASS, VRUI_MARGIN, ExportError, csv_sidecar, distortion, export
 from ivc.lut import Grid, LookupTable
 from ivc.lut import write as write_lut
-from ivc.lut.table import COMPONENTS
+from ivc.table.lookup import COMPONENTS
 from tests.helpers import CENTRE, quadratic_field
 
 MM = 1000.0

@@ -171,7 +171,7 @@ def test_joint_fit_grows_the_map_and_reports_it(tmp_path):
     # fine as the grid its support is counted on, so a mapped table cell need not hold a sample itself (its
     # support cell does): most of the mapped volume lies in cells with samples, nearly all of it at the support grid
     assert sum(r["mapped_litres_reached"] for r in regions) > 0.6 * joint.report["mapped_litres"]
-    from ivc.lut.grid import Grid
+    from ivc.table.grid import Grid
 
     assert joint.report["table_subdivision"] == 2 and joint.report["sample_selection"] == "even"
     assert joint.report["error_floor_mm"] == pytest.approx(1000 * JointOptions().error_floor)  # the joint's ε₀
@@ -186,3 +186,17 @@ def test_joint_fit_grows_the_map_and_reports_it(tmp_path):
               & v[1:, :-1, 1:] & v[:-1, 1:, 1:] & v[1:, 1:, 1:])
     assert v.shape == coarse.shape and (mapped & occupied).sum() > 0.9 * mapped.sum()
     assert "Region mapped by each sweep" in page and (tmp_path / "report" / "sweep_regions.png").exists()
+
+
+@pytest.mark.slow
+def test_the_joint_path_of_fit_lut_reports_typed_fields():
+    scene = box_scene(1)
+    scene.extension.frames = 1500
+    session = Simulator(scene, seed=6).protocol(FRAMES)
+    table = lut.fit_lut(session)
+    report = table.report
+    assert report.method == "equivalent sources, joint" and report.input == "signals"
+    assert [r.iteration for r in report.rounds] == [r["iteration"] for r in table.fit["rounds"]]
+    assert report.samples.anchor == table.fit["samples"]["anchor"] and report.sources == table.fit["sources"]
+    assert report.model_text().startswith(f"{report.sources} dipoles, damping ")
+    assert report.to_dict() == table.fit

@@ -18,9 +18,9 @@ from ivc.collect.ilemt import (
     read_ilemt,
     stack,
 )
-from ivc.dipole.calibrate import Fixtures, calibrate, rigid_transform
 from ivc.dipole.tracker import Tracker, load_tracker
 from ivc.errors import CsvError, InputError
+from ivc.pose.calibrate import Fixtures, calibrate, rigid_transform
 from ivc.sim.stage import stage_recording
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "ilemt" / "cal_9_15_premo_cmu"
@@ -85,7 +85,7 @@ def test_source_sign_fixes():
 @pytest.mark.slow
 def test_the_concentric_sets_sign_fixes_are_found_in_its_data():
     """Read as recorded, the md files of every source fixturing: exactly the authors' two md fixes are found."""
-    from ivc.dipole.coil_signs import find_sign_flips
+    from ivc.pose.coil_signs import find_sign_flips
 
     names = ["soYoutZup_seYoutZup_md.dat", "soZoutYup_seYoutZup_md.dat", "soXoutZup_seYoutZup_md.dat",
              "soXinYup_seYoutZup_md.dat"]
@@ -250,7 +250,7 @@ def test_rig_csv_errors(tmp_path):
 def test_recording_as_a_session_step(tmp_path, rng):
     from ivc import session as session_io
     from ivc.collect.tracker_units import apply_tracker
-    from ivc.dipole.calibrate import chain
+    from ivc.pose.calibrate import chain
     from ivc.pose.tracker import tracker_pose
     from ivc.session import Session
 

@@ -103,8 +103,8 @@ def test_options_and_sessions_are_checked():
 
 def test_compiled_wand_solve_equals_the_numpy_form(simulated):
     """solve_wand_table (numba) against solve_wand (NumPy) on a tabulated field: same poses to 1e-9 m."""
-    from ivc.lut.grid import Grid, GridField
     from ivc.lut.joint import solve_wand_table
+    from ivc.table.grid import Grid, GridField
 
     scene, wand, step, truth = simulated
     S = step.signal_matrices()[::5]
@@ -138,8 +138,8 @@ def test_compiled_wand_solve_equals_the_numpy_form(simulated):
 def test_the_table_is_finer_than_its_support_grid_and_maps_the_same_volume():
     """A subdivided grid keeps the coarse nodes (same validity and support there); a fine node is valid when the
     coarse nodes around it are, so the mapped volume is the coarse grid's; the default table is twice as fine."""
-    from ivc.lut.grid import Grid
     from ivc.lut.joint import mapped_litres, subdivided
+    from ivc.table.grid import Grid
 
     grid = Grid(np.array([0.1, -0.2, 0.0]), 0.04, (5, 4, 4))
     valid = np.ones(grid.shape, dtype=bool)

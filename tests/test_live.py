@@ -14,7 +14,7 @@ from pyigtl import OpenIGTLinkClient, OpenIGTLinkServer, StringMessage, Transfor
 
 from ivc import dipole, rotations
 from ivc.correct import Corrector
-from ivc.correct.pose_domain import PoseCorrector
+from ivc.correct.reported import PoseCorrector
 from ivc.live import LiveCorrector, NDArrayMessage, TrackingDataMessage
 from ivc.live.igtl import Framer
 from ivc.lut import write as write_lut

@@ -1,11 +1,11 @@
-"""The correction's fast look-ups against the reference one (ivc.lut.kernels.grid_point)."""
+"""The correction's fast look-ups against the reference one (ivc.table.kernels.grid_point)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from ivc.lut import kernels
+from ivc.table import kernels
 
 
 def _table(rng, shape=(6, 7, 5), channels=9):

@@ -7,9 +7,9 @@ from ivc import dipole, rotations
 from ivc.lut import FitOptions, Grid, GridField, LookupTable, LutError, fit_lut, harmonics, read, write
 from ivc.lut.fit_harmonic import fit_harmonic
 from ivc.lut.fit_poly import fit_poly
-from ivc.lut.grid import fill_invalid
 from ivc.lut.support import node_support
 from ivc.session import SessionError
+from ivc.table.grid import fill_invalid
 from tests.helpers import CENTRE, ball, external_dipole_field, quadratic_field, samples_of
 
 # --- harmonic basis -------------------------------------------------------------------------------------------

@@ -16,15 +16,14 @@ from ivc.cli.main import cli
 from ivc.collect.replay import write_csv
 from ivc.correct import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE, Corrector
 from ivc.correct.evaluate import check_errors, evaluate, rigid_alignment, summarise
-from ivc.correct.pose_domain import PoseCorrector
-from ivc.dipole.tracker_solver import distortion
+from ivc.correct.reported import PoseCorrector
 from ivc.errors import InputError
-from ivc.fixtures.pose_report import pose_fixture_report
-from ivc.fixtures.report import fixture_report
+from ivc.fixtures.report import fixture_report, pose_fixture_report
 from ivc.live import LiveCorrector
 from ivc.live.igtl import Framer
 from ivc.lut import FitOptions, HarmonicFit
 from ivc.pose.reported import invert_distortion
+from ivc.pose.tracker_solver import distortion
 from ivc.report.compute import POSE_ONLY, check_view, gather
 from ivc.session import Session
 from tests.helpers import CENTRE, ball, quadratic_field
@@ -149,6 +148,10 @@ def test_mapping_from_reported_poses_alone(small_session, pose_only_table):
     poses, table = pose_only_table
     assert table.fit["input"] == "reported poses" and table.fit["tracker_solver"] == "closed-form"
     assert table.fit["cube"]["vertex_position_rms_mm"] < 0.1
+    typed = table.report  # the fit report, typed as every fit path's
+    assert typed.input == "reported poses" and typed.reported_poses.tracker_solver == "closed-form"
+    assert typed.reported_poses.vertex_position_rms_mm == table.fit["cube"]["vertex_position_rms_mm"]
+    assert typed.degree == 5 and typed.refinement == () and typed.to_dict() == table.fit
     report = evaluate(table, poses)
     assert report["input"] == "reported poses"
     # the same session with its signals, through the signal path, for comparison

@@ -183,7 +183,7 @@ def test_percent_of_the_measured_signal():
 def test_cell_counts_hold_every_sample_inside_the_grid(rng):
     grid = Grid(np.array([0.2, -0.1, -0.1]), 0.05, (5, 4, 6))
     positions = rng.uniform([0.15, -0.15, -0.15], [0.45, 0.1, 0.2], (5000, 3))
-    from ivc.lut.table import LookupTable
+    from ivc.table.lookup import LookupTable
 
     table = LookupTable(grid, np.zeros((*grid.shape, 3, 3)), np.ones(grid.shape, bool), np.zeros(grid.shape))
     counts = cell_counts(table, positions)

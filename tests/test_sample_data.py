@@ -36,7 +36,7 @@ def test_the_shipped_table_is_written_by_this_version_of_the_format():
     # its units text is the one the writer gives today (no reference to a file outside the repository)
     import h5py
 
-    from ivc.lut.table import FIELD_UNIT
+    from ivc.table.lookup import FIELD_UNIT
 
     with h5py.File(TABLE, "r") as h5:
         assert h5.attrs["field_unit"] == FIELD_UNIT

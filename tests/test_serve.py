@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 from ivc import rotations
+from ivc.app.serve import IgtlServer, serve_source
 from ivc.collect.igtl import IgtlSource
-from ivc.collect.serve import IgtlServer, serve_source
 from ivc.collect.stream import Sample, SessionSource, StepRecorder
 from ivc.correct import Corrector
-from ivc.correct.pose_domain import PoseCorrector
+from ivc.correct.reported import PoseCorrector
 from ivc.errors import LiveError
 from ivc.live import LiveCorrector
 from ivc.session import Session, Step

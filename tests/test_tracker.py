@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from ivc import dipole, rotations
-from ivc.dipole.calibrate import (
+from ivc.dipole.tracker import Tracker, load_tracker, model, save_tracker
+from ivc.errors import TrackerError
+from ivc.pose.calibrate import (
     Fixtures,
     ParameterLayout,
     calibrate,
@@ -17,8 +19,6 @@ from ivc.dipole.calibrate import (
     predicted_signal,
     rigid_transform,
 )
-from ivc.dipole.tracker import Tracker, load_tracker, model, save_tracker
-from ivc.errors import TrackerError
 from ivc.pose.tracker import tracker_pose
 from ivc.sim.stage import stage_pattern, stage_recording
 from tests.helpers import imperfect_tracker, rig_fixtures
@@ -301,7 +301,7 @@ def test_calibration_jacobian_with_free_source_motions(rng):
     J_so, J_st = stage_pattern(xyz_mm=(-40.0, 40.0), rz_deg=(-60.0, 30.0), sensor_fixtures=("YoutZup", "ZinYup"))
     J_so[1::3, :3, :3] = rotations.to_matrix(rotations.from_rotvec([0.0, 0.0, np.pi / 2]))
     J_so[2::3, :3, :3] = rotations.to_matrix(rotations.from_rotvec([np.pi, 0.0, 0.0]))
-    from ivc.dipole.calibrate import distinct_source_motions
+    from ivc.pose.calibrate import distinct_source_motions
 
     motions = distinct_source_motions(J_so)
     fixtures.motions = motions

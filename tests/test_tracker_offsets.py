@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from ivc import dipole, rotations
-from ivc.dipole.calibrate import calibrate, chain, fit_output_correction, solve_chain_poses
-from ivc.dipole.coil_signs import find_sign_flips
 from ivc.dipole.tracker import Tracker, load_tracker, save_tracker
 from ivc.errors import InputError, TrackerError
+from ivc.pose.calibrate import calibrate, chain, fit_output_correction, solve_chain_poses
+from ivc.pose.coil_signs import find_sign_flips
 from ivc.pose.tracker import ideal_signals, to_ideal, tracker_pose
 from ivc.sim.coil_trackers import offset_tracker, ring_offsets
 from ivc.sim.stage import stage_pattern, stage_recording
@@ -144,7 +144,7 @@ def test_gate_scales_with_the_model_and_the_noise(tmp_path, offset_rig):
 
 def test_hemisphere_comes_from_the_calibration_not_plus_x(rng):
     """A rig along the source's -y: the calibration's hemisphere is -y in its frame; the default +x would fail."""
-    from ivc.dipole.calibrate import Fixtures, rigid_transform
+    from ivc.pose.calibrate import Fixtures, rigid_transform
 
     device = offset_tracker(0.02, rng=rng)
     fixtures = Fixtures(stage=rigid_transform(rotations.to_matrix(rotations.from_rotvec([0, 0, np.pi])),

@@ -99,7 +99,7 @@ def test_cli_tracker_option_through_collect_and_fixtures(tmp_path):
 @pytest.fixture(scope="module")
 def calibrated_45_mm_source(tmp_path_factory):
     """A source with coils 45 mm off-centre, calibrated on a simulated rig: the tracker file of its model."""
-    from ivc.dipole.calibrate import calibrate
+    from ivc.pose.calibrate import calibrate
     from ivc.sim.coil_trackers import offset_tracker
     from ivc.sim.stage import stage_pattern, stage_recording
     from tests.helpers import rig_fixtures

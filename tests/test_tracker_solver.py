@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from ivc import dipole, rotations
-from ivc.dipole import tracker_solver as ts
 from ivc.errors import InputError, SceneError
+from ivc.pose import tracker_solver as ts
 from ivc.sim import Simulator
 from ivc.sim.field import FerrousSphere
 from ivc.sim.scene import NoiseSpec, Scene, scene_from_dict

@@ -47,7 +47,7 @@ class CorrectOptions:
     """How :func:`correct_file` (and :func:`live_corrector`) correct; every field has the command's default.
 
     ``steps``: a session's steps to correct (default: every step recorded in the distorted volume).
-    ``interpolation``: the table's interpolation (``ivc.lut.grid.INTERPOLATIONS``). ``max_residual``: flag (4)
+    ``interpolation``: the table's interpolation (``ivc.table.grid.INTERPOLATIONS``). ``max_residual``: flag (4)
     corrections whose rms(M − T S)/rms(S) exceeds it. ``hemisphere``: of a CSV or PLUS input (default: the
     table's). ``solver``: the tracker's own pose solver, for inputs of reported poses only (``closed-form`` or
     ``least-squares``; default: the one the table was fitted for, else closed-form).

@@ -18,8 +18,8 @@ from ivc.cli.options import POSITIVE, solver_option
 from ivc.cli.predict import parse_horizon
 from ivc.cli.tracker import tracker_option
 from ivc.correct.solver import MAX_RESIDUAL
-from ivc.lut.grid import INTERPOLATIONS
 from ivc.predict import DEFAULT_FILTER, FILTERS
+from ivc.table.grid import INTERPOLATIONS
 from ivc.units import LENGTH_UNITS
 
 

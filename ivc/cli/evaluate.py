@@ -10,11 +10,11 @@ from ivc import lut
 from ivc import session as session_io
 from ivc.cli.options import POSITIVE, solver_option
 from ivc.cli.tracker import tracker_option, with_tracker
-from ivc.correct import Corrector
 from ivc.correct.evaluate import evaluate as evaluate_table
-from ivc.correct.pose_domain import PoseCorrector
+from ivc.correct.measured import corrector_for
 from ivc.correct.solver import MAX_RESIDUAL
-from ivc.lut.grid import INTERPOLATIONS
+from ivc.fixtures.measurement import PoseInput, SignalInput, measurement_of
+from ivc.table.grid import INTERPOLATIONS
 
 _COLUMNS = ("p25", "p50", "p75", "p95", "p99", "max")
 
@@ -77,11 +77,11 @@ def evaluate(lut_file, check_file, step, interpolation, max_residual, solver, as
     check = session_io.read(check_file)
     if tracker_file is not None and step in check.steps:
         check = with_tracker(check, tracker_file, [step])
-    if step in check.steps and check.steps[step].signal is None:
-        corrector = PoseCorrector(table, check.hemisphere, interpolation, solver)
-    else:
-        # the tracker's noise, when the table's fit measured it, gives each pose's predicted precision
-        corrector = Corrector(table, check.hemisphere, interpolation, max_residual,
-                              precision=table.signal_noise is not None)
+    measurement = measurement_of(check.steps[step]) if step in check.steps else SignalInput()
+    if isinstance(measurement, PoseInput):
+        options = {"solver": solver}
+    else:  # the tracker's noise, when the table's fit measured it, gives each pose's predicted precision
+        options = {"max_residual": max_residual, "precision": table.signal_noise is not None}
+    corrector = corrector_for(measurement, table, check.hemisphere, interpolation, **options)
     report = evaluate_table(corrector, check, step)
     click.echo(json.dumps(report, indent=2) if as_json else render_table(report))

@@ -14,7 +14,7 @@ from ivc.cli.options import POSITIVE, solver_option
 from ivc.cli.paths import check_output
 from ivc.cli.progress import StageBars
 from ivc.cli.tracker import tracker_option, with_tracker
-from ivc.lut.build import FitOptions
+from ivc.lut.options import FitOptions
 
 
 def parse_grid(value: str | None) -> dict:
@@ -37,56 +37,52 @@ def parse_grid(value: str | None) -> dict:
 
 
 def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
-    fit, grid = table.fit, table.grid
-    samples, frames = fit["samples"], fit["frames"]
-    lines = [f"Sweep: {frames['used']} of {frames['recorded']} frames used (every {frames['stride']}); "
-             f"{samples['kept']} of {samples['total']} wand samples kept"]
-    for reason, count in samples["dropped"].items():
+    report, grid = table.report, table.grid
+    samples, frames = report.samples, report.frames
+    lines = [f"Sweep: {frames.used} of {frames.recorded} frames used (every {frames.stride}); "
+             f"{samples.kept} of {samples.total} wand samples kept"]
+    for reason, count in samples.dropped.items():
         if count:
             lines.append(f"  dropped {count:>8}: {reason}")
-    if "degree" in fit:
-        degree = f"degree {fit['degree']} ({fit['degree_chosen_by']})"
-    else:  # equivalent sources
-        degree = f"{fit.get('sources')} dipoles, damping {fit.get('damping'):g} ({fit.get('damping_chosen_by')})"
-    if fit.get("input") == "reported poses":
-        cube = fit["cube"]
-        lines.append(f"From reported poses alone (tracker solver {fit['tracker_solver']}): cube field degree "
-                     f"{cube['degree']}, vertex residual {cube['vertex_position_rms_mm']:.4f} mm / "
-                     f"{cube['vertex_orientation_rms_mrad']:.4f} mrad RMS")
-        lines.append(f"Fit: {fit['method']} through the tracker model, {degree}; {fit['cv_folds']}-fold "
-                     f"cross-validation RMS {fit['cv_rms_mm']:.4f} mm (reported-pose residual)")
+    reported = report.reported_poses
+    if reported is not None:
+        lines.append(f"From reported poses alone (tracker solver {reported.tracker_solver}): cube field degree "
+                     f"{reported.cube_degree}, vertex residual {reported.vertex_position_rms_mm:.4f} mm / "
+                     f"{reported.vertex_orientation_rms_mrad:.4f} mrad RMS")
+        lines.append(f"Fit: {report.method} through the tracker model, {report.model_text()}; {report.cv_folds}-fold "
+                     f"cross-validation RMS {report.cv_rms_mm:.4f} mm (reported-pose residual)")
     else:
-        lines.append(f"Fit: {fit['method']}, {degree}; {fit['cv_folds']}-fold cross-validation RMS "
-                     f"{fit['cv_rms_mm']:.4f} mm (pose-equivalent)")
-    if fit.get("outliers_downweighted"):
-        lines.append(f"  {fit['outliers_downweighted']} samples down-weighted as outliers (Huber)")
-    for step in fit["refinement"]:
-        lines.append(f"  refinement {step['iteration']}: {step['frames_converged']} frames re-solved as rigid "
-                     f"wands, sensor 0 moved {step['sensor0_moved_median_mm']:.4f} mm (median), map changed "
-                     f"{step['map_change_mm']:.4f} mm, CV {step['cv_rms_mm']:.4f} mm")
-    for step in fit.get("rounds", []):
-        change = "" if step["map_change_mm"] is None else f", map changed {step['map_change_mm']:.4f} mm"
-        solved = ", ".join(f"{name} {n}" for name, n in step["frames_solved"].items())
-        lines.append(f"  round {step['iteration']}: {step['samples']} samples, {step['mapped_litres']:.1f} litres "
+        lines.append(f"Fit: {report.method}, {report.model_text()}; {report.cv_folds}-fold cross-validation RMS "
+                     f"{report.cv_rms_mm:.4f} mm (pose-equivalent)")
+    if report.outliers_downweighted:
+        lines.append(f"  {report.outliers_downweighted} samples down-weighted as outliers (Huber)")
+    for step in report.refinement:
+        lines.append(f"  refinement {step.iteration}: {step.frames_converged} frames re-solved as rigid "
+                     f"wands, sensor 0 moved {step.sensor0_moved_median_mm:.4f} mm (median), map changed "
+                     f"{step.map_change_mm:.4f} mm, CV {step.cv_rms_mm:.4f} mm")
+    for step in report.rounds:
+        change = "" if step.map_change_mm is None else f", map changed {step.map_change_mm:.4f} mm"
+        solved = ", ".join(f"{name} {n}" for name, n in step.frames_solved.items())
+        lines.append(f"  round {step.iteration}: {step.samples} samples, {step.mapped_litres:.1f} litres "
                      f"mapped{change}; frames solved: {solved}")
-    for name in fit.get("never_touched_mapped_region", []):
+    for name in report.never_touched_mapped_region:
         lines.append(f"  warning: {name} never touched the mapped region (no frame had two sensors in it): "
                      "record it again, starting with the wand's tip near the cube")
-    for row in fit.get("error_by_distance", []):
+    for row in report.error_by_distance:
         lines.append(f"  estimated error {row['from_mm']:.0f}-{row['to_mm']:.0f} mm from the cube: "
                      f"{row['error_p50_mm']:.3f} mm median, {row['error_p95_mm']:.3f} mm p95 "
                      f"({row['samples']} samples)")
-    if fit["refinement"]:
-        kept = next((step["iteration"] for step in fit["refinement"] if step.get("kept")), 0)
-        lines.append(f"  refinement stopped: {fit.get('refinement_stopped', 'done')}; kept "
+    if report.refinement:
+        kept = report.kept_refinement
+        lines.append(f"  refinement stopped: {report.refinement_stopped or 'done'}; kept "
                      + (f"refinement {kept}" if kept else "the first fit") + " (lowest CV)")
     extent = (grid.origin, grid.origin + grid.spacing * (np.array(grid.shape) - 1))
     lines.append(f"Grid: {grid.shape[0]} x {grid.shape[1]} x {grid.shape[2]} nodes at {1000 * grid.spacing:.1f} mm "
                  f"from ({', '.join(f'{1000 * v:.1f}' for v in extent[0])}) to "
-                 f"({', '.join(f'{1000 * v:.1f}' for v in extent[1])}) mm; {fit['valid_nodes']} nodes mapped "
-                 f"(support >= {fit['min_support']} samples), "
+                 f"({', '.join(f'{1000 * v:.1f}' for v in extent[1])}) mm; {report.valid_nodes} nodes mapped "
+                 f"(support >= {report.min_support} samples), "
                  f"{int((table.field().valid_cells).sum()) * (1000 * grid.spacing) ** 3 / 1e6:.1f} litres mapped")
-    noise = fit.get("signal_noise")
+    noise = report.signal_noise
     if noise:
         lines.append(f"Signal noise: {noise['sigma']:.3g} per entry, measured on {', '.join(noise['steps'])} "
                      f"({noise['pairs']} frame pairs; per-sensor spread {noise['spread']:.2f}x): "
@@ -139,4 +135,5 @@ def fit(session_file, output, method, grid_spec, degree, refine, max_refinements
         table = lut.fit_lut(data, options, source=session_file, progress=bars, tracker=tracker)
     lut.write(table, output, overwrite=force)
     seconds = time.perf_counter() - start
-    click.echo(json.dumps(table.fit, indent=2) if as_json else render_fit(table, seconds) + f"\nwrote {output}")
+    report = table.report
+    click.echo(json.dumps(report.to_dict(), indent=2) if as_json else render_fit(table, seconds) + f"\nwrote {output}")

@@ -16,9 +16,7 @@ from ivc.fixtures.build_check import check_session
 from ivc.fixtures.geometry import load_geometries
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import Gates
-from ivc.fixtures.pose_mapping import has_signals
-from ivc.fixtures.pose_report import pose_fixture_report
-from ivc.fixtures.report import fixture_report
+from ivc.fixtures.measurement import PoseInput, measurement_of
 from ivc.pose import METHODS
 
 
@@ -139,8 +137,9 @@ def report(session_file, vertices, interpolant, method, max_residual, max_error_
     nominal = geometries["cube"].in_declared_frame()[0] if "cube" in geometries else None
     frames = data.steps["wand_sweep"].n_frames if "wand_sweep" in data.steps else 0
     gates = Gates(max_residual=max_residual, max_error=max_error_mm / 1000)
-    pose_only = not has_signals(data)
-    if pose_only:
+    measurement = measurement_of(data, solver=tracker_solver, gates=gates, method=method, interpolant=interpolant,
+                                 compare_cubes=compare_cubes)
+    if isinstance(measurement, PoseInput):
         ignored = [name for name, value, default in (("--interpolant", interpolant, "harmonic"),
                                                      ("--method", method, "joint"),
                                                      ("--compare-cubes", compare_cubes, 0))
@@ -149,11 +148,7 @@ def report(session_file, vertices, interpolant, method, max_residual, max_error_
             raise click.UsageError(f"{', '.join(ignored)} apply to signals; {session_file} holds reported poses only")
     with tqdm(total=frames, desc="solving the sweep", unit="frame", leave=False,
               disable=True if as_json else ON_TERMINAL) as bar:
-        if pose_only:
-            report = pose_fixture_report(data, vertices, tracker_solver, progress=bar.update, nominal=nominal)
-        else:
-            report = fixture_report(data, vertices, method, gates, compare_cubes, progress=bar.update,
-                                    interpolant=interpolant, nominal=nominal)
+        report = measurement.fixture_report(data, vertices, progress=bar.update, nominal=nominal)
     if geometry_files:
         report["build_checks"] = [check.to_dict() for check in checks]
     click.echo(json.dumps(report, indent=2) if as_json else "\n\n".join([render(report)]

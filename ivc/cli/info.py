@@ -14,6 +14,7 @@ from ivc.collect.imports import read_recording, sniff
 from ivc.collect.plus import is_plus_sequence, read_plus
 from ivc.predict.timing import stream_timing
 from ivc.session import STEPS, Session, Step, extension_steps, step_order
+from ivc.table import lookup
 
 
 def summarise_step(step: Step) -> dict:
@@ -89,7 +90,7 @@ def info(file: str, as_json: bool) -> None:
         report = {"grid": {"origin_m": table.grid.origin.tolist(), "spacing_m": table.grid.spacing,
                            "shape": list(table.grid.shape)}, "fit": table.fit, "provenance": table.provenance}
         click.echo(json.dumps(report, indent=2) if as_json else f"{file}: ivc look-up table (format "
-                   f"{lut.table.FORMAT_VERSION}), hemisphere {table.hemisphere}\n" + render_fit(table) +
+                   f"{lookup.FORMAT_VERSION}), hemisphere {table.hemisphere}\n" + render_fit(table) +
                    f"\nmade by ivc {table.provenance.get('ivc_version')} on {table.provenance.get('created_utc')}"
                    f" from {table.provenance.get('input', 'an unnamed session')}")
         return
@@ -147,4 +148,4 @@ def _is_table(path: str) -> bool:
             kind = h5.attrs.get("ivc_format")
     except OSError:
         return False
-    return (kind.decode() if isinstance(kind, bytes) else kind) == lut.table.FORMAT_NAME
+    return (kind.decode() if isinstance(kind, bytes) else kind) == lookup.FORMAT_NAME

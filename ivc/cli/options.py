@@ -46,7 +46,7 @@ class HiddenAliases(click.Option):
 def solver_option(help: str, dest: str = "solver", **kwargs):
     """``--solver closed-form|least-squares``: the tracker's own pose solver (``--tracker``, its old name, still
     works)."""
-    from ivc.dipole.tracker_solver import SOLVERS
+    from ivc.pose.tracker_solver import SOLVERS
 
     return click.option("--solver", "--tracker", dest, cls=HiddenAliases, type=click.Choice(SOLVERS), help=help,
                         **kwargs)

@@ -10,7 +10,7 @@ from ivc import lut
 from ivc import session as session_io
 from ivc.cli.paths import refuse_inputs_as_outputs
 from ivc.cli.progress import StageBars
-from ivc.lut.build import file_digest
+from ivc.files import file_digest
 from ivc.report import REPORT_FILES, build_report
 from ivc.report.compute import THIN_SAMPLES
 

@@ -33,7 +33,7 @@ def serve(source, port, host, poses_only, seed, frames, pause, speed, sensors, h
     Polhemus serial port). Any number of clients (3D Slicer, PLUS, `ivc collect --source igtl://`,
     `ivc correct --live`); Ctrl-C stops.
     """
-    from ivc.collect.serve import IgtlServer, serve_source
+    from ivc.app.serve import IgtlServer, serve_source
     from ivc.sim import Simulator, load_scene
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")

@@ -14,9 +14,9 @@ from tqdm import tqdm
 from ivc.cli.progress import ON_TERMINAL
 from ivc.collect.ilemt import folder_sign_fixes, parse_sign_fix, read_ilemt, stack
 from ivc.collect.rig_csv import read_rig_csv
-from ivc.dipole.calibrate import calibrate as fit_tracker
 from ivc.dipole.tracker import load_tracker, save_tracker
-from ivc.dipole.tracker_check import check_tracker, fixtures_of
+from ivc.pose.calibrate import calibrate as fit_tracker
+from ivc.pose.tracker_check import check_tracker, fixtures_of
 from ivc.session import Session
 
 
@@ -39,8 +39,8 @@ def _load(paths, carrier: str, compensate: bool, sign_fixes=()):
 
 
 def _sign_findings(paths, index, S, J_so, J_st) -> list[dict]:
-    """What :func:`ivc.dipole.coil_signs.find_sign_flips` says of the recordings (JSON-ready)."""
-    from ivc.dipole.coil_signs import find_sign_flips
+    """What :func:`ivc.pose.coil_signs.find_sign_flips` says of the recordings (JSON-ready)."""
+    from ivc.pose.coil_signs import find_sign_flips
 
     if len(paths) < 2:
         return []

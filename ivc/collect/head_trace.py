@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ivc.collect.imports import MAX_REPORTED, ImportReport, refuse_malformed
+from ivc.collect.import_report import MAX_REPORTED, ImportReport, refuse_malformed
 from ivc.errors import CsvError
 from ivc.session import Step
 

@@ -12,7 +12,7 @@ The sensor pose in source coordinates is ``P = F_so · J_so · F_st · J_st · F
 ``J_so`` is the source-fixture rotation named in the file name, ``J_st`` the stage
 motion (after the stage's measured error compensation, :func:`compensate_stage`) times
 the sensor-fixture rotation; the three ``F`` are unknown constants a calibration fits
-(:mod:`ivc.dipole.calibrate`). This module returns ``J_so`` and ``J_st`` as 4x4
+(:mod:`ivc.pose.calibrate`). This module returns ``J_so`` and ``J_st`` as 4x4
 homogeneous transforms in metres.
 """
 
@@ -185,7 +185,7 @@ class IlemtRecording:
         The signals go in as they are (ILEMT's units; ``--tracker-model`` or
         :func:`ivc.collect.apply_tracker` brings them to ideal units). The known stage poses
         are kept in the step's attributes (``stage_poses``, mm and degrees, compensated);
-        with the rig's fitted ``fixtures`` (:class:`ivc.dipole.calibrate.Fixtures`) the
+        with the rig's fitted ``fixtures`` (:class:`ivc.pose.calibrate.Fixtures`) the
         chain's poses become the step's :class:`~ivc.session.Truth`, else the truth is None.
         Rows have no time stamps: ``time`` is the row number (s) at 1 Hz.
         """
@@ -201,7 +201,7 @@ class IlemtRecording:
                            "stage_poses": self.stage_compensated})
         if fixtures is None:
             return step, None
-        from ivc.dipole.calibrate import chain
+        from ivc.pose.calibrate import chain
 
         P = chain(fixtures, self.J_so, self.J_st)
         return step, Truth(P[:, None, :3, 3].copy(), rotations.from_matrix(P[:, None, :3, :3]))

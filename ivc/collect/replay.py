@@ -29,11 +29,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ivc import rotations
-from ivc.collect.imports import MAX_REPORTED, read_recording, refuse_malformed, sniff
-from ivc.collect.plus import is_plus_sequence, read_plus
+from ivc.collect.import_report import MAX_REPORTED, refuse_malformed
 from ivc.errors import CsvError
-from ivc.session import SessionError, Step, Truth, is_recording_csv
-from ivc.session import read as read_session
+from ivc.session import Step
 from ivc.session.model import QUATERNION_NORM_TOLERANCE
 from ivc.units import LENGTH_UNITS
 
@@ -345,29 +343,3 @@ def _assemble(path, numbers, sensors, valid, has_pose, has_signal, sample_rate_h
         sensor_ids=names,
         description=REPLAY_DESCRIPTION,
     )
-
-
-def replay(path: str | Path, step_name: str, sample_rate_hz: float | None = None) -> tuple[Step, Truth | None]:
-    """A recorded step from a session file (with its truth, if any), a recording CSV or a PLUS sequence
-    (``.igs.mha``, ``.seq.nrrd``, ...: :mod:`ivc.collect.plus`)."""
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such recording")
-    if sniff(path) is not None:  # another program's format (ivc/collect/imports.py)
-        return read_recording(path, sample_rate_hz)[0], None
-    if is_recording_csv(path):
-        return read_csv(path, sample_rate_hz), None
-    if is_plus_sequence(path):
-        step = read_plus(path).step
-        if sample_rate_hz is not None:
-            step.sample_rate_hz = sample_rate_hz
-        return step, None
-    source = read_session(path)
-    if step_name not in source.steps:
-        have = ", ".join(source.steps) or "no steps"
-        raise SessionError(f"{path}: has no step {step_name!r} to replay (it has {have})")
-    step = source.steps[step_name]
-    step.description = REPLAY_DESCRIPTION
-    if sample_rate_hz is not None:
-        step.sample_rate_hz = sample_rate_hz
-    return step, source.truth.get(step_name)

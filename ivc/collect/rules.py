@@ -357,7 +357,7 @@ class SweepRule:
     The ball is centred on the placed cube, its radius the wand's longest lever arm plus half the cube's diagonal.
     Without the calibrations (cube_calibration, cube_survey, wand_calibration) in the session, samples cannot be
     gated: valid frames are counted instead and coverage is taken from the reported positions (said so in the
-    output). Pose-only sources are gated through the pose path (:func:`ivc.fixtures.pose_mapping.map_sweep_poses`).
+    output). Pose-only sources are gated through the pose path (:func:`ivc.fixtures.reported_mapping.map_sweep_poses`).
     """
 
     def __init__(self, session: Session, min_kept: int = SWEEP_MIN_KEPT, per_octant: int = SWEEP_PER_OCTANT,
@@ -388,7 +388,8 @@ class SweepRule:
 
     def _calibrate(self) -> None:
         from ivc.fixtures.mapping import FixtureModel
-        from ivc.fixtures.pose_mapping import PoseFixtureModel, has_signals
+        from ivc.fixtures.measurement import has_signals
+        from ivc.fixtures.reported_mapping import PoseFixtureModel
 
         try:
             if has_signals(self.session, ("cube_survey",)):
@@ -455,7 +456,7 @@ class SweepRule:
 
     def _gate(self, frames: Frames):
         from ivc.fixtures.mapping import FixtureModel, map_sweep
-        from ivc.fixtures.pose_mapping import map_sweep_poses
+        from ivc.fixtures.reported_mapping import map_sweep_poses
 
         step = frames.as_step()
         n = step.n_sensors

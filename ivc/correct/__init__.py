@@ -1,6 +1,7 @@
 """Stage 5: corrected poses from live or recorded measurements with a look-up table."""
 
-from ivc.correct.pose_domain import PoseCorrector
+from ivc.correct import reported_kernels as pose_kernels  # the kernels' module under its earlier name
+from ivc.correct.reported import PoseCorrector
 from ivc.correct.solver import (
     FLAG_NAMES,
     HIGH_RESIDUAL,
@@ -14,4 +15,4 @@ from ivc.correct.solver import (
 )
 
 __all__ = ["FLAG_NAMES", "HIGH_RESIDUAL", "INVALID_INPUT", "LOW_PRECISION", "NOT_CONVERGED", "OUTSIDE",
-           "Correction", "Corrector", "PoseCorrector", "describe"]
+           "Correction", "Corrector", "PoseCorrector", "describe", "pose_kernels"]

@@ -20,11 +20,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ivc import rotations
-from ivc.correct.pose_domain import PoseCorrector
+from ivc.correct.measured import CORRECTORS, corrector_for
+from ivc.correct.reported import PoseCorrector
 from ivc.correct.solver import FLAG_NAMES, Corrector
-from ivc.dipole import closed_form_pose
-from ivc.lut.table import LookupTable
+from ivc.fixtures.measurement import measurement_of
 from ivc.session import Session, SessionError
+from ivc.table.lookup import LookupTable
 from ivc.truth import DECLARED_FRAME, RAW_FRAME, declared_frame_map, percentiles, pose_errors
 
 
@@ -104,22 +105,17 @@ def check_errors(table: LookupTable | Corrector | PoseCorrector, check: Session,
                            "precision rig)")
     data, truth = check.steps[step], check.truth[step]
     valid = data.valid_mask
-    if data.signal is not None:
-        corrector = table if isinstance(table, Corrector) else Corrector(table, check.hemisphere)
-        if isinstance(corrector, PoseCorrector):
-            raise SessionError(f"the {step!r} step holds signals: evaluate it with a signal Corrector")
-        out = corrector.batch(data.signal, valid)
-        r_dip, T_dip = closed_form_pose(data.signal, check.hemisphere)
-    else:  # reported poses only: the pose path, and the tracker's own poses as the uncorrected figure
-        if isinstance(table, PoseCorrector):
-            corrector = table
-        elif isinstance(table, Corrector):
-            corrector = PoseCorrector(table.field, table.hemisphere)
-        else:
-            corrector = PoseCorrector(table, check.hemisphere)
-        out = corrector.batch(data.position, data.quaternion, valid)
-        with np.errstate(invalid="ignore"):
-            r_dip, T_dip = data.position, rotations.to_matrix(data.quaternion)
+    measurement = measurement_of(data)  # signals, or reported poses only (the tracker's own as the uncorrected)
+    if isinstance(table, CORRECTORS[type(measurement)]):
+        corrector = table
+    elif isinstance(table, PoseCorrector):
+        raise SessionError(f"the {step!r} step holds signals: evaluate it with a signal Corrector")
+    elif isinstance(table, Corrector):  # a signal corrector's table, for reported poses
+        corrector = corrector_for(measurement, table.field, table.hemisphere)
+    else:
+        corrector = corrector_for(measurement, table, check.hemisphere)
+    out = corrector.batch(*measurement.data(data), valid)
+    r_dip, T_dip = measurement.uncorrected(data, check.hemisphere)
     if progress is not None:
         progress(data.n_frames)
     true_p, true_T = truth.position, rotations.to_matrix(truth.quaternion)
@@ -138,7 +134,7 @@ def check_errors(table: LookupTable | Corrector | PoseCorrector, check: Session,
         p, a = pose_errors(out.position, T_ivc, judged, D_R @ true_T)
         placement = float(1000 * np.linalg.norm(D_t + (D_R - np.eye(3)) @ np.mean(true_p[valid], axis=0)))
     return CheckErrors(valid, ok, out.flags, out.iterations, p, a, raw_p, raw_a, dip_p, dip_a, judged, frame_map,
-                       placement, aligned_p, aligned_a, "signals" if data.signal is not None else "reported poses",
+                       placement, aligned_p, aligned_a, measurement.kind,
                        None if out.precision is None else 1000 * out.precision)
 
 

@@ -7,7 +7,7 @@ map covers ``v``; else a fixed-point start: closed-form dipole pose of ``S − T
 Levenberg-Marquardt over position and a rotation increment ``T ← T exp([ω]×)`` on the 9 residuals
 ``e = S − Tᵀ (f_D(r) + g(r))`` with analytic Jacobians.
 
-The table is one argument ``grid``, the tuple of ``ivc.lut.kernels.GRID``; so is the correction map (3 channels).
+The table is one argument ``grid``, the tuple of ``ivc.table.kernels.GRID``; so is the correction map (3 channels).
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ import numpy as np
 
 from ivc.dipole.kernels import closed_form_one, closed_form_position, dipole_jacobian, field_matrix
 from ivc.linalg import quaternion_of, rotate_increment, rotation_polar_factor, solve_spd6
-from ivc.lut.kernels import grid_contains, grid_point_separable, grid_value
 from ivc.pose.kernels import accept_step, damped_matrix, gauss_newton_matrix, pose_residual, residual_cost
+from ivc.table.kernels import grid_contains, grid_point_separable, grid_value
 
 FIXED_POINT_STEPS = 2
 

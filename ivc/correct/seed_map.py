@@ -3,14 +3,14 @@
 ``B = SᵀS = MᵀM`` does not depend on the sensor's orientation (``S = Tᵀ M``, ``T`` a rotation), so
 the closed-form dipole position of a frame (docs/math.md §3) is a function of the true position
 alone, ``v = φ(r)``, with ``φ`` the closed form applied to ``M = f_D + g`` (the pose-domain map of
-``ivc.correct.pose_domain``). Tabulating ``φ⁻¹(v) − v`` on a grid in ``v`` once per table turns
+``ivc.correct.reported``). Tabulating ``φ⁻¹(v) − v`` on a grid in ``v`` once per table turns
 a cold start into one closed-form position and one 3-channel look-up: on the default scene's check
 poses the start lands a median 4 µm from the converged answer (the fixed point of two more closed
 forms: a fraction of a millimetre), leaving two to three Gauss-Newton iterations.
 
 The nodes are those of the table's grid grown by ``margin`` cells on every face and refined
 ``subdivision`` times (not refined where that would exceed :data:`MAX_NODES`); each is inverted by the
-pose path's compiled Broyden solve (:func:`ivc.correct.pose_kernels.invert_kernel`) from the node
+pose path's compiled Broyden solve (:func:`ivc.correct.reported_kernels.invert_kernel`) from the node
 itself. A node counts when the inversion converged and its image is finite; frames whose ``v``
 lies in a cell with an uncounted corner start from the fixed point as before, so the map only
 changes where a frame starts, never which answer is accepted (each start still ends in the same
@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ivc.lut.grid import Grid, GridField
+from ivc.table.grid import Grid, GridField
 
 #: map nodes per table cell edge (1 where that would give more than MAX_NODES nodes)
 SUBDIVISION = 2
@@ -39,7 +39,7 @@ def correction_seeds(field: GridField, hemisphere: np.ndarray, subdivision: int 
     """The map ``v ↦ φ⁻¹(v) − v`` (m) of the table ``field`` as a 3-channel cubic :class:`GridField` over the
     table's box; ``hemisphere`` is the unit vector of ``ivc.dipole.pose.hemisphere_vector``."""
     from ivc import compiled
-    from ivc.correct import pose_kernels
+    from ivc.correct import reported_kernels as pose_kernels
 
     base = field.grid
     if np.prod((np.array(base.shape) - 1 + 2 * margin) * subdivision + 1) > MAX_NODES:

@@ -22,10 +22,10 @@ from ivc.correct import kernels as _kernels
 from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, LOW_PRECISION, NOT_CONVERGED, OUTSIDE
 from ivc.dipole.pose import hemisphere_vector
 from ivc.errors import InputError
-from ivc.lut.grid import GridField
-from ivc.lut.table import LookupTable
 from ivc.pose.precision import SMALL as PRECISION_SMALL
 from ivc.pose.precision import pose_precision
+from ivc.table.grid import GridField
+from ivc.table.lookup import LookupTable
 
 FLAG_NAMES = {OUTSIDE: "outside the mapped volume", NOT_CONVERGED: "not converged",
               HIGH_RESIDUAL: "residual too high", INVALID_INPUT: "invalid input",

@@ -228,7 +228,7 @@ class Tracker:
 
 def save_tracker(tracker: Tracker, path: str | Path) -> None:
     """Write ``tracker`` as a JSON tracker file, atomically (the old file survives any failure)."""
-    from ivc.session import atomic_path
+    from ivc.files import atomic_path
 
     text = json.dumps(_finite_json(tracker.to_dict()), indent=2)
     # one line per matrix row: innermost lists of numbers on one line (JSON strings hold no raw newline)

@@ -11,7 +11,7 @@ distortion is a field of positions and rotations over the room, whatever the sen
   inverting the forward map through the table's interpolant;
 * :func:`reported_correction`: the same on a grid spanning where the tracker *reports* the
   mapped volume (what a consumer of reported poses needs: the table's own grid covers the true
-  positions), inverted by :class:`ivc.correct.pose_domain.PoseCorrector`, the inversion
+  positions), inverted by :class:`ivc.correct.reported.PoseCorrector`, the inversion
   ``ivc correct`` applies to reported poses.
 
 Positions in metres in the table's source frame; rotations as (..., 3, 3) matrices.
@@ -27,8 +27,8 @@ from scipy import ndimage
 from ivc import dipole, rotations
 from ivc.dipole.pose import closed_form_pose
 from ivc.errors import ExportError
-from ivc.lut.grid import Grid, GridField
-from ivc.lut.table import LookupTable
+from ivc.table.grid import Grid, GridField
+from ivc.table.lookup import LookupTable
 
 #: default node spacing of a grid over the reported region: the table's spacing divided by this
 REPORTED_SUBDIVISION = 4
@@ -140,7 +140,7 @@ def reported_region(table: LookupTable, spacing: float | None = None, solver: st
     """A grid (spacing m, default the table's / :data:`REPORTED_SUBDIVISION`) over where the tracker reports
     the table's mapped volume: the images ``φ(P)`` of probe points P filling the mapped cells, grown by
     ``margin`` cells on every face."""
-    from ivc.correct.pose_domain import PoseCorrector
+    from ivc.correct.reported import PoseCorrector
 
     spacing = table.grid.spacing / REPORTED_SUBDIVISION if spacing is None else float(spacing)
     if not spacing > 0 or not np.isfinite(spacing):
@@ -157,7 +157,7 @@ def reported_correction(table: LookupTable, spacing: float | None = None, solver
                         progress=None) -> DistortionGrid:
     """Where a sensor reported at each node of :func:`reported_region` really is, and ``Cᵀ``.
 
-    Each node is corrected as a reported pose by :class:`ivc.correct.pose_domain.PoseCorrector` (the
+    Each node is corrected as a reported pose by :class:`ivc.correct.reported.PoseCorrector` (the
     inversion ``ivc correct`` applies, with the tracker solver the table was fitted for unless
     ``solver`` names another). A node is valid where that correction is trusted (flags 0): the true
     position is inside the mapped volume and is the only one the map sends there. Invalid nodes hold
@@ -166,7 +166,7 @@ def reported_correction(table: LookupTable, spacing: float | None = None, solver
     from the nearest probe (:meth:`PoseCorrector.invert_from_probes`) where the one from the node failed.
     ``progress``: called with the number of nodes done (chunks of 65,536).
     """
-    from ivc.correct.pose_domain import PoseCorrector
+    from ivc.correct.reported import PoseCorrector
     from ivc.correct.solver import NOT_CONVERGED, OUTSIDE
 
     grid = reported_region(table, spacing, solver)

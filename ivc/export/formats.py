@@ -40,9 +40,9 @@ import numpy as np
 from ivc import __version__, dipole
 from ivc.errors import ExportError
 from ivc.export import distortion
-from ivc.lut.table import COMPONENTS, FIELD_UNIT, LookupTable
-from ivc.lut.table import write as write_hdf5
-from ivc.session import atomic_path
+from ivc.files import atomic_path
+from ivc.table.lookup import COMPONENTS, FIELD_UNIT, LookupTable
+from ivc.table.lookup import write as write_hdf5
 from ivc.units import LENGTH_UNITS
 
 #: units each format can be written in (None: any of LENGTH_UNITS), and the default

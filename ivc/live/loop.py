@@ -4,7 +4,7 @@ Single-threaded around a selector, so nothing waits on anything it does not have
 
 * upstream (a client of the tracking server): TRANSFORM messages (sensor pose; translation in
   ``length_unit`` metres per unit, mm by default as PLUS sends), corrected through the pose path
-  (:class:`~ivc.correct.pose_domain.PoseCorrector`: the inverse of the tracker's pose-domain
+  (:class:`~ivc.correct.reported.PoseCorrector`: the inverse of the tracker's pose-domain
   distortion), or NDARRAY (3, 3) messages (signal matrices) through the signal path, one
   device name per sensor. Lost connections are retried every
   ``retry_s``; each sensor's warm start and predictor restart after a reconnect.
@@ -33,13 +33,13 @@ import numpy as np
 from ivc import compiled, dipole, rotations
 from ivc.correct import Correction, Corrector
 from ivc.correct import kernels as _correct_kernels
-from ivc.correct import pose_kernels as _pose_kernels
-from ivc.correct.pose_domain import PoseCorrector
+from ivc.correct import reported_kernels as _pose_kernels
+from ivc.correct.reported import PoseCorrector
 from ivc.dipole import kernels as _dipole_kernels
 from ivc.igtl import Downstream, Framer, TrackingDataMessage, encode_transforms
-from ivc.lut import kernels as _lut_kernels
 from ivc.predict import Tuning
 from ivc.predict import make as make_predictor
+from ivc.table import kernels as _lut_kernels
 
 log = logging.getLogger("ivc.live")
 #: a client whose queue grows beyond this many bytes loses its oldest messages

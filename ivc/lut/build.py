@@ -10,161 +10,38 @@ with the lowest score is the one kept.
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Callable
-from dataclasses import dataclass, fields
-from datetime import UTC, datetime
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from ivc import __version__, dipole
-from ivc.errors import InputError
-from ivc.fixtures.mapping import DROP_REASONS, FixtureModel, Gates, map_sweep
-from ivc.lut.fitter import FITTERS, Fitter, make_fitter
-from ivc.lut.grid import DEFAULT_SPACING, Grid
+from ivc import dipole
+from ivc.files import file_digest  # noqa: F401 (public here before ivc.files)
+from ivc.fixtures.mapping import DROP_REASONS, Gates
+from ivc.fixtures.measurement import PoseInput, SignalInput, measurement_of
+from ivc.lut.fit_steps import ADVICE, check_enough, decimated, provenance
+from ivc.lut.joint import fit_joint_lut
+from ivc.lut.options import (  # noqa: F401 (public here before ivc.lut.options)
+    METHODS,
+    MIN_KEPT_FRACTION,
+    MIN_SAMPLES,
+    FitOptions,
+    Progress,
+    check_grid_memory,
+    grid_memory,
+)
 from ivc.lut.refine import fit_map, refine_map
+from ivc.lut.reported_build import fit_pose_lut
 from ivc.lut.samples import FieldSamples
 from ivc.lut.signal_noise import measure_signal_noise
-from ivc.lut.support import MIN_SUPPORT
-from ivc.lut.table import LookupTable
 from ivc.session import Session, SessionError, extension_steps
-
-make_fitter("harmonic")  # registers the built-in fitters
-#: the fit methods (:data:`ivc.lut.fitter.FITTERS`' names)
-METHODS = tuple(FITTERS)
-#: fewest gated samples worth fitting, and the smallest fraction of the sweep that may pass the gates
-MIN_SAMPLES = 2_000
-MIN_KEPT_FRACTION = 0.05
-#: coarsest grid spacing (m): an AC tracker's whole range is a few metres
-MAX_SPACING = 1.0
-#: estimated bytes per grid node at the peak of a fit: values and their padded, interpolated and refined
-#: copies (9 float64 each), support, masks, node positions and the harmonic basis at the nodes
-BYTES_PER_NODE = 2048
-#: largest estimated grid memory a fit starts with (bytes)
-MAX_GRID_MEMORY = 4 << 30
-
-#: what to redo when most samples fail a gate
-_ADVICE = {
-    "invalid sample": "the sweep's samples are mostly invalid (dropped or saturated): redo `ivc collect wand_sweep`",
-    "sensor 0 invalid": "wand sensor 0 was mostly invalid: redo `ivc collect wand_sweep`",
-    "not converged": "sensor 0's pose did not converge in the cube: check `ivc fixtures` and redo cube_survey or "
-                     "wand_sweep",
-    "outside the cube": "sensor 0 was mostly outside the cube: redo `ivc collect wand_sweep` keeping wand sensor 0 "
-                        "inside the cube",
-    "residual too high": "the cube field does not explain sensor 0's signal (rms(Λ) too high): redo "
-                         "`ivc collect cube_survey` (and check the declared cube pose), or raise the gate "
-                         "(max_residual=)",
-    "estimated error too high": "the estimated sample errors exceed the gate: redo `ivc collect wand_calibration` and "
-                                "`ivc collect wand_sweep` more slowly, or raise the gate (max_error=)",
-}
-
-Progress = Callable[[str, int], Callable[[int], None]]
-
-
-@dataclass
-class FitOptions:
-    """How :func:`fit_lut` builds a table.
-
-    ``fitter``: a configured :class:`~ivc.lut.fitter.Fitter` (``HarmonicFit(degree=6)``,
-    ``PolyFit(radius=0.05)``, ...) or a method name with its defaults (``METHODS``); it is
-    copied, never fitted in place. ``spacing`` (m), ``origin``/``shape``: a user grid (else
-    derived from the data, one-cell margin). ``refine``: re-solve the wand frames as rigid
-    bodies against the map and refit (:func:`ivc.lut.refine.refine_map`), at most
-    ``max_refinements`` times while it pays; on by default, as in ``ivc fit`` (docs/lut.md,
-    "Refinement", says why). ``min_support``: samples around
-    a node for it to count as mapped. ``max_residual``/``max_error`` (m): the sweep's gates.
-    ``max_frames``: the sweep is decimated to at most this many frames (every k-th frame). At
-    240 Hz consecutive frames are a fraction of a millimetre apart, so this loses no coverage;
-    it bounds the time of the sweep solve, the fit and the refinement."""
-
-    fitter: Fitter | str = "harmonic"
-    spacing: float = DEFAULT_SPACING
-    origin: tuple[float, float, float] | None = None
-    shape: tuple[int, int, int] | None = None
-    refine: bool = True
-    max_refinements: int = 3
-    min_support: int = MIN_SUPPORT
-    max_residual: float = Gates.max_residual
-    max_error: float = Gates.max_error
-    max_frames: int = 25_000
-
-    def __post_init__(self):
-        self.fitter = make_fitter(self.fitter)
-        if (self.origin is None) != (self.shape is None):
-            raise InputError("a user grid needs both an origin and a shape")
-        _check_range("max_refinements", self.max_refinements, 0)
-        _check_range("max_frames", self.max_frames, 1)
-        _check_range("min_support", self.min_support, 1)
-        for name in ("max_residual", "max_error"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise InputError(f"{name} must be a positive number, got {value}")
-        if not (np.isfinite(self.spacing) and 0 < self.spacing <= MAX_SPACING):
-            raise InputError(f"grid spacing must be more than 0 and at most {1000 * MAX_SPACING:g} mm, got "
-                             f"{1000 * self.spacing:g} mm")
-        if self.shape is not None:
-            check_grid_memory(tuple(self.shape))
-
-    @property
-    def method(self) -> str:
-        """The fitter's method name."""
-        return self.fitter.name
-
-    def describe(self) -> dict:
-        """The options as JSON-able values (the table's provenance ``parameters``): the fitter's
-        configuration (:meth:`~ivc.lut.fitter.Fitter.describe`) beside the others."""
-        others = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "fitter"}
-        return {**self.fitter.describe(), **others}
-
-
-def _check_range(name: str, value, low: int, high: int | None = None, optional: bool = False) -> None:
-    if value is None and optional:
-        return
-    if not isinstance(value, int | np.integer) or value < low or (high is not None and value > high):
-        span = f"at least {low}" if high is None else f"from {low} to {high}"
-        raise InputError(f"{name} must be a whole number {span}, got {value!r}")
-
-
-def grid_memory(shape: tuple[int, int, int]) -> int:
-    """Estimated peak memory (bytes) of fitting, refining and interpolating a grid of ``shape`` nodes."""
-    return int(np.prod(np.asarray(shape, dtype=float))) * BYTES_PER_NODE
-
-
-def check_grid_memory(shape: tuple[int, int, int], limit: int | None = None) -> None:
-    """Refuse, before any work, a grid whose estimated memory (:func:`grid_memory`) exceeds ``limit`` bytes
-    (default MAX_GRID_MEMORY)."""
-    limit = MAX_GRID_MEMORY if limit is None else limit
-    if len(shape) != 3 or min(shape) < 2:
-        raise InputError(f"a grid needs at least 2 nodes per axis, got shape {tuple(shape)}")
-    need = grid_memory(shape)
-    if need > limit:
-        nodes = float(np.prod(np.asarray(shape, dtype=float)))
-        raise InputError(f"a grid of {' x '.join(str(int(n)) for n in shape)} = {nodes:.3g} nodes needs about "
-                         f"{need / 2**30:.3g} GiB (limit {limit / 2**30:.3g} GiB): use a coarser spacing "
-                         "(spacing=SPACING) or fewer nodes")
+from ivc.table.grid import Grid
+from ivc.table.lookup import LookupTable
 
 
 def _noop(desc: str, total: int) -> Callable[[int], None]:
     return lambda n: None
-
-
-def file_digest(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def _check_enough(kept: int, total: int, dropped: dict[str, int]) -> None:
-    if kept >= MIN_SAMPLES and kept >= MIN_KEPT_FRACTION * total:
-        return
-    reason = max(DROP_REASONS, key=lambda k: dropped.get(k, 0))
-    detail = ", ".join(f"{n} {k}" for k, n in dropped.items() if n)
-    raise SessionError(f"only {kept} of {total} wand samples passed the gates (dropped: {detail}); need at least "
-                       f"{max(MIN_SAMPLES, int(MIN_KEPT_FRACTION * total))}. Most were dropped as {reason!r}: "
-                       f"{_ADVICE[reason]}")
 
 
 def _check_data_grid(session: Session, spacing: float) -> None:
@@ -190,37 +67,33 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
     """Build the look-up table of ``session`` (which must hold the fixture steps and the sweep).
 
     ``source``: the session's file, recorded (with its SHA-256) in the table's provenance.
-    ``progress(description, total)`` returns an update callback per stage. A session whose cube
-    survey or sweep holds reported poses only is fitted from them through the model of the
-    tracker's solver ``tracker`` (:func:`ivc.lut.pose_build.fit_pose_lut`); one with extension sweeps
-    is mapped over the whole working volume by the joint solve (:func:`ivc.lut.joint.fit_joint_lut`).
+    ``progress(description, total)`` returns an update callback per stage. The path is the session's
+    measurement's (:func:`ivc.fixtures.measurement.measurement_of`, :data:`FIT_PATHS`): a session whose cube
+    survey and sweep hold reported poses only is fitted from them through the model of the tracker's solver
+    ``tracker`` (:func:`ivc.lut.reported_build.fit_pose_lut`); one with signals by the chosen fitter, or, with
+    extension sweeps, over the whole working volume by the joint solve (:func:`ivc.lut.joint.fit_joint_lut`).
     """
-    from ivc.fixtures.pose_mapping import has_signals
+    measurement = measurement_of(session, solver=tracker) if not session.missing_for_fit() else SignalInput()
+    return FIT_PATHS[type(measurement)](session, measurement, options or FitOptions(), source, progress or _noop)
 
-    if not session.missing_for_fit() and not has_signals(session):
-        from ivc.lut.pose_build import fit_pose_lut
 
-        return fit_pose_lut(session, options, source, progress, solver=tracker)
+def _fit_signals(session: Session, measurement: SignalInput, options: FitOptions, source: str | Path | None,
+                 progress: Progress) -> LookupTable:
+    """The signal path: the sweep mapped through the cube, fitted, refined (or the joint solve, with extension
+    sweeps)."""
     if extension_steps(session.steps):  # the whole working volume: the joint solve (ivc.lut.joint)
-        from ivc.lut.joint import fit_joint_lut
-
-        return _with_signal_noise(fit_joint_lut(session, options or FitOptions(), source, progress), session)
-    options = options or FitOptions()
-    progress = progress or _noop
+        return _with_signal_noise(fit_joint_lut(session, options, source, progress), session)
     missing = session.missing_for_fit()
     if missing:
         raise SessionError("cannot fit a map; the session is missing:\n  " + "\n  ".join(missing))
     if options.origin is None:
         _check_data_grid(session, options.spacing)
-    model = FixtureModel.from_session(session)
-    recorded = session.steps["wand_sweep"].n_frames
-    stride = max(1, -(-recorded // options.max_frames))
-    if stride > 1:
-        session = session.select_frames("wand_sweep", slice(None, None, stride))
+    measurement = replace(measurement, gates=Gates(max_residual=options.max_residual, max_error=options.max_error))
+    model = measurement.fixture_model(session)
+    session, recorded, stride = decimated(session, options.max_frames)
     sweep = session.steps["wand_sweep"]
-    gates = Gates(max_residual=options.max_residual, max_error=options.max_error)
-    mapping = map_sweep(session, model, gates, progress=progress("solving the sweep in the cube", sweep.n_frames))
-    _check_enough(mapping.kept, mapping.keep.size, mapping.dropped)
+    mapping = measurement.map_sweep(session, model, progress("solving the sweep in the cube", sweep.n_frames))
+    check_enough(mapping.kept, mapping.keep.size, mapping.dropped, DROP_REASONS, ADVICE)
     samples = FieldSamples.from_mapping(mapping)
     if options.origin is not None:
         grid = Grid(np.asarray(options.origin, float), options.spacing, tuple(options.shape))
@@ -247,16 +120,20 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
         "min_support": options.min_support,
         "valid_nodes": int(valid.sum()),
     }
-    provenance = {
-        "ivc_version": __version__,
-        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "parameters": options.describe(),
-        "fixtures": {"vertices": model.vertices, "interpolant": type(model.interpolant).__name__},
-    }
-    if source is not None:
-        provenance.update(input=str(source), input_sha256=file_digest(source))
-    return _with_signal_noise(LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance),
-                              session)
+    fixtures = {"vertices": model.vertices, "interpolant": type(model.interpolant).__name__}
+    return _with_signal_noise(LookupTable(grid, values, valid, support, session.hemisphere, fit,
+                                          provenance(options.describe(), source, fixtures)), session)
+
+
+def _fit_reported(session: Session, measurement: PoseInput, options: FitOptions, source: str | Path | None,
+                  progress: Progress) -> LookupTable:
+    """The reported-pose path (:func:`ivc.lut.reported_build.fit_pose_lut`)."""
+    return fit_pose_lut(session, options, source, progress, solver=measurement.solver)
+
+
+#: the fit path of each kind of measurement (:mod:`ivc.fixtures.measurement`): ``(session, measurement, options,
+#: source, progress) -> LookupTable``; a new kind of input registers its path here
+FIT_PATHS = {SignalInput: _fit_signals, PoseInput: _fit_reported}
 
 
 def _with_signal_noise(table: LookupTable, session: Session) -> LookupTable:

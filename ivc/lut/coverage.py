@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ivc.fixtures.volume import STEP, box_points, face_shares
-from ivc.lut.grid import GridField
+from ivc.table.grid import GridField
 
 __all__ = ["STEP", "box_coverage", "box_points"]
 

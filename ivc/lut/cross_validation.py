@@ -20,7 +20,7 @@ from ivc.lut.samples import FieldSamples, pose_equivalent_rms
 
 if TYPE_CHECKING:
     from ivc.lut.fitter import Fitter
-    from ivc.lut.grid import Grid
+    from ivc.table.grid import Grid
 
 __all__ = ["BLOCK_FRAMES", "FOLDS", "BlockedKFold", "cross_validate", "held_out_score"]
 

@@ -25,8 +25,8 @@ from ivc.errors import InputError
 from ivc.lut import harmonics
 from ivc.lut.cross_validation import BlockedKFold
 from ivc.lut.fitter import Fitter, register
-from ivc.lut.grid import Grid
 from ivc.lut.samples import ERROR_FLOOR, FieldSamples
+from ivc.table.grid import Grid
 
 MAX_DEGREE = 10
 CHUNK = 20_000

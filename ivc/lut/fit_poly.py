@@ -22,8 +22,8 @@ from scipy.spatial import cKDTree
 from ivc.errors import InputError
 from ivc.lut.cross_validation import BlockedKFold
 from ivc.lut.fitter import Fitter, register
-from ivc.lut.grid import Grid, GridField
 from ivc.lut.samples import FieldSamples
+from ivc.table.grid import Grid, GridField
 
 #: the polynomial degree unless one is given
 DEFAULT_DEGREE = 2

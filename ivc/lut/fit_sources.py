@@ -34,8 +34,8 @@ from ivc import dipole
 from ivc.errors import InputError
 from ivc.lut.cross_validation import BlockedKFold
 from ivc.lut.fitter import Fitter, register
-from ivc.lut.grid import Grid
 from ivc.lut.samples import ERROR_FLOOR, FieldSamples
+from ivc.table.grid import Grid
 
 #: inner shell: distance beyond the data's bounding box and dipole spacing (m)
 STANDOFF = 0.05

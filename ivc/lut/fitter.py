@@ -26,8 +26,8 @@ import numpy as np
 
 from ivc.errors import InputError
 from ivc.lut.cross_validation import BlockedKFold, cross_validate
-from ivc.lut.grid import Grid
 from ivc.lut.samples import FieldSamples
+from ivc.table.grid import Grid
 
 __all__ = ["FITTERS", "Fitter", "fit_table", "make_fitter", "register"]
 

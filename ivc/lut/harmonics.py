@@ -71,7 +71,7 @@ def gradient_rows(x: np.ndarray, degree: int, out: np.ndarray | None = None) -> 
     """The gradients of :func:`gradients`, compiled and laid out as (N, 3, count(degree)): row
     ``(n, i)`` holds ``∂_i Φ_k`` of every potential at point n, so ``reshape(-1, K)`` is the
     design matrix of the (sample, component) rows without a copy. ``out``: an array to fill."""
-    from ivc.lut.kernels import harmonic_gradient_rows
+    from ivc.table.kernels import harmonic_gradient_rows
 
     x = np.ascontiguousarray(np.asarray(x, float).reshape(-1, 3))
     K = count(degree)

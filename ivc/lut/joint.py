@@ -39,13 +39,15 @@ from ivc.lut.fit_sources import (
     normal_equations,
     solve_normal_equations,
 )
-from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
+from ivc.lut.fit_steps import provenance
+from ivc.lut.options import FitOptions
 from ivc.lut.refine import skew
 from ivc.lut.samples import FieldSamples, leverage
 from ivc.lut.support import MIN_SUPPORT, node_support
-from ivc.lut.table import LookupTable
 from ivc.pose import levenberg_marquardt, signal_residual
 from ivc.session import Session, SessionError, Step, extension_steps
+from ivc.table.grid import DEFAULT_SPACING, Grid, GridField
+from ivc.table.lookup import LookupTable
 
 #: the joint map's inner shell of equivalent sources lies this far beyond the samples' bounding box (m)
 SOURCE_STANDOFF = 0.09
@@ -480,13 +482,8 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
 
 def fit_joint_lut(session: Session, options=None, source=None, progress=None) -> LookupTable:
     """:func:`fit_joint` as ``ivc fit`` runs it on a session with extension sweeps: the grid spacing,
-    support, gates and cube-sweep decimation from ``options`` (:class:`ivc.lut.build.FitOptions`; its
+    support, gates and cube-sweep decimation from ``options`` (:class:`ivc.lut.options.FitOptions`; its
     fitter and refinement do not apply: the map is always equivalent sources, re-solved jointly)."""
-    from datetime import UTC, datetime
-
-    from ivc import __version__
-    from ivc.lut.build import FitOptions, file_digest
-
     options = options or FitOptions()
     joint = fit_joint(session, JointOptions(spacing=options.spacing, min_support=options.min_support,
                                             max_residual=options.max_residual, max_error=options.max_error,
@@ -496,10 +493,6 @@ def fit_joint_lut(session: Session, options=None, source=None, progress=None) ->
     report["samples"] = {"total": total, "kept": total, "used": total, "anchor": anchor, "outside_grid": 0,
                          "dropped": {}}
     report.update(refinement=[], grid_from="data (one-cell margin)")
-    provenance = {"ivc_version": __version__, "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-                  "parameters": {"spacing": options.spacing, "min_support": options.min_support,
-                                 "max_residual": options.max_residual, "max_error": options.max_error,
-                                 "max_frames": options.max_frames}}
-    if source is not None:
-        provenance.update(input=str(source), input_sha256=file_digest(source))
-    return to_table(joint, session.hemisphere, provenance)
+    parameters = {"spacing": options.spacing, "min_support": options.min_support, "max_residual": options.max_residual,
+                  "max_error": options.max_error, "max_frames": options.max_frames}
+    return to_table(joint, session.hemisphere, provenance(parameters, source))

@@ -16,9 +16,9 @@ import numba
 import numpy as np
 
 from ivc.linalg import rotate_increment, solve_spd6
-from ivc.lut.kernels import pose_model
 from ivc.lut.rigid_kernels import accept_trial, add_sensor, clear, symmetrise
 from ivc.pose.kernels import damped_matrix, pose_residual
+from ivc.table.kernels import pose_model
 
 
 @numba.njit(cache=True)  # not inlined: wand_kernel calls it twice, and two copies of its IR doubled the compile

@@ -26,10 +26,10 @@ from ivc import dipole, rotations
 from ivc.fixtures.interpolant import HarmonicField
 from ivc.fixtures.wand import WandCalibration
 from ivc.lut.fitter import Fitter, fit_table
-from ivc.lut.grid import Grid, GridField
 from ivc.lut.samples import FieldSamples, leverage
 from ivc.lut.support import mapped_nodes, node_support
 from ivc.pose import levenberg_marquardt, signal_residual
+from ivc.table.grid import Grid, GridField
 
 CHUNK_FRAMES = 5_000
 #: refinement stops when the map changes by less than this, pose-equivalent RMS over valid nodes (m)

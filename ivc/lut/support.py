@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ivc.lut.grid import Grid
+from ivc.table.grid import Grid
 
 #: samples needed around a node (in its eight cells) for it to count as mapped
 MIN_SUPPORT = 20

@@ -4,7 +4,7 @@ The pose is a position r and a rotation T updated as ``T ← T exp([ω]×)``
 (:func:`ivc.linalg.rotate_increment`); the residual is ``e = S − Tᵀ M(r)`` with ``M = f_D + g``
 (docs/math.md §4 and §9). The correction (``ivc.correct.kernels``), the cube solve
 (``ivc.fixtures.kernels``), the rigid-wand refinement and the joint map (``ivc.lut``) share these;
-the model of a table, ``f_D + g`` and its gradient, is :func:`ivc.lut.kernels.pose_model`.
+the model of a table, ``f_D + g`` and its gradient, is :func:`ivc.table.kernels.pose_model`.
 The batched NumPy form of the same solve is :func:`ivc.pose.solve_pose`.
 """
 

@@ -1,7 +1,7 @@
 """Inverting the pose-domain distortion: the true position a tracker's reported position came from.
 
 A rotation-equivariant tracker reports ``v = φ(r)`` and ``Q = C(r) T`` for a sensor at ``(r, T)``
-(:mod:`ivc.dipole.tracker_solver`). Given ``v`` and a secondary field ``g(r)``, the true position
+(:mod:`ivc.pose.tracker_solver`). Given ``v`` and a secondary field ``g(r)``, the true position
 solves ``φ(r) = v``; the true orientation is then ``T = C(r)ᵀ Q``, exactly.
 
 ``φ`` is close to the identity (its gradient differs from I by the distortion's, a few per
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ivc.dipole.tracker_solver import check_solver, distortion
+from ivc.pose.tracker_solver import check_solver, distortion
 
 #: the solve stops when the reported position is reproduced to this (m)
 TOLERANCE = 1e-11

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -112,11 +113,58 @@ class StreamTiming:
         return "\n".join(lines)
 
 
+@numba.njit(cache=True)
+def _normalise_samples(q, ok, out):
+    """out = q normalised where ok, NaN elsewhere; NaN samples become not ok (in place).
+
+    Returns −1, or the flat index (frame · sensors + sensor) of the first usable sample whose
+    norm is off 1 by more than 1e-3.
+    """
+    F, S = ok.shape
+    for f in range(F):
+        for s in range(S):
+            n2 = q[f, s, 0] ** 2 + q[f, s, 1] ** 2 + q[f, s, 2] ** 2 + q[f, s, 3] ** 2
+            if ok[f, s] and np.isfinite(n2):
+                n = np.sqrt(n2)
+                if abs(n - 1.0) > 1e-3:
+                    return f * S + s
+                for i in range(4):
+                    out[f, s, i] = q[f, s, i] / n
+            else:
+                ok[f, s] = False
+                out[f, s, :] = np.nan
+    return -1
+
+
+def check_stream(q: ArrayLike, valid: ArrayLike | None) -> tuple[FloatArray, NDArray[np.bool_], bool]:
+    """(q as (F, S, 4), valid (F, S), whether the input had no sensor axis); NaN samples become invalid."""
+    q = np.asarray(q, dtype=float)
+    single = q.ndim == 2
+    if single:
+        q = q[:, None, :]
+    if q.ndim != 3 or q.shape[-1] != 4:
+        raise PredictorError(f"orientations must have shape (frames, 4) or (frames, sensors, 4), got {q.shape}")
+    ok = np.ones(q.shape[:2], bool)
+    if valid is not None:
+        valid = np.asarray(valid, dtype=bool)
+        if single and valid.ndim == 1:
+            valid = valid[:, None]
+        if valid.shape != q.shape[:2]:
+            raise PredictorError(f"valid has shape {valid.shape}, expected {q.shape[:2]}")
+        ok[:] = valid
+    out = np.empty(q.shape)
+    bad = _normalise_samples(np.ascontiguousarray(q), ok, out)
+    if bad >= 0:
+        f, s = divmod(bad, q.shape[1])
+        raise PredictorError(f"orientation at frame {f}, sensor {s} is not a unit quaternion "
+                             f"(norm {np.linalg.norm(q[f, s]):.6g}); pass unit quaternions [w, x, y, z]")
+    q = out
+    return q, ok, single
+
+
 def stream_timing(time: ArrayLike, q: ArrayLike | None = None, valid: ArrayLike | None = None,
                   max_gap: float = MAX_GAP_S) -> StreamTiming:
     """The timing of a stream: ``time`` (F,) s; ``q`` (F[, S], 4) to count repeats; ``valid`` (F[, S])."""
-    from ivc.predict.base import check_stream
-
     t = np.asarray(time, dtype=float)
     if t.ndim != 1 or len(t) < 2:
         raise PredictorError("a stream's timing needs at least 2 time stamps")

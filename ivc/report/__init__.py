@@ -24,7 +24,6 @@ from pathlib import Path
 
 from ivc import __version__
 from ivc.fixtures.cube import NOMINAL_EDGE
-from ivc.lut.table import LookupTable
 from ivc.report import html
 from ivc.report.compute import (
     THIN_SAMPLES,
@@ -38,6 +37,7 @@ from ivc.report.compute import (
 )
 from ivc.report.figures import FIGURES
 from ivc.session import Session
+from ivc.table.lookup import LookupTable
 
 __all__ = ["FIGURES", "REPORT_FILES", "Report", "box_section", "build_report", "gather", "summary"]
 

@@ -15,21 +15,20 @@ import numpy as np
 
 from ivc import dipole
 from ivc.correct.evaluate import CheckErrors, check_errors, summarise
-from ivc.correct.pose_domain import PoseCorrector
-from ivc.correct.solver import Corrector
+from ivc.correct.measured import corrector_for
 from ivc.errors import InputError
 from ivc.fixtures.cube import CUBE_BITS, NOMINAL_EDGE, declared_pose, placed_vertices
 from ivc.fixtures.interpolant import INTERPOLANTS
 from ivc.fixtures.mapping import FixtureModel, Gates, SweepMapping, map_sweep
-from ivc.fixtures.pose_mapping import has_signals
+from ivc.fixtures.measurement import PoseInput, measurement_of
 from ivc.fixtures.report import SweepErrors, sweep_errors
-from ivc.lut.build import FitOptions
 from ivc.lut.coverage import box_coverage, box_points
-from ivc.lut.grid import GridField
 from ivc.lut.joint import JointOptions, extension_part, extension_samples
+from ivc.lut.options import FitOptions
 from ivc.lut.support import MIN_SUPPORT
-from ivc.lut.table import LookupTable
 from ivc.session import Session, extension_steps, working_volume
+from ivc.table.grid import GridField
+from ivc.table.lookup import LookupTable
 from ivc.truth import declared_frame_map, percentiles
 
 #: horizontal slices drawn at most
@@ -276,8 +275,7 @@ def check_view(table: LookupTable, session: Session, check: Session | None, step
     found = declared_frame_map(session) if "cube_survey" in session.truth else None
     frame_map = None if found is None else found[:2]
     # signals through the signal path; reported poses alone through the pose path, with the table's tracker solver
-    corrector = (Corrector(table, check.hemisphere) if check.steps[step].signal is not None
-                 else PoseCorrector(table, check.hemisphere))
+    corrector = corrector_for(measurement_of(check.steps[step]), table, check.hemisphere)
     errors = check_errors(corrector, check, step, frame_map,
                           progress("correcting the check poses", check.steps[step].n_frames))
     distance = None if cube_centre is None else np.linalg.norm(errors.true_position - cube_centre, axis=-1)
@@ -316,7 +314,7 @@ def gather(session: Session, table: LookupTable, check: Session | None = None, s
         raise InputError(f"thin = {thin}: the thin-cell threshold is a number of samples, at least 1")
     field = table.field()
     lacks = tuple(lack.short for lack in session.lacks_for_fit())
-    if not lacks and not has_signals(session):
+    if not lacks and isinstance(measurement_of(session), PoseInput):
         lacks = (POSE_ONLY,)  # the cube, sweep and coverage sections are the signal path's: not rebuilt from poses
     if lacks:
         model = sweep = counts = regions = None

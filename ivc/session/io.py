@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import shutil
-import tempfile
 import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
@@ -20,6 +18,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from ivc.files import atomic_path  # noqa: F401 (public here before ivc.files)
 from ivc.session.model import (
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -57,31 +56,6 @@ class StepCorrection:
     residual: np.ndarray
     precision: np.ndarray | None = None
     orientation_precision: np.ndarray | None = None
-
-
-@contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, copy_existing: bool = False) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; rename it over ``path`` on success.
-
-    With ``copy_existing`` the temporary file starts as a copy of ``path``. On any
-    exception the temporary file is removed and ``path`` is untouched.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
-    try:
-        if copy_existing:
-            shutil.copyfile(path, tmp)
-        yield tmp
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 try:

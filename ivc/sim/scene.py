@@ -18,8 +18,8 @@ from scipy.spatial.transform import Rotation
 
 from ivc import rotations
 from ivc.dipole import HEMISPHERES
-from ivc.dipole.tracker_solver import SOLVERS
 from ivc.errors import SceneError
+from ivc.pose.tracker_solver import SOLVERS
 from ivc.sim import eddy, meshes
 from ivc.sim.field import FerrousSphere, SecondaryField
 
@@ -158,7 +158,7 @@ class Scene:
     description: str = ""
     frequency_hz: float = 10_000.0
     hemisphere: str = "+x"
-    #: the pose solver the simulated tracker reports poses with (ivc.dipole.tracker_solver.SOLVERS); scene key
+    #: the pose solver the simulated tracker reports poses with (ivc.pose.tracker_solver.SOLVERS); scene key
     #: ``solver`` (``tracker``, its old name, is still read)
     solver: str = "closed-form"
     conductors: list[Conductor] = field(default_factory=list)

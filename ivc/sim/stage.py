@@ -2,7 +2,7 @@
 
 The stage steps a sensor fixture through an XYZ grid times a set of turns about the
 stage's z axis, in one or more sensor-fixture orientations; the pose chain is
-``P = F_so · J_so · F_st · J_st · F_se`` (:mod:`ivc.dipole.calibrate`) with fixtures the
+``P = F_so · J_so · F_st · J_st · F_se`` (:mod:`ivc.pose.calibrate`) with fixtures the
 caller chooses (the truth a calibration must recover). Free space only.
 """
 
@@ -13,9 +13,9 @@ import itertools
 import numpy as np
 
 from ivc.collect.ilemt import stage_transforms
-from ivc.dipole.calibrate import Fixtures, chain
 from ivc.dipole.tracker import Tracker
 from ivc.errors import InputError
+from ivc.pose.calibrate import Fixtures, chain
 
 __all__ = ["stage_pattern", "stage_recording"]
 

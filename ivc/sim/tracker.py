@@ -4,7 +4,7 @@ For each sample it forms ``S = Tᵀ (f_D(r) + G(r))`` (zero G in free space), ap
 the scene's noise model (gain drift, white noise, dropouts, saturation close to the
 source) and, like a commercial unit, also reports the pose of its own solver, which is
 distorted wherever G is not zero: the closed-form dipole solver (docs/math.md §3) by default,
-or the least-squares one (``ivc.dipole.tracker_solver``).
+or the least-squares one (``ivc.pose.tracker_solver``).
 
 With an imperfect ``tracker`` (:class:`ivc.dipole.tracker.Tracker`: coil gains,
 cross-talk, coil offsets) the free-space part is the tracker's own model and the
@@ -21,7 +21,7 @@ import numpy as np
 
 from ivc import dipole, rotations
 from ivc.dipole.tracker import Tracker
-from ivc.dipole.tracker_solver import reported_pose
+from ivc.pose.tracker_solver import reported_pose
 from ivc.session import Step
 from ivc.sim.field import SecondaryField
 from ivc.sim.scene import NoiseSpec

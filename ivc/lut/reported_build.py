@@ -1,33 +1,33 @@
 """A look-up table from reported poses alone (``ivc fit`` on a session without signals).
 
 Stages (docs/lut.md, "Pose-only trackers"): the cube's field is fitted through the tracker model
-from the survey's vertex poses and wand sensor 0 solved in it (:mod:`ivc.fixtures.pose_mapping`);
+from the survey's vertex poses and wand sensor 0 solved in it (:mod:`ivc.fixtures.reported_mapping`);
 the wand's other sensors give (true pose, reported pose) pairs over the room; a harmonic
 secondary field ``G`` is fitted so that the tracker model of ``f_D + G`` reproduces the reported
-poses (:mod:`ivc.lut.pose_fit`); and ``G`` is tabulated on the grid. The table is the same kind of
+poses (:mod:`ivc.pose.reported_fit`); and ``G`` is tabulated on the grid. The table is the same kind of
 table as the signal path's (the secondary field), so it corrects signals and poses alike.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
-from ivc import __version__
-from ivc.dipole.tracker_solver import check_solver
 from ivc.errors import InputError
-from ivc.fixtures.pose_mapping import DROP_REASONS, PoseFixtureModel, map_sweep_poses
+from ivc.fixtures.measurement import PoseInput
+from ivc.fixtures.reported_mapping import DROP_REASONS
 from ivc.lut import harmonics
-from ivc.lut.build import MIN_KEPT_FRACTION, MIN_SAMPLES, FitOptions, file_digest
 from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
-from ivc.lut.grid import Grid
-from ivc.lut.pose_fit import fit_through_tracker
+from ivc.lut.fit_steps import ADVICE, check_enough, decimated, provenance
+from ivc.lut.options import FitOptions
 from ivc.lut.support import mapped_nodes, node_support
-from ivc.lut.table import LookupTable
+from ivc.pose.reported_fit import fit_through_tracker
+from ivc.pose.tracker_solver import check_solver
 from ivc.session import Session, SessionError
+from ivc.table.grid import Grid
+from ivc.table.lookup import LookupTable
 
 #: the largest harmonic degree tried (cross-validated below it)
 MAX_DEGREE = 8
@@ -36,14 +36,10 @@ MAX_PAIRS = 40_000
 
 Progress = Callable[[str, int], Callable[[int], None]]
 
-_ADVICE = {
-    "invalid sample": "the sweep's samples are mostly invalid (dropped or saturated): redo `ivc collect wand_sweep`",
-    "sensor 0 invalid": "wand sensor 0 was mostly invalid: redo `ivc collect wand_sweep`",
-    "not converged": "sensor 0's reported poses could not be traced back into the cube: check the declared cube "
-                     "pose and redo cube_survey",
-    "outside the cube": "sensor 0 was mostly outside the cube: redo `ivc collect wand_sweep` keeping wand sensor 0 "
-                        "inside the cube",
-}
+#: what to redo when most samples fail a gate: the signal path's advice, but for sensor 0's inversion
+_ADVICE = {**{reason: ADVICE[reason] for reason in DROP_REASONS},
+           "not converged": "sensor 0's reported poses could not be traced back into the cube: check the declared "
+                            "cube pose and redo cube_survey"}
 
 
 def _noop(desc: str, total: int) -> Callable[[int], None]:
@@ -55,7 +51,7 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
                  max_pairs: int = MAX_PAIRS) -> LookupTable:
     """Build the look-up table of a pose-only ``session`` (fixture steps and sweep as reported poses).
 
-    ``solver``: the tracker's own pose solver (``ivc.dipole.tracker_solver.SOLVERS``), recorded in the
+    ``solver``: the tracker's own pose solver (``ivc.pose.tracker_solver.SOLVERS``), recorded in the
     table so that corrections invert the same model. ``options``: as :func:`ivc.lut.fit_lut` (the
     fitter must be a :class:`~ivc.lut.fit_harmonic.HarmonicFit`, whose ``degree`` (None: cross-validated
     up to MAX_DEGREE) and number of folds apply; ``refine`` does not apply).
@@ -69,18 +65,13 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
     missing = session.missing_for_fit()
     if missing:
         raise SessionError("cannot fit a map; the session is missing:\n  " + "\n  ".join(missing))
-    model = PoseFixtureModel.from_session(session, solver)
-    recorded = session.steps["wand_sweep"].n_frames
-    stride = max(1, -(-recorded // options.max_frames))
-    if stride > 1:
-        session = session.select_frames("wand_sweep", slice(None, None, stride))
+    measurement = PoseInput(solver)
+    model = measurement.fixture_model(session)
+    session, recorded, stride = decimated(session, options.max_frames)
     sweep = session.steps["wand_sweep"]
-    mapping = map_sweep_poses(session, model, progress("tracing sensor 0 into the cube", sweep.n_frames))
+    mapping = measurement.map_sweep(session, model, progress("tracing sensor 0 into the cube", sweep.n_frames))
     total = int(mapping.keep.size)
-    if mapping.kept < MIN_SAMPLES or mapping.kept < MIN_KEPT_FRACTION * total:
-        reason = max(DROP_REASONS, key=lambda k: mapping.dropped.get(k, 0))
-        raise SessionError(f"only {mapping.kept} of {total} wand samples passed the gates; most were dropped as "
-                           f"{reason!r}: {_ADVICE[reason]}")
+    check_enough(mapping.kept, total, mapping.dropped, DROP_REASONS, _ADVICE)
     pairs = mapping.pairs
     thin = max(1, -(-len(pairs) // max_pairs))
     used = pairs.subset(slice(None, None, thin)) if thin > 1 else pairs
@@ -118,12 +109,6 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
         "min_support": options.min_support,
         "valid_nodes": int(valid.sum()),
     }
-    provenance = {
-        "ivc_version": __version__,
-        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "parameters": {**options.describe(), "tracker_solver": solver, "max_pairs": max_pairs},
-        "fixtures": {"vertices": model.vertices, "interpolant": "HarmonicField (through the tracker model)"},
-    }
-    if source is not None:
-        provenance.update(input=str(source), input_sha256=file_digest(source))
-    return LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance)
+    fixtures = {"vertices": model.vertices, "interpolant": "HarmonicField (through the tracker model)"}
+    parameters = {**options.describe(), "tracker_solver": solver, "max_pairs": max_pairs}
+    return LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance(parameters, source, fixtures))

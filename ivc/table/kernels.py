@@ -5,7 +5,7 @@ so that the 4-node Catmull-Rom stencil of every cell is in range. Node ``(i, j, 
 the grid is ``padded[i + 1, j + 1, k + 1]``.
 
 Every look-up takes the table as one argument, the tuple :data:`GRID` describes
-(``ivc.lut.grid.GridField.kernel_grid`` builds it).
+(``ivc.table.grid.GridField.kernel_grid`` builds it).
 """
 
 from __future__ import annotations

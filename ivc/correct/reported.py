@@ -1,7 +1,7 @@
 """Corrected poses from reported poses alone: the inverse of the tracker's pose-domain distortion.
 
 A rotation-equivariant tracker reports ``v = φ(r)`` and ``Q = C(r) T`` for a sensor at ``(r, T)``,
-with ``(φ, C)`` its solver applied to ``f_D + g`` (:mod:`ivc.dipole.tracker_solver`). With the
+with ``(φ, C)`` its solver applied to ``f_D + g`` (:mod:`ivc.pose.tracker_solver`). With the
 table's ``g``, the correction ``r = φ⁻¹(v)``, ``T = C(r)ᵀ Q`` is exact: no signal is rebuilt and
 no signal residual is asked for. Same :class:`~ivc.correct.solver.Correction` and flags as the
 signal path, with these meanings:
@@ -34,14 +34,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ivc import compiled, rotations
-from ivc.correct import pose_kernels as _pose_kernels
+from ivc.correct import reported_kernels as _pose_kernels
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, Correction
 from ivc.dipole.pose import hemisphere_vector
-from ivc.dipole.tracker_solver import check_solver, distortion
 from ivc.errors import InputError
-from ivc.lut.grid import GridField
-from ivc.lut.table import LookupTable
 from ivc.pose.reported import invert_distortion
+from ivc.pose.tracker_solver import check_solver, distortion
+from ivc.table.grid import GridField
+from ivc.table.lookup import LookupTable
 
 #: the inversion stops when it reproduces the reported position to this (m)
 TOLERANCE = 1e-11
@@ -270,7 +270,7 @@ class PoseCorrector:
         (keyed by ``sensors``, default 0..N−1), or from the reported position.
 
         For the closed-form solver, a frame whose sensors all continue a track (or any frame without the
-        ambiguity test) is corrected by one compiled call (:func:`ivc.correct.pose_kernels.stream_kernel`),
+        ambiguity test) is corrected by one compiled call (:func:`ivc.correct.reported_kernels.stream_kernel`),
         the same steps as :meth:`batch` from another start; other frames go through the batch's path.
         """
         v = np.ascontiguousarray(np.asarray(position, dtype=float).reshape(-1, 3))

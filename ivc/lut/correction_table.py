@@ -19,9 +19,9 @@ import numpy as np
 
 from ivc import rotations
 from ivc.lut.fit_poly import fit_poly
-from ivc.lut.grid import DEFAULT_SPACING, Grid, GridField
-from ivc.lut.pose_fit import PosePairs
 from ivc.lut.samples import FieldSamples
+from ivc.pose.reported_fit import PosePairs
+from ivc.table.grid import DEFAULT_SPACING, Grid, GridField
 
 
 @dataclass

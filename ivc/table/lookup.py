@@ -18,9 +18,10 @@ import numpy as np
 
 from ivc.dipole import HEMISPHERES
 from ivc.errors import IvcError, LutError
-from ivc.lut.grid import Grid, GridField
-from ivc.session import atomic_path
+from ivc.files import atomic_path
 from ivc.session.io import open_ivc_file
+from ivc.table.fit_report import FitReport
+from ivc.table.grid import Grid, GridField
 
 FORMAT_NAME = "lut"
 FORMAT_VERSION = 1
@@ -70,6 +71,16 @@ class LookupTable:
             raise LutError("the table has no valid node: no data supports any part of the grid")
         if not np.all(np.isfinite(self.values[self.valid])):
             raise LutError("the table has non-finite values at valid nodes")
+
+    @property
+    def report(self) -> FitReport:
+        """The fit record (``fit``) typed, the same fields for every fit path
+        (:class:`~ivc.table.fit_report.FitReport`)."""
+        try:
+            return FitReport.from_dict(self.fit)
+        except (KeyError, TypeError) as error:
+            raise LutError(f"the table's fit record is incomplete ({error}): it was not made by a fit path of "
+                           "ivc.lut.fit_lut; fit it again with `ivc fit`") from None
 
     @property
     def signal_noise(self) -> float | None:

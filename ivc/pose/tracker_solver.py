@@ -33,6 +33,7 @@ from ivc import rotations
 from ivc.dipole.field import field, field_jacobian
 from ivc.dipole.pose import closed_form_pose, hemisphere_vector
 from ivc.errors import InputError
+from ivc.pose.solver import dipole_plus, solve_pose
 
 FloatArray = NDArray[np.float64]
 
@@ -75,8 +76,6 @@ def field_hessian(r: ArrayLike) -> FloatArray:
 
 def _least_squares(S: np.ndarray, hemisphere: str) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares pose of each finite S (n, 3, 3), from the closed form, in chunks."""
-    from ivc.pose.solver import dipole_plus, solve_pose  # the pose stage builds on this one
-
     r0, _ = closed_form_pose(S, hemisphere)
     r, T = np.empty_like(r0), np.empty_like(S)
     model = dipole_plus(None)

@@ -14,9 +14,9 @@ from __future__ import annotations
 import numpy as np
 
 from ivc import rotations
-from ivc.dipole.calibrate import Fixtures, chain, predicted_signal, residue, solve_chain_poses
 from ivc.dipole.tracker import Tracker
 from ivc.errors import TrackerError
+from ivc.pose.calibrate import Fixtures, chain, predicted_signal, residue, solve_chain_poses
 
 __all__ = ["WRONG_DEG", "WRONG_MM", "check_tracker", "fixtures_of"]
 

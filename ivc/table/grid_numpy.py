@@ -1,4 +1,4 @@
-""":func:`ivc.lut.kernels.grid_kernel` in vectorised NumPy, same arguments, the same weights and
+""":func:`ivc.table.kernels.grid_kernel` in vectorised NumPy, same arguments, the same weights and
 nodes (results agree to rounding, tested to 1e-12): what a command runs on a small input while the
 compiled kernel is not yet in numba's cache (:func:`ivc.compiled.choose`)."""
 

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ivc.dipole.calibrate import calibrate
 from ivc.errors import TrackerError
+from ivc.pose.calibrate import calibrate
 
 __all__ = ["SignFlip", "find_sign_flips"]
 
@@ -51,7 +51,7 @@ def find_sign_flips(S: np.ndarray, J_so: np.ndarray, J_st: np.ndarray, group: np
     """Recordings whose source coil signs disagree with the first recording's, from the data alone.
 
     ``S`` (N, 3, 3), ``J_so`` (N, 4, 4), ``J_st`` (N, 4, 4) as for
-    :func:`ivc.dipole.calibrate.calibrate`; ``group`` (N,) the recording of each point, the
+    :func:`ivc.pose.calibrate.calibrate`; ``group`` (N,) the recording of each point, the
     first point's recording the reference. The reference is fitted alone (one centre); each
     other recording is fitted jointly with it, from the reference's model. A recording whose
     joint residue exceeds ``factor`` times the reference's is suspect, and it is reported when

@@ -2,7 +2,7 @@
 
 ``φ(r)`` is the closed-form dipole position of ``F = f_D(r) + g(r)`` (g from the table), and
 ``C(r)`` its orientation (docs/math.md §3). Per sample: from the given start and initial
-inverse-Jacobian estimate ``H`` (:class:`ivc.correct.pose_domain.SeedMap` gives both), step
+inverse-Jacobian estimate ``H`` (:class:`ivc.correct.reported.SeedMap` gives both), step
 ``r ← r + H (v − φ(r))``, halving a step that does not lower the miss, with Broyden's good
 update of ``H``; stop when ``|v − φ(r)| ≤ tolerance``. The steps need the position only; ``C``
 is computed once, at the solution. The reference
@@ -23,7 +23,7 @@ import numpy as np
 from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
 from ivc.dipole.kernels import closed_form_one, closed_form_position, field_matrix
 from ivc.linalg import quaternion_of
-from ivc.lut.kernels import grid_value
+from ivc.table.kernels import grid_value
 
 # The helpers below are plain compiled functions, not numba-inlined: inlined three and four times over into
 # one function they made its first compile take over a minute. ``error_model="numpy"`` keeps the arithmetic

@@ -13,8 +13,8 @@ import numpy as np
 
 from ivc import compiled
 from ivc.errors import InputError
-from ivc.lut import grid_numpy
-from ivc.lut import kernels as _kernels
+from ivc.table import grid_numpy
+from ivc.table import kernels as _kernels
 
 #: Himberg 2010's grid spacing (1.5 inch), metres
 DEFAULT_SPACING = 0.0381

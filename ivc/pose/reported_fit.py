@@ -2,7 +2,7 @@
 
 For pose-only trackers the data are pairs: a sensor's true pose ``(r, T)`` (declared, or carried
 by the wand from sensor 0) and the pose the tracker reported, ``(v, Q)``. The tracker model
-(:mod:`ivc.dipole.tracker_solver`) says ``v = φ(r)`` and ``Q = C(r) T``, with ``(φ, C)`` the
+(:mod:`ivc.pose.tracker_solver`) says ``v = φ(r)`` and ``Q = C(r) T``, with ``(φ, C)`` the
 tracker solver applied to ``f_D(r) + G(r)``. Here ``G`` is a sum of gradients of harmonic
 potentials, ``G(r) = Σ_k b_k(r) c_kᵀ`` (each source column a curl- and divergence-free field, as
 in the signal path, docs/lut.md), and the coefficients ``c`` (K, 3) are fitted by Gauss-Newton on
@@ -28,8 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ivc import dipole
-from ivc.dipole.tracker_solver import check_solver, left_difference, reported_pose_jacobian
 from ivc.errors import InputError
+from ivc.pose.tracker_solver import check_solver, left_difference, reported_pose_jacobian
 
 #: metres of position that one radian of orientation residual counts as (about the ratio of the
 #: tracker's position to orientation noise at half a metre: 0.03 mm against 0.1 mrad)
