@@ -3,8 +3,8 @@
 One codec for the live correction loop (:mod:`ivc.live`) and the collection client and server
 (:mod:`ivc.collect.igtl`, :mod:`ivc.app.serve`); it imports nothing of ivc but its errors.
 Message layouts: the OpenIGTLink protocol description v3.0 (openigtlink/OpenIGTLink,
-``Documents/Protocol/``: header.md, transform.md, position.md, trackingdata.md, qtrackingdata.md,
-ndarray.md); the v2/v3 extended header and metadata: header.md's "Version 2/3" sections.
+``Documents/Protocol/header.md``, ``/transform.md``, ``/position.md``, ``/trackingdata.md``, ``/qtrackingdata.md``,
+``/ndarray.md``); the v2/v3 extended header and metadata: the header page's "Version 2/3" sections.
 
 pyigtl supplies the message classes and the CRC-64; its client and server threads are not used:
 they poll with 10 ms socket timeouts and keep only the newest message per device, which would
