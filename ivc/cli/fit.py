@@ -61,6 +61,8 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
                      f"{fit['cv_rms_mm']:.4f} mm (pose-equivalent)")
     if fit.get("outliers_downweighted"):
         lines.append(f"  {fit['outliers_downweighted']} samples down-weighted as outliers (Huber)")
+    if fit.get("model_choice"):  # the adaptive fit says which model the cross-validation chose, and why
+        lines.append(f"  model: {fit['model_choice']}")
     for step in fit["refinement"]:
         lines.append(f"  refinement {step['iteration']}: {step['frames_converged']} frames re-solved as rigid "
                      f"wands, sensor 0 moved {step['sensor0_moved_median_mm']:.4f} mm (median), map changed "

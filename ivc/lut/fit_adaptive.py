@@ -6,8 +6,9 @@ ball, that ball is the mapped one only just, the expansion's terms fall off as `
 a sweep can pin down follows the field: the harmonic fit then mistakes the clean samples nearest the metal for
 outliers. Here the blocked cross-validation chooses between
 
-- ``harmonic``: the expansion of degree 1..``max_degree`` alone (the default fit, fitted to every sample when it
-  wins, so a room where it suffices gets exactly the harmonic table), and
+- ``harmonic``: the expansion of degree 1..``max_degree`` (16) alone; when it wins, the harmonic fit itself is
+  fitted to every sample with degrees up to two beyond the best on the scoring samples (near strong metal the
+  held-out score keeps falling beyond the default fit's 10), and
 - ``harmonic + dipoles``: a low-degree expansion (degree ``degree``: the distant metal) plus point dipoles on a
   sphere ``standoff`` beyond the data's enclosing ball, about ``standoff`` apart (the near metal), one
   candidate per standoff in ``standoffs``; the damping of the dipoles' moments is chosen too.
@@ -36,10 +37,10 @@ from threadpoolctl import threadpool_limits
 from ivc.errors import InputError
 from ivc.lut import harmonics
 from ivc.lut.cross_validation import BlockedKFold
-from ivc.lut.fit_harmonic import MAX_DEGREE, HarmonicFit, HarmonicModel
+from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
 from ivc.lut.fit_harmonic import NormalEquations as HarmonicNormal
 from ivc.lut.fit_harmonic import _cv_scores as harmonic_scores
-from ivc.lut.fit_sources import DAMPINGS, SourceModel, damped_solve, design_rows, even_subset
+from ivc.lut.fit_sources import SourceModel, damped_solve, design_rows, even_subset
 from ivc.lut.fitter import Fitter, register
 from ivc.lut.grid import DEFAULT_SPACING, Grid
 from ivc.lut.samples import ERROR_FLOOR, FieldSamples
@@ -51,6 +52,11 @@ HYBRID_DEGREE = 8
 #: dipole spacing on the layer as a multiple of its depth, and the most dipoles per layer
 SPACING_RATIO = 1.0
 MAX_SOURCES = 300
+#: largest degree of the pure expansion among the candidates (the harmonic fit's own default stops at 10; near
+#: strong metal the held-out score keeps falling beyond it)
+ADAPTIVE_MAX_DEGREE = 16
+#: Tikhonov dampings of the dipole layers (relative, on the unit-diagonal normal equations)
+LAYER_DAMPINGS = (1e-10, 1e-9, 1e-8, 1e-7, 1e-6)
 #: samples the candidates are scored and the dipoles fitted on
 MAX_SAMPLES = 12_000
 #: the harmonic expansion is kept unless a layer beats its held-out score by more than this fraction
@@ -168,8 +174,8 @@ class AdaptiveFit(Fitter):
 
     name = "adaptive"
 
-    def __init__(self, standoffs: tuple = STANDOFFS, degree: int = HYBRID_DEGREE, max_degree: int = MAX_DEGREE,
-                 dampings: tuple = DAMPINGS, max_samples: int = MAX_SAMPLES, cv: BlockedKFold | None = None):
+    def __init__(self, standoffs: tuple = STANDOFFS, degree: int = HYBRID_DEGREE, max_degree: int = ADAPTIVE_MAX_DEGREE,
+                 dampings: tuple = LAYER_DAMPINGS, max_samples: int = MAX_SAMPLES, cv: BlockedKFold | None = None):
         standoffs = tuple(float(s) for s in standoffs)
         if not standoffs or not all(np.isfinite(s) and s > 0 for s in standoffs):
             raise InputError(f"standoffs must be positive numbers of metres, got {standoffs!r}")
@@ -241,7 +247,9 @@ class AdaptiveFit(Fitter):
                    f"{1000 * scores['harmonic']:.4f} mm (degree {best_degree}): metal near the mapped ball")
             self.choice_ = "harmonic + dipoles"
         else:
-            harmonic = HarmonicFit(None, self.max_degree, self.cv).fit(samples)
+            # every sample, degrees up to two beyond the subset's best (the harmonic fit's own CV picks)
+            self.harmonic_max_degree_ = min(self.max_degree, best_degree + 2)
+            harmonic = HarmonicFit(None, self.harmonic_max_degree_, self.cv).fit(samples)
             self.model_ = HybridModel(harmonic.model_, None)
             self.weights_, self.cv_score_ = harmonic.weights_, harmonic.cv_score_
             self.report_ = dict(harmonic.report_)
