@@ -23,6 +23,7 @@ import time
 import numpy as np
 
 from benchmarks.harness import Figure
+from ivc import dipole
 from ivc.correct import Corrector
 from ivc.correct.evaluate import check_errors
 from ivc.lut import FitOptions, fit_lut
@@ -57,9 +58,7 @@ def _figures(simulator, session, table) -> dict:
     floor = 1000 * pose_noise_floor(truth.position[:, 0], truth.quaternion[:, 0], noise_sigma(simulator.scene.noise),
                                     finite_difference_jacobian(simulator.secondary))[0]
     aligned = errors.aligned_position_mm[:, 0]
-    secondary = simulator.secondary.field(truth.position[:, 0])
-    from ivc import dipole
-
+    secondary = simulator.secondary(truth.position[:, 0])
     ratio = np.linalg.norm(secondary, axis=(1, 2)) / np.linalg.norm(dipole.field(truth.position[:, 0]), axis=(1, 2))
     fit = table.fit
     return {"trusted": trusted.sum() / max(inside.sum(), 1), "inside": int(inside.sum()),

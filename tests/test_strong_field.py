@@ -152,3 +152,16 @@ def test_nodes_near_the_layer_are_not_tabulated(near_fits):
     undefined = ~np.isfinite(values.reshape(-1, 9)).all(axis=1)
     assert undefined.any()
     assert np.all(np.linalg.norm(nodes[undefined] - CENTRE, axis=1) > RADIUS)  # never inside the data's ball
+
+
+def test_residual_structure_names_where_the_model_fails(near_fits):
+    """The degree-limited expansion misses most on the side facing the nearest dipole (+y, 5 cm beyond the
+    ball): the structure names it; the adaptive model's residual has no such region."""
+    from ivc.lut.fit_adaptive import residual_structure
+
+    samples, harmonic, adaptive = near_fits
+    theirs = residual_structure(samples, harmonic.predict, CENTRE, RADIUS)
+    worst = max(theirs["regions"], key=lambda name: theirs["regions"][name]["rms_mm"])
+    assert worst == "outer half, +y side"
+    assert "+y side" in theirs["advice"]
+    assert adaptive.report_["residual_structure"]["rms_mm"] < theirs["rms_mm"] / 10

@@ -63,6 +63,8 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
         lines.append(f"  {fit['outliers_downweighted']} samples down-weighted as outliers (Huber)")
     if fit.get("model_choice"):  # the adaptive fit says which model the cross-validation chose, and why
         lines.append(f"  model: {fit['model_choice']}")
+    if fit.get("residual_structure"):
+        lines.append(f"  residual structure: {fit['residual_structure']['advice']}")
     for step in fit["refinement"]:
         lines.append(f"  refinement {step['iteration']}: {step['frames_converged']} frames re-solved as rigid "
                      f"wands, sensor 0 moved {step['sensor0_moved_median_mm']:.4f} mm (median), map changed "

@@ -160,6 +160,36 @@ def _residual(samples: FieldSamples, model: HybridModel) -> np.ndarray:
     return samples.leverage() * np.linalg.norm(model(samples.positions) - samples.fields, axis=(1, 2)) / sigma
 
 
+#: a region whose residual exceeds the whole ball's by this factor is named in the fit's advice
+REGION_FACTOR = 2.0
+_FACES = ("+x", "-x", "+y", "-y", "+z", "-z")
+
+
+def residual_structure(samples: FieldSamples, model, centre: np.ndarray, radius: float) -> dict:
+    """Where in the volume ``model`` fails: the pose-equivalent RMS residual (mm) of ``samples`` in the inner
+    half of the ball and in each sixth of its outer half (by the axis the sample lies furthest along, source
+    frame), with advice when a region's residual is more than :data:`REGION_FACTOR` times the whole ball's."""
+    offset = samples.positions - centre
+    distance = np.linalg.norm(offset, axis=1)
+    residual = samples.leverage() * np.linalg.norm(model(samples.positions) - samples.fields, axis=(1, 2))
+    axis = np.argmax(np.abs(offset), axis=1)
+    face = 2 * axis + (np.take_along_axis(offset, axis[:, None], 1)[:, 0] < 0)
+    region = np.where(distance < 0.5 * radius, -1, face)
+    overall = float(np.sqrt(np.mean(residual**2)))
+    rows = {}
+    for key in range(-1, 6):
+        inside = region == key
+        if inside.sum() >= 20:
+            rows["inner half" if key < 0 else f"outer half, {_FACES[key]} side"] = {
+                "rms_mm": 1000 * float(np.sqrt(np.mean(residual[inside] ** 2))), "samples": int(inside.sum())}
+    worst = [name for name, row in rows.items() if row["rms_mm"] > REGION_FACTOR * 1000 * overall]
+    advice = (f"the model misses most in the {', '.join(worst)} of the mapped ball (more than {REGION_FACTOR:g}x "
+              "the ball's residual): sweep more there, or record an extension sweep on that side"
+              if worst else "no region's residual exceeds the ball's by more than "
+              f"{REGION_FACTOR:g}x")
+    return {"rms_mm": 1000 * overall, "regions": rows, "advice": advice}
+
+
 @register
 class AdaptiveFit(Fitter):
     """The model chosen by the data (``ivc fit --method adaptive``): the harmonic expansion, or a low-degree one
@@ -258,6 +288,7 @@ class AdaptiveFit(Fitter):
                    f"{1000 * scores[hybrid]:.4f} mm)")
             self.choice_ = "harmonic"
         self.scores_ = scores
+        self.report_["residual_structure"] = residual_structure(subset, self.model_, centre, radius)
         self.report_.update(model=self.choice_, model_choice=why,
                             cv_rms_mm_by_model={label: 1000 * s for label, s in scores.items()},
                             model_scored_on_samples=len(subset))
