@@ -56,6 +56,10 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
                      f"{report.cv_rms_mm:.4f} mm (pose-equivalent)")
     if report.outliers_downweighted:
         lines.append(f"  {report.outliers_downweighted} samples down-weighted as outliers (Huber)")
+    if table.fit.get("model_choice"):  # the adaptive fit says which model the cross-validation chose, and why
+        lines.append(f"  model: {table.fit['model_choice']}")
+    if table.fit.get("residual_structure"):
+        lines.append(f"  residual structure: {table.fit['residual_structure']['advice']}")
     for step in report.refinement:
         lines.append(f"  refinement {step.iteration}: {step.frames_converged} frames re-solved as rigid "
                      f"wands, sensor 0 moved {step.sensor0_moved_median_mm:.4f} mm (median), map changed "
@@ -96,11 +100,13 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
 @click.argument("session_file", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Look-up table file to write.")
 @click.option("--method", type=click.Choice(lut.METHODS), default="harmonic", show_default=True,
-              help="harmonic: curl/div-free solid-harmonic fit; poly: Himberg 2010's local polynomial regression.")
+              help="harmonic: curl/div-free solid-harmonic fit; poly: Himberg 2010's local polynomial regression; "
+              "adaptive: cross-validation chooses the expansion or expansion + equivalent dipoles (strong rooms).")
 @click.option("--grid", "grid_spec", help="SPACING, or X0,Y0,Z0:NX,NY,NZ:SPACING, in mm (default: 38.1 mm around "
               "the data with a one-cell margin).")
 @click.option("--degree", type=click.IntRange(1, 40),
-              help="harmonic: fixed degree (default: cross-validated); poly: degree (2).")
+              help="harmonic: fixed degree (default: cross-validated); poly: degree (2); adaptive: the "
+              "expansion's degree beside the dipoles (8).")
 @click.option("--refine/--no-refine", default=FitOptions.refine, show_default=True,
               help="Re-solve the wand frames as rigid bodies against the map and refit while the cross-validation "
               "score improves (docs/lut.md, Refinement).")

@@ -122,6 +122,7 @@ def make_fitter(method: str | Fitter, **params) -> Fitter:
 
 def _load_builtin() -> None:
     """Register the built-in fitters (their modules register on import)."""
+    import ivc.lut.fit_adaptive
     import ivc.lut.fit_harmonic
     import ivc.lut.fit_poly
     import ivc.lut.fit_sources  # noqa: F401
