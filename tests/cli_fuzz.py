@@ -337,8 +337,7 @@ class Outcome:
 
 def needs_subprocess(argv: list[str]) -> bool:
     """Invocations that may open sockets or wait on a peer: run where a hang can be killed."""
-    return argv[0] == "serve" or any(token.startswith("igtl://") or token in ("--live", "--publish")
-                                     for token in argv)
+    return argv[0] == "serve" or any(token.startswith("igtl://") or token == "--live" for token in argv)
 
 
 def run(argv: list[str], cwd: Path, bound: float = BOUND) -> Outcome:
