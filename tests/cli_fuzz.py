@@ -171,33 +171,37 @@ COST_CAPS = {"frames": 300, "sweep_frames": 300, "check_frames": 60, "max_frames
              "compare_cubes": 1, "degree": 4, "max_refinements": 1, "sensors": 16}
 
 
-def _string_hints(pool: Pool) -> dict[str, st.SearchStrategy[str]]:
-    """Values that mean something for plain-string options, by parameter name."""
+def _string_hints(pool: Pool) -> dict[str, tuple[st.SearchStrategy[str], st.SearchStrategy[str]]]:
+    """Values that mean something for plain-string options, by parameter name: (valid ones, edge ones)."""
     csvs = [p for p in pool.paths() if p.endswith(".csv")]
     h5s = [p for p in pool.paths() if p.endswith(".h5")]
     ports = st.builds(free_port)
     igtl = ports.map(lambda port: f"igtl://127.0.0.1:{port}")
+    pick = st.sampled_from
     return {
-        "horizon": st.sampled_from(["50ms", "0ms", "-10ms", "50", "0.05s", "50 kg", "1e12s", "nanms", "infms",
-                                    "ms", "", "20 ms", "1e-300s", "3 frames", "50mm"]),
-        "source": st.one_of(st.sampled_from(["sim", "", "bogus:x", "replay:", "serial:/dev/null",
-                                             "igtl://127.0.0.1:99999", "igtl://127.0.0.1:-1", "igtl://"]),
-                            st.sampled_from(csvs + h5s).map(lambda p: f"replay:{p}"), igtl),
-        "live_url": st.one_of(igtl, st.sampled_from(["igtl://127.0.0.1:99999", "igtl://127.0.0.1:0", "igtl://",
-                                                     "", "tcp://127.0.0.1:1", "igtl://127.0.0.1:abc"])),
-        "publish": st.one_of(ports.map(lambda port: f"127.0.0.1:{port}"),
-                             st.sampled_from(["127.0.0.1:99999", "127.0.0.1:-1", "127.0.0.1", ":", "", "x:y"])),
-        "hemisphere": st.sampled_from(["+x", "-x", "+y", "-y", "+z", "-z", "up", "", "x", "++z"]),
-        "declared_position": st.sampled_from(["0,0,0", "0.3,0,0", "500,0,0", "nan,0,0", "inf,0,0", "1,2", "a,b,c",
-                                              "", "1e300,0,0"]),
-        "declared_quaternion": st.sampled_from(["1,0,0,0", "0,0,0,0", "nan,0,0,0", "1,0,0", "2,0,0,0", ""]),
-        "grid": st.sampled_from(["4", "0", "-1", "4,4,4", "1e9", "abc", "", "2,2", "nan", "8"]),
-        "step": st.sampled_from(["check", "cube_calibration", "wand_calibration", "wand_sweep", "nope", "", "-"]),
-        "steps": st.sampled_from(["check", "wand_sweep", "nope", ""]),
-        "sensor": st.sampled_from(["0", "1", "-1", "99", "liberty-rx2", "nope", ""]),
-        "sensors": st.sampled_from(["0", "1", "-1", "99", "a", ""]),
-        "scene": st.one_of(st.sampled_from(["default", "nope", ""]),
-                           st.sampled_from([p for p in pool.paths() if p.endswith((".toml", ".stl", ".txt"))])),
+        "horizon": (pick(["50ms", "0.05s", "20 ms", "100ms", "0ms"]),
+                    pick(["-10ms", "50", "50 kg", "1e12s", "nanms", "infms", "ms", "", "1e-300s", "3 frames",
+                          "50mm"])),
+        "source": (st.one_of(pick(["sim"]), pick(csvs + h5s).map(lambda p: f"replay:{p}")),
+                   st.one_of(pick(["", "bogus:x", "replay:", "serial:/dev/null", "igtl://127.0.0.1:99999",
+                                   "igtl://127.0.0.1:-1", "igtl://"]), igtl)),
+        "live_url": (igtl, pick(["igtl://127.0.0.1:99999", "igtl://127.0.0.1:0", "igtl://", "",
+                                 "tcp://127.0.0.1:1", "igtl://127.0.0.1:abc"])),
+        "publish": (ports.map(lambda port: f"127.0.0.1:{port}"),
+                    pick(["127.0.0.1:99999", "127.0.0.1:-1", "127.0.0.1", ":", "", "x:y"])),
+        "hemisphere": (pick(["+x", "-x", "+y", "-y", "+z", "-z"]), pick(["up", "", "x", "++z", "+X"])),
+        "declared_position": (pick(["0,0,0", "0.3,0,0", "0.1,-0.2,0.05"]),
+                              pick(["500,0,0", "nan,0,0", "inf,0,0", "1,2", "a,b,c", "", "1e300,0,0"])),
+        "declared_quaternion": (pick(["1,0,0,0", "0,1,0,0", "0.7071,0.7071,0,0"]),
+                                pick(["0,0,0,0", "nan,0,0,0", "1,0,0", "2,0,0,0", ""])),
+        "grid": (pick(["4", "4,4,4", "8"]), pick(["0", "-1", "1e9", "abc", "", "2,2", "nan"])),
+        "step": (pick(["check", "cube_calibration", "wand_calibration", "wand_sweep"]), pick(["nope", "", "-"])),
+        "steps": (pick(["check", "wand_sweep"]), pick(["nope", ""])),
+        "sensor": (pick(["0", "1", "liberty-rx2"]), pick(["-1", "99", "nope", ""])),
+        "sensors": (pick(["0", "1"]), pick(["-1", "99", "a", ""])),
+        "scene": (pick(["default", "mild"] + [p for p in pool.paths() if p.endswith(".toml")]),
+                  pick(["nope", ""] + [p for p in pool.paths() if p.endswith((".stl", ".txt", "truncated.toml",
+                                                                                  "flipped.toml"))])),
     }
 
 
@@ -260,7 +264,7 @@ def scalar(param: click.Parameter, pool: Pool, outdir: Path, hints: dict,
         return _mix(st.sampled_from(pool.paths()), pool.missing, edge)
     hinted = hints.get(param.name or "")
     if hinted is not None:
-        return hinted.map(lambda v: (v, True))
+        return hinted[1].map(lambda v: (v, True)) if edge else hinted[0].map(lambda v: (v, False))
     # a plain string or a custom ParamType the harness does not know: the generic edges and short texts
     typed = st.text(st.characters(blacklist_characters="\x00", blacklist_categories=("Cs",)), max_size=6)
     return _mix(typed, GENERIC, edge)
@@ -304,7 +308,12 @@ def invocation(draw, command: Command, pool: Pool, outdir: Path, poison: bool = 
     edged = set(draw(st.lists(st.integers(0, max(len(params) - 1, 0)), max_size=2))) if params else set()
     poisoned = None
     if poison:
-        candidates = [i for i, p in enumerate(params) if not (isinstance(p, click.Option) and p.is_flag)]
+        # the parameters click does not check itself (plain strings, numbers, input paths) first: their values
+        # reach the command's own checks; an output path is never poisoned (``-1`` is a good folder name)
+        candidates = [i for i, p in enumerate(params) if not (isinstance(p, click.Option) and p.is_flag)
+                      and not (isinstance(p.type, click.Path) and is_output(p))]
+        unchecked = [i for i in candidates if _unchecked_by_click(params[i])]
+        candidates = unchecked or candidates
         if candidates:
             poisoned = draw(st.sampled_from(candidates))
     options, arguments = [], []
@@ -320,6 +329,14 @@ def invocation(draw, command: Command, pool: Pool, outdir: Path, poison: bool = 
             options.append(got.tokens)
     options = draw(st.permutations(options))
     return [*command.words, *(t for group in options for t in group), *arguments]
+
+
+def _unchecked_by_click(param: click.Parameter) -> bool:
+    """A parameter whose values click passes on to the command unchecked (beyond being a number or a path)."""
+    kind = param.type
+    if isinstance(kind, (click.Choice, click.IntRange, click.FloatRange)):
+        return False
+    return kind in (click.STRING, click.INT, click.FLOAT) or isinstance(kind, click.Path)
 
 
 # --- running --------------------------------------------------------------------------------------------------------
