@@ -38,6 +38,7 @@ import pytest
 from hypothesis import HealthCheck, Phase, assume, given, settings
 from hypothesis import strategies as st
 
+from ivc.export import REPORTED_GRID_FORMATS
 from tests import cli_fuzz
 
 EXAMPLES = int(os.environ.get("IVC_CLI_FUZZ_EXAMPLES", 12))
@@ -53,7 +54,22 @@ WORK = {"demo", "fit", "collect", "report", "fixtures report", "tracker calibrat
 #: KNOWN findings in files this test's author does not own (issue 41), keyed by command, each with a short reason;
 #: ``skip`` matches an argv that would hang (not drawn), ``line`` a verdict text that is tolerated. The lead
 #: removes an entry when its bug is fixed (see the report of branch h41-fuzz).
-KNOWN: list[dict] = []
+KNOWN: list[dict] = [
+    # ivc/dipole/tracker.py load_tracker reads the file as UTF-8 and catches only JSONDecodeError: an HDF5 or
+    # binary file given as the tracker model ends in UnicodeDecodeError (every command with --tracker-model too)
+    *({"command": name, "line": "UnicodeDecodeError", "reason": "tracker file not UTF-8: load_tracker"}
+      for name in ("tracker check", "collect", "correct", "evaluate", "fit", "fixtures report")),
+    # ivc/collect/rig_csv.py read_rig_csv: the same for a recording that is not UTF-8 text
+    {"command": "tracker calibrate", "line": "UnicodeDecodeError", "reason": "rig CSV not UTF-8: read_rig_csv"},
+]
+
+#: combinations that legitimately run for longer than the bound (not drawn; see the module docstring):
+#: the reported-region grid formats at their default spacing (the table's / 8) invert the correction at about
+#: a million nodes, 14 CPU seconds for the sample table (over a minute on a loaded machine)
+COSTLY: list[dict] = [
+    {"command": "export", "reason": "reported-region grid at the default spacing",
+     "skip": lambda argv: any(f in argv for f in REPORTED_GRID_FORMATS) and "--spacing" not in argv},
+]
 
 
 def _known(command: str, argv: list[str], problem: str | None) -> dict | None:
@@ -103,13 +119,17 @@ def test_command_never_tracebacks_hangs_or_changes_inputs(command, pool):
             (outdir / "a-folder").mkdir()
             victims = cli_fuzz.checksum_tree(outdir)
             argv = data.draw(cli_fuzz.invocation(command, pool, outdir, poison=command.name in WORK))
+            assume(not any(entry["command"] == command.name and entry["skip"](argv) for entry in COSTLY))
             known = _known(command.name, argv, None)
             assume(known is None)
             outcome = cli_fuzz.run(argv, outdir)
             problem = cli_fuzz.verdict(outcome)
             after = pool.checksums()
-            if after != before:
-                changed = sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k))
+            # a new file beside an input is a default output (``ivc export LUT`` writes LUT.csv there): removed
+            for new in sorted(set(after) - set(before), reverse=True):
+                Path(new).unlink() if Path(new).is_file() else shutil.rmtree(new, ignore_errors=True)
+            changed = sorted(k for k in before if after.get(k) != before[k])
+            if changed:
                 problem = (problem + "; " if problem else "") + f"changed inputs {changed}"
             if "--force" not in argv:
                 now = cli_fuzz.checksum_tree(outdir)
@@ -124,16 +144,12 @@ def test_command_never_tracebacks_hangs_or_changes_inputs(command, pool):
                                           "error": next((line for line in outcome.output.splitlines()
                                                          if line.startswith("Error:")), None),
                                           "known": known and known["reason"]}) + "\n")
-            if after != before:
-                _restore(pool, before)
             if problem and known is None and not SURVEY:
                 pytest.fail(f"{cli_fuzz.shell(argv)}\n  -> {problem}\n{outcome.output[-2000:]}")
+            if changed:
+                raise AssertionError(f"inputs in {pool.root} were changed ({changed}); the pool cannot be trusted")
         finally:
             shutil.rmtree(outdir, ignore_errors=True)
 
     check()
 
-
-def _restore(pool, before):
-    """Put the pool back after a command changed it, so one finding does not mask the next."""
-    raise AssertionError(f"an input in {pool.root} was changed; the pool cannot be trusted for further draws")

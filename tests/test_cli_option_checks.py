@@ -28,3 +28,13 @@ def test_demo_refuses_a_bad_seed_in_one_line(seed, tmp_path):
     assert result.exception is None or isinstance(result.exception, SystemExit)
     assert "Error: seed must be" in result.output and "Traceback" not in result.output
     assert not (tmp_path / "kept").exists()
+
+
+@pytest.mark.parametrize("name", [""])
+@pytest.mark.parametrize("fmt", ["csv", "slicer-itk", "itk"])
+def test_export_refuses_a_table_path_without_a_file_name(name, fmt):
+    """`ivc export '' --format slicer-itk` ended in pathlib's ValueError deriving the default output name."""
+    result = CliRunner().invoke(cli, ["export", name, "--format", fmt])
+    assert result.exit_code == 2, result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+    assert "is not a file name" in result.output
