@@ -5,7 +5,7 @@ import pytest
 from click.testing import CliRunner
 
 from ivc.cli.main import cli
-from ivc.errors import InputError
+from ivc.errors import InputError, SceneError
 from ivc.sim import Simulator, load_scene
 
 
@@ -38,3 +38,15 @@ def test_export_refuses_a_table_path_without_a_file_name(name, fmt):
     assert result.exit_code == 2, result.output
     assert result.exception is None or isinstance(result.exception, SystemExit)
     assert "is not a file name" in result.output
+
+
+def test_a_binary_file_as_the_scene_is_refused_in_one_line(tmp_path):
+    """`ivc demo --scene tray.stl` ended in UnicodeDecodeError (found by the CLI fuzz)."""
+    mesh = tmp_path / "tray.stl"
+    mesh.write_bytes(b"solid\x00\x80\x8b binary mesh")
+    with pytest.raises(SceneError, match="not a scene .toml file"):
+        load_scene(mesh)
+    result = CliRunner().invoke(cli, ["demo", "--scene", str(mesh), "--sweep-frames", "10", "--check-frames", "10"])
+    assert result.exit_code == 1, result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+    assert "Error:" in result.output and "not a scene .toml file" in result.output
