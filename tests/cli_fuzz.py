@@ -265,9 +265,24 @@ def scalar(param: click.Parameter, pool: Pool, outdir: Path, hints: dict,
     hinted = hints.get(param.name or "")
     if hinted is not None:
         return hinted[1].map(lambda v: (v, True)) if edge else hinted[0].map(lambda v: (v, False))
-    # a plain string or a custom ParamType the harness does not know: the generic edges and short texts
     typed = st.text(st.characters(blacklist_characters="\x00", blacklist_categories=("Cs",)), max_size=6)
-    return _mix(typed, GENERIC, edge)
+    if kind is click.STRING:  # a plain string the hints do not know: short texts and the generic edges
+        return _mix(typed, GENERIC, edge)
+    # a custom ParamType (a positive number, a length): its valid draws are the plausible values it accepts
+    accepted = [value for value in PLAUSIBLE if _converts(kind, value)]
+    return _mix(st.sampled_from(accepted) if accepted else typed, GENERIC, edge)
+
+
+#: candidate valid values of a custom parameter type: those its ``convert`` accepts are drawn as valid ones
+PLAUSIBLE = ["1", "0.5", "0.001", "2", "10", "240", "1e-6", "50mm", "2in", "5cm", "0.2mm", "3mm", "50ms", "a"]
+
+
+def _converts(kind: click.ParamType, value: str) -> bool:
+    try:
+        kind.convert(value, None, None)
+    except (click.BadParameter, click.UsageError, ValueError, TypeError):
+        return False
+    return True
 
 
 @st.composite
