@@ -29,6 +29,9 @@ _HELP = "; ".join(f"{name}: {text}" for name, (_, _, text) in FORMATS.items())
 @click.option("--force", is_flag=True, help="Replace OUTPUT if it exists.")
 def export(lut_file, fmt, output, unit, spacing, force):
     """Write LUT_FILE in another format; docs/export.md says what each holds and which direction it maps."""
+    if not Path(lut_file).name:  # '' or '/': no name to derive the default output from
+        raise click.BadParameter(f"{lut_file!r} is not a file name: give the look-up table's .h5 file",
+                                 param_hint="LUT_FILE")
     path = Path(output) if output else Path(lut_file).with_suffix(FORMATS[fmt][1])
     if fmt == "slicer-itk" and not output:
         path = Path(lut_file).with_name(Path(lut_file).stem + "_slicer.h5")  # LUT_FILE is .h5 itself

@@ -39,6 +39,20 @@ _STREAMS = {
 EXTENSION_STREAM = 100
 
 
+#: the largest seed: the session file stores it as a 64-bit signed integer attribute
+MAX_SEED = 2**63 - 1
+
+
+def _checked_seed(seed) -> int:
+    """``seed`` as an int in 0..MAX_SEED, or an InputError before any work (NumPy refuses negative seeds only
+    when the first random stream is made, and HDF5 cannot store one above 2**63 - 1 when the session is written)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise InputError(f"seed must be a whole number from 0 to {MAX_SEED}, got {seed!r}")
+    if not 0 <= int(seed) <= MAX_SEED:
+        raise InputError(f"seed must be from 0 to {MAX_SEED} (2**63 - 1), got {int(seed)}")
+    return int(seed)
+
+
 class Simulator:
     """A simulated tracker, fixtures and room for one scene and seed; ``tracker``: an imperfect device."""
 
@@ -48,7 +62,7 @@ class Simulator:
         of the scene's hand-built ones; the cube's declared pose then comes from its file. ``cube`` and
         ``wand`` are attributes: replace one (``rig.build_fixture``) to simulate a faulty build."""
         self.scene = scene
-        self.seed = int(seed)
+        self.seed = _checked_seed(seed)
         self.tracker = tracker  # the device's own coil model (None: ideal)
         for geometry, kind in ((cube_geometry, "cube"), (wand_geometry, "wand")):
             if geometry is not None and geometry.kind != kind:

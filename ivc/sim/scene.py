@@ -339,7 +339,10 @@ def load_scene(name_or_path: str | Path | None = None) -> Scene:
         raise SceneError(f"no scene {str(name_or_path)!r}: not a file, and the built-in scenes are "
                          f"{', '.join(builtin_scenes())}")
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as error:  # a mesh (.stl) or other binary file given as the scene
+        raise SceneError(f"{path}: not a scene .toml file (byte {error.start} is not UTF-8 text); a mesh is "
+                         "named by a scene file's [[conductor]] shape = \"mesh\" (docs/simulator.md)") from None
     except tomllib.TOMLDecodeError as error:
         raise SceneError(f"{path}: not valid TOML ({error})") from None
     return scene_from_dict(data, path.stem, path.parent)
