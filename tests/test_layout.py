@@ -79,7 +79,7 @@ MEMBERS = {"truth": "fixtures"}
 DATA_SIDE = {"collect": {"sim", "predict", "demo", "warmup", "app", "cli"}, "sim": {"demo", "warmup", "app", "cli"}}
 #: the one deliberate import circle: the fitter registry (ivc.lut.fitter registers the built-in fitters, whose
 #: modules import the Fitter base and ``register`` from it)
-REGISTRY = {"ivc.lut.fitter", "ivc.lut.fit_harmonic", "ivc.lut.fit_poly", "ivc.lut.fit_sources"}
+REGISTRY = {"ivc.lut.fitter", "ivc.lut.fit_harmonic", "ivc.lut.fit_poly", "ivc.lut.fit_sources", "ivc.lut.fit_adaptive"}
 
 _RANK = {name: rank for rank, row in enumerate(STAGES) for name in row}
 

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from ivc.lut.grid import Grid
 
 from ivc import dipole
 from ivc.lut import METHODS, make_fitter
-from ivc.lut.fit_adaptive import AdaptiveFit, HybridModel, _accumulate, _damped_scores, dipole_layer
+from ivc.lut.fit_adaptive import AdaptiveFit, HybridModel, accumulate, damped_scores, dipole_layer
 from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
 from ivc.lut.fit_sources import SourceModel, damped_solve
 from ivc.lut.samples import FieldSamples, leverage
+from ivc.table.grid import Grid
 
 CENTRE = np.array([0.5, 0.0, 0.0])
 RADIUS = 0.18
@@ -118,7 +118,7 @@ def test_fold_scores_are_the_refitted_held_out_residuals():
     layer = dipole_layer(CENTRE, RADIUS, 0.07)
     fold = samples.folds(5, 500)
     weight = samples.weights()
-    normal = _accumulate(samples, weight, fold, 5, CENTRE, RADIUS, 2, layer)
+    normal = accumulate(samples, weight, fold, 5, CENTRE, RADIUS, 2, layer)
     damping = 1e-6
     sse = 0.0
     for f in range(5):
@@ -128,7 +128,7 @@ def test_fold_scores_are_the_refitted_held_out_residuals():
         residual = model(samples.positions[held]) - samples.fields[held]
         sse += np.sum(weight[held][:, None, None] * residual**2)
     expected = np.sqrt(sse / np.sum(weight / samples.leverage() ** 2))
-    assert _damped_scores(normal, (damping,))[damping] == pytest.approx(expected, rel=1e-6)
+    assert damped_scores(normal, (damping,))[damping] == pytest.approx(expected, rel=1e-6)
 
 
 def test_harmonic_room_keeps_the_harmonic_fit():

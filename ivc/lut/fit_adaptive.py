@@ -39,11 +39,11 @@ from ivc.lut import harmonics
 from ivc.lut.cross_validation import BlockedKFold
 from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
 from ivc.lut.fit_harmonic import NormalEquations as HarmonicNormal
-from ivc.lut.fit_harmonic import _cv_scores as harmonic_scores
+from ivc.lut.fit_harmonic import cv_scores as harmonic_scores
 from ivc.lut.fit_sources import SourceModel, damped_solve, design_rows, even_subset
 from ivc.lut.fitter import Fitter, register
-from ivc.lut.grid import DEFAULT_SPACING, Grid
 from ivc.lut.samples import ERROR_FLOOR, FieldSamples
+from ivc.table.grid import DEFAULT_SPACING, Grid
 
 #: candidate depths of the dipole layer beyond the data's enclosing ball (m)
 STANDOFFS = (0.05, 0.08, 0.12)
@@ -119,7 +119,7 @@ class _Normal:
     count: np.ndarray
 
 
-def _accumulate(samples: FieldSamples, weight: np.ndarray, fold: np.ndarray, k: int, centre, scale, degree,
+def accumulate(samples: FieldSamples, weight: np.ndarray, fold: np.ndarray, k: int, centre, scale, degree,
                 sources) -> _Normal:
     lever = samples.leverage()
     K = harmonics.count(degree) + 3 * len(sources)
@@ -139,7 +139,7 @@ def _accumulate(samples: FieldSamples, weight: np.ndarray, fold: np.ndarray, k: 
     return normal
 
 
-def _damped_scores(normal: _Normal, dampings) -> dict[float, float]:
+def damped_scores(normal: _Normal, dampings) -> dict[float, float]:
     """Held-out pose-equivalent RMS (m) per damping, exactly from the fold normal equations."""
     total_gram, total_rhs = normal.gram.sum(axis=0), normal.rhs.sum(axis=0)
     scores = {}
@@ -242,7 +242,7 @@ class AdaptiveFit(Fitter):
         weight = subset.weights()
         top = max(self.max_degree, self.degree)
         # the pure expansion, scored on the subset (its degree prefix); each layer beside degree `self.degree`
-        pure = _accumulate(subset, weight, fold, k, centre, radius, top, np.empty((0, 3)))
+        pure = accumulate(subset, weight, fold, k, centre, radius, top, np.empty((0, 3)))
         by_degree = harmonic_scores(HarmonicNormal(pure.gram, pure.rhs, pure.yy, pure.count), top)
         best_degree = min(by_degree, key=by_degree.get)
         scores = {"harmonic": by_degree[best_degree]}
@@ -250,8 +250,8 @@ class AdaptiveFit(Fitter):
         for standoff in self.standoffs:
             label = f"harmonic {self.degree} + dipoles {1000 * standoff:.0f} mm"
             layers[label] = dipole_layer(centre, radius, standoff)
-            normals[label] = _accumulate(subset, weight, fold, k, centre, radius, self.degree, layers[label])
-            damping_scores[label] = _damped_scores(normals[label], self.dampings)
+            normals[label] = accumulate(subset, weight, fold, k, centre, radius, self.degree, layers[label])
+            damping_scores[label] = damped_scores(normals[label], self.dampings)
             scores[label] = min(damping_scores[label].values())
             if progress is not None:
                 progress(len(subset))
@@ -265,8 +265,8 @@ class AdaptiveFit(Fitter):
             if len(cap):
                 label = f"{hybrid} + {len(cap)} at {1000 * standoff / 2:.0f} mm"
                 layers[label] = np.concatenate([layers[hybrid], cap])
-                normals[label] = _accumulate(subset, weight, fold, k, centre, radius, self.degree, layers[label])
-                damping_scores[label] = _damped_scores(normals[label], self.dampings)
+                normals[label] = accumulate(subset, weight, fold, k, centre, radius, self.degree, layers[label])
+                damping_scores[label] = damped_scores(normals[label], self.dampings)
                 scores[label] = min(damping_scores[label].values())
                 if scores[label] < (1 - PREFER_HARMONIC) * scores[hybrid]:
                     hybrid = label
@@ -337,11 +337,11 @@ class AdaptiveFit(Fitter):
             reduced = np.flatnonzero(factor < 1.0)
             normal = _Normal(base.gram.copy(), base.rhs.copy(), base.yy.copy(), base.count.copy())
             if len(reduced):  # remove the reduced part of the outliers' weight from the base equations
-                removed = _accumulate(subset.subset(reduced), weight[reduced] * (1 - factor[reduced]), fold[reduced],
+                removed = accumulate(subset.subset(reduced), weight[reduced] * (1 - factor[reduced]), fold[reduced],
                                       k, centre, radius, self.degree, sources)
                 for name in ("gram", "rhs", "yy", "count"):
                     setattr(normal, name, getattr(normal, name) - getattr(removed, name))
-            damping_scores = _damped_scores(normal, self.dampings)
+            damping_scores = damped_scores(normal, self.dampings)
             damping = min(damping_scores, key=damping_scores.get)
         outliers = int(np.sum(weights < weight * (1 - 1e-12)))
         self.model_, self.weights_ = model, weights

@@ -161,7 +161,7 @@ def solve_normal(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     return np.linalg.solve(scaled, rhs / scale[:, None]) / scale[:, None]
 
 
-def _cv_scores(normal: NormalEquations, max_degree: int) -> dict[int, float]:
+def cv_scores(normal: NormalEquations, max_degree: int) -> dict[int, float]:
     """Held-out pose-equivalent RMS (m) for each degree 1..max_degree."""
     gram_all, rhs_all = normal.gram.sum(axis=0), normal.rhs.sum(axis=0)
     scores = {}
@@ -254,7 +254,7 @@ def _fit_harmonic(samples, degree, max_degree, fold, folds, progress):
     unweighted = accumulate_normal(samples, lever, base, fold, folds, centre, scale, top, progress)
     normal, weights = unweighted, base
     for iteration in range(ROBUST_ITERATIONS + 1):
-        scores = _cv_scores(normal, top)
+        scores = cv_scores(normal, top)
         chosen = top
         if degree is None:
             best = min(scores.values())
