@@ -50,3 +50,16 @@ def test_a_binary_file_as_the_scene_is_refused_in_one_line(tmp_path):
     assert result.exit_code == 1, result.output
     assert result.exception is None or isinstance(result.exception, SystemExit)
     assert "Error:" in result.output and "not a scene .toml file" in result.output
+
+
+def test_a_binary_file_given_as_a_tracker_model_or_a_rig_csv_is_refused_in_one_line(tmp_path):
+    from ivc.collect.rig_csv import read_rig_csv
+    from ivc.dipole.tracker import load_tracker
+    from ivc.errors import CsvError, TrackerError
+
+    binary = tmp_path / "table.h5"
+    binary.write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(range(256)))
+    with pytest.raises(TrackerError, match="a binary file, not a tracker file"):
+        load_tracker(binary)
+    with pytest.raises(CsvError, match="not a text file, so not a rig CSV"):
+        read_rig_csv(binary)

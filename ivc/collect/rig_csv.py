@@ -40,8 +40,11 @@ def _position_columns(header: list[str]) -> tuple[list[str], float]:
 def read_rig_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``S`` (N, 3, 3), ``J_so`` (N, 4, 4) and ``J_st`` (N, 4, 4) (metres) of a rig CSV."""
     path = Path(path)
-    with open(path, newline="", encoding="utf-8") as handle:
-        rows = list(csv.reader(handle))
+    try:
+        with open(path, newline="", encoding="utf-8") as handle:
+            rows = list(csv.reader(handle))
+    except UnicodeDecodeError:
+        raise CsvError(f"{path}: not a text file, so not a rig CSV (a header row, then one row per point)") from None
     if not rows:
         raise CsvError(f"{path}: empty file")
     header = [h.strip() for h in rows[0]]

@@ -244,6 +244,9 @@ def load_tracker(path: str | Path) -> Tracker:
         data = json.loads(path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as error:
         raise TrackerError(f"{path}: not a JSON tracker file ({error})") from None
+    except UnicodeDecodeError:
+        raise TrackerError(f"{path}: a binary file, not a tracker file (a JSON file written by `ivc tracker "
+                           "calibrate`); is it a session or a table?") from None
     return Tracker.from_dict(data, str(path))
 
 
