@@ -607,6 +607,16 @@ class Downstream:
         """Whether every client has been sent all it was given."""
         return not any(c.queue or c.pending for c in self.clients.values())
 
-    def close(self) -> None:
+    def close(self, listener: socket.socket | None = None) -> None:
+        """Drop every client; with the server's ``listener``, also stop listening and close the selector (the
+        server's whole shutdown, once the caller has unregistered its own sockets)."""
         for client in list(self.clients.values()):
             self.drop(client, "closed")
+        if listener is None:
+            return
+        try:
+            self.selector.unregister(listener)
+        except (KeyError, ValueError):
+            pass
+        listener.close()
+        self.selector.close()

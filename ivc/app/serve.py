@@ -214,13 +214,7 @@ class IgtlServer:
             self.stats.dropped_for_slow_clients = self._clients.dropped
 
     def close(self) -> None:
-        self._clients.close()
-        try:
-            self._selector.unregister(self._listener)
-        except (KeyError, ValueError):
-            pass
-        self._listener.close()
-        self._selector.close()
+        self._clients.close(self._listener)
 
 
 def serve(source: LiveSource, port: int = DEFAULT_PORT, host: str = "127.0.0.1", *, duration: float | None = None,

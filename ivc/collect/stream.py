@@ -14,6 +14,7 @@ message time stamps), never the host's receive time, which only :attr:`Sample.ho
 
 from __future__ import annotations
 
+import time as _time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal, Protocol, runtime_checkable
@@ -22,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ivc.errors import SessionError
-from ivc.session import Step, describe_step
+from ivc.session import Step, describe_step, step_order
 
 #: what a :class:`SourceEvent` can report
 EventKind = Literal["connected", "disconnected", "reconnected", "reset", "stale", "resumed", "garbage", "info"]
@@ -241,10 +242,6 @@ class SessionSource:
     def __init__(self, session, steps: Sequence[str] | None = None, *, pause_s: float = 0.0,
                  realtime: bool = False, speed: float = 1.0, chunk: int = 256, poses_only: bool = False,
                  clock=None):
-        import time as _time
-
-        from ivc.session import step_order
-
         names = list(steps) if steps is not None else sorted(session.steps, key=step_order)
         missing = [n for n in names if n not in session.steps]
         if missing:
@@ -266,12 +263,25 @@ class SessionSource:
         self.sensor_names = tuple(first.names) if len(counts) == 1 else tuple(str(i) for i in range(max(counts)))
         self.sample_rate_hz = float(first.sample_rate_hz)
         self._items: list[tuple[str, int, float]] | None = None
+        self._arrays: dict[str, tuple] = {}
         self._at = 0
         self._start: float | None = None
+
+    def _streamed(self, step: Step) -> tuple:
+        """What each frame of ``step`` streams: ``(valid, position, quaternion, signal)`` arrays (or None), made
+        once per step (the closed-form poses of a signal-only step, for ``poses_only``, included)."""
+        signal = None if self.poses_only or step.signal is None else step.signal
+        position = quaternion = None
+        if step.position is not None:
+            position, quaternion = step.position, step.quaternion
+        elif self.poses_only:
+            position, quaternion = step.poses(self.hemisphere)
+        return step.valid_mask, position, quaternion, signal
 
     def open(self) -> None:
         items = []
         offset = 0.0
+        self._arrays = {name: self._streamed(self.session.steps[name]) for name in self.steps}
         for number, name in enumerate(self.steps):
             step = self.session.steps[name]
             time = np.asarray(step.time, dtype=float)
@@ -287,23 +297,14 @@ class SessionSource:
         return sum(self.session.steps[n].n_frames for n in self.steps)
 
     def _sample(self, name: str, f: int, t: float) -> Sample:
-        step = self.session.steps[name]
-        valid = step.valid_mask[f]
-        signal = None if self.poses_only or step.signal is None else step.signal[f]
-        position = quaternion = None
-        if step.position is not None:
-            position, quaternion = step.position[f], step.quaternion[f]
-        elif self.poses_only:
-            positions, quaternions = step.poses(self.hemisphere)
-            position, quaternion = positions[f], quaternions[f]
-        return Sample(time=t, valid=valid, position=position, quaternion=quaternion, signal=signal, frame=None,
-                      host_time=self._clock(), step=name)
+        valid, position, quaternion, signal = self._arrays[name]
+        return Sample(time=t, valid=valid[f], position=None if position is None else position[f],
+                      quaternion=None if quaternion is None else quaternion[f],
+                      signal=None if signal is None else signal[f], frame=None, host_time=self._clock(), step=name)
 
     def read(self, timeout_s: float) -> list[Sample | SourceEvent]:
         """The next frames: ``chunk`` of them, or in real time those due by now (waiting up to ``timeout_s``
         for the next one)."""
-        import time as _time
-
         if self._items is None:
             raise SessionError("open the source before reading it (use it in a with statement)")
         if self._at >= len(self._items):
@@ -331,6 +332,7 @@ class SessionSource:
 
     def close(self) -> None:
         self._items = None
+        self._arrays = {}
 
     @classmethod
     def from_spec(cls, argument: str, *, sensors: Sequence[str] | None = None, hemisphere: str = "+x",

@@ -431,17 +431,11 @@ class LiveCorrector:
         if self.compiling:
             log.info("waiting for the background compilation to finish (it is cached for the next run)")
             self._compiler.join()
-        self._clients.close()
         if self._upstream is not None:
             self._selector.unregister(self._upstream)
             self._upstream.close()
             self._upstream = None
-        try:
-            self._selector.unregister(self._listener)
-        except (KeyError, ValueError):
-            pass
-        self._listener.close()
-        self._selector.close()
+        self._clients.close(self._listener)
 
 
 def output_device_name(name: str, suffix: str = "_ivc") -> str:
