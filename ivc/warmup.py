@@ -47,7 +47,7 @@ def _correct() -> None:
     from ivc import dipole
     from ivc.correct import Corrector, PoseCorrector
 
-    corrector = Corrector(_table(), "+x")
+    corrector = Corrector(_table(), "+x", signal_noise=1e-4)  # with a noise: the precision kernels too
     r = np.array([0.4, 0.01, -0.02]) + 0.01 * np.random.default_rng(0).standard_normal((64, 3))
     q = np.tile([1.0, 0.0, 0.0, 0.0], (64, 1))
     S = dipole.signal_from_pose(r, q)
@@ -55,10 +55,12 @@ def _correct() -> None:
     corrector.batch(S[:4])  # fewer: the serial one
     corrector.batch_poses(r[:4], q[:4])
     corrector.update(S[:2])  # the streaming path (ivc correct --live)
-    poses = PoseCorrector(_table(), "+x")  # reported poses alone (ivc correct on poses, TRANSFORM with --live)
+    # reported poses alone (ivc correct on poses, TRANSFORM with --live)
+    poses = PoseCorrector(_table(), "+x", signal_noise=1e-4)
     poses.batch(r, q)
     poses.batch(r[:4], q[:4])
     poses.warm_up(r[0])
+    poses.update(r[:2], np.tile(np.eye(3), (2, 1, 1)))
 
 
 def _fit() -> None:

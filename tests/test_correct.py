@@ -124,7 +124,7 @@ def test_cli_fit_correct_evaluate(small_session, tmp_path):
     result = runner.invoke(cli, ["correct", str(table_file), str(csv_in), "-o", str(csv_out)])
     assert result.exit_code == 0, result.output
     lines = csv_out.read_text().splitlines()
-    assert lines[0].endswith("valid,flags,residual") and len(lines) == 301
+    assert lines[0].endswith("valid,flags,residual,precision_mm,orientation_precision_mrad") and len(lines) == 301
     x_csv = np.array([float(line.split(",")[2]) for line in lines[1:]])
     np.testing.assert_allclose(x_csv, corrected.steps["check"].position[:, 0, 0], atol=1e-12)
 

@@ -13,6 +13,7 @@ from ivc.errors import InputError
 from ivc.lut import LookupTable
 from ivc.lut.signal_noise import measure_signal_noise
 from ivc.pose.precision import pose_covariance, pose_precision
+from ivc.pose.tracker_solver import distortion
 from ivc.session import Session, Step
 from ivc.sim.noise_floor import finite_difference_jacobian
 from tests.helpers import CENTRE, quadratic_field
@@ -93,9 +94,13 @@ def test_low_precision_flag_follows_the_limit_and_needs_a_noise(exact_table, rng
     limit = float(np.median(predicted))
     out = Corrector(exact_table, max_precision=limit, signal_noise=1e-4).batch(S)
     np.testing.assert_array_equal((out.flags & LOW_PRECISION) != 0, predicted > limit)
-    assert Corrector(exact_table).batch(S).precision is None  # nothing predicted unless asked
+    unknown = Corrector(exact_table)  # this table was not fitted from a session: no noise recorded
+    assert unknown.batch(S).precision is None and "no signal noise" in unknown.gate.describe()
+    assert Corrector(exact_table, precision=False).gate.note == "precision not predicted (precision=False)"
     with pytest.raises(InputError, match="signal noise"):
-        Corrector(exact_table, precision=True)  # this table was not fitted from a session: no noise recorded
+        Corrector(exact_table, max_precision=1e-3)  # a limit the corrector cannot apply is refused, not ignored
+    default = Corrector(exact_table, signal_noise=1e-4)  # the default gate: 1 mm wherever the noise is known
+    np.testing.assert_array_equal((default.batch(S).flags & LOW_PRECISION) != 0, predicted > 1e-3)
     with pytest.raises(InputError):
         Corrector(exact_table, max_precision=-1.0, signal_noise=1e-4)
     live = Corrector(exact_table, max_precision=limit, signal_noise=1e-4)
@@ -127,8 +132,16 @@ def test_cli_writes_precision_columns_and_flags(exact_table, tmp_path, rng):
     np.testing.assert_allclose(written, expected, rtol=1e-6)
     flags = np.array(columns.extra["flags"], float).astype(int).reshape(expected.shape)
     np.testing.assert_array_equal((flags & LOW_PRECISION) != 0, expected > 0.05)
-    poses = Step(np.arange(30) / 240.0, None, r, q)
+    # reported poses get a prediction too: the tracker's noise carried through the inverse map, close to the
+    # signal path's (the same noise and field; the reported pose's scatter is taken as a free-space solve's)
+    v, C = distortion(r.reshape(-1, 3), quadratic_field(r.reshape(-1, 3)))
+    poses = Step(np.arange(30) / 240.0, None, v.reshape(30, 1, 3),
+                 rotations.from_matrix(C @ rotations.to_matrix(q.reshape(-1, 4))).reshape(30, 1, 4))
     write_csv(poses, tmp_path / "poses.csv")
-    refused = CliRunner().invoke(cli, ["correct", str(tmp_path / "t.h5"), str(tmp_path / "poses.csv"), "-o",
-                                       str(tmp_path / "out2.csv"), "--precision"])
-    assert refused.exit_code != 0 and "signal" in refused.output
+    result = CliRunner().invoke(cli, ["correct", str(tmp_path / "t.h5"), str(tmp_path / "poses.csv"), "-o",
+                                      str(tmp_path / "out2.csv"), "--max-precision", "none"])
+    assert result.exit_code == 0, result.output
+    assert "no precision gate" in result.output
+    _, columns = read_csv_columns(tmp_path / "out2.csv")
+    from_poses = np.array(columns.extra["precision_mm"], float).reshape(expected.shape)
+    np.testing.assert_allclose(from_poses, expected, rtol=0.1)

@@ -28,6 +28,7 @@ from ivc.collect.replay import read_csv_columns, write_csv
 from ivc.collect.tracker_units import apply_tracker_file
 from ivc.correct import Correction, Corrector, PoseCorrector, describe
 from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, LOW_PRECISION, NOT_CONVERGED, OUTSIDE
+from ivc.correct.precision import DEFAULT
 from ivc.correct.solver import MAX_RESIDUAL
 from ivc.errors import OptionsError
 from ivc.lut.build import file_digest
@@ -52,11 +53,12 @@ class CorrectOptions:
     table's). ``solver``: the tracker's own pose solver, for inputs of reported poses only (``closed-form`` or
     ``least-squares``; default: the one the table was fitted for, else closed-form).
 
-    ``precision``: write each pose's predicted RMS position (m) and orientation (rad) error from the tracker's
-    signal noise (signal inputs only). ``max_precision`` (m): flag (16) poses predicted less precise than this
-    (implies ``precision``). ``signal_noise``: the tracker's white noise per signal entry, in signal units (default:
-    what the table's fit measured). ``tracker_model``: a tracker file (``ivc tracker calibrate``) that brings the
-    input's signals to ideal-dipole units first.
+    ``precision``: predict each pose's RMS position (m) and orientation (rad) error from the tracker's signal noise
+    (on by default wherever the noise is known, for signals and reported poses alike; docs/trust.md).
+    ``max_precision`` (m): flag (16) poses predicted less precise than this (default
+    :data:`ivc.correct.precision.MAX_PRECISION`, 1 mm; None: no gate). ``signal_noise``: the tracker's white noise
+    per signal entry, in signal units (default: what the table's fit measured). ``tracker_model``: a tracker file
+    (``ivc tracker calibrate``) that brings the input's signals to ideal-dipole units first.
 
     ``predictor``: then predict each sensor's corrected orientation ``horizon`` s ahead with this filter
     (``ivc.predict.FILTERS``) from the trusted samples; ``tune``: tune Himberg's filters to each corrected step's
@@ -69,8 +71,8 @@ class CorrectOptions:
     max_residual: float = MAX_RESIDUAL
     hemisphere: str | None = None
     solver: str | None = None
-    precision: bool = False
-    max_precision: float | None = None
+    precision: bool = True
+    max_precision: float | str | None = DEFAULT
     signal_noise: float | None = None
     tracker_model: str | os.PathLike | None = None
     predictor: str | None = None
@@ -80,11 +82,9 @@ class CorrectOptions:
     tuning: Tuning | None = None
     overwrite: bool = False
 
-    def precision_keywords(self) -> dict | None:
-        """The :class:`~ivc.correct.Corrector`'s precision keywords, or None when no precision is asked for."""
-        if not (self.precision or self.max_precision or self.signal_noise):
-            return None
-        return {"precision": True, "signal_noise": self.signal_noise, "max_precision": self.max_precision}
+    def precision_keywords(self) -> dict:
+        """The correctors' precision keywords (:class:`~ivc.correct.Corrector`, :class:`~ivc.correct.PoseCorrector`)."""
+        return {"precision": self.precision, "signal_noise": self.signal_noise, "max_precision": self.max_precision}
 
     def check(self) -> None:
         """Refuse options that do not go together (:class:`~ivc.errors.OptionsError`)."""
@@ -263,8 +263,9 @@ def correction_advice(out: Correction, max_residual: float, pose_only: bool = Fa
                 f"{max_residual:g}): was this recorded in the mapped room, with the source where it was when "
                 "the table was fitted, and in the table's hemisphere?")
     if bit == LOW_PRECISION:
-        return (f"{percent} are predicted less precise than max_precision=M: the tracker's noise allows no better "
-                "that far from the source; loosen the limit, or average frames of a static sensor")
+        return (f"{percent} are predicted less precise than the precision limit (max_precision): the tracker's noise "
+                "allows no better there (far from the source, or where the room's field folds the map); loosen the "
+                "limit, or average frames of a static sensor")
     return (f"{percent} did not converge: check the hemisphere (hemisphere=AXIS for a CSV) and that the signals "
             "are in the tracker's units")
 
@@ -275,18 +276,25 @@ class _Job:
     def __init__(self, table, lut_file, options: CorrectOptions, tuning: Tuning | None, report: Report):
         self.table, self.lut_file, self.options, self.tuning, self.say = table, lut_file, options, tuning, report
         self.precision = options.precision_keywords()
+        self._gate_said = False
 
-    def correct(self, step: Step, hemisphere: str, precision: dict | None = None) -> Correction:
-        """A step's corrections: from its signals when it has them, else from its reported poses."""
+    def correct(self, step: Step, hemisphere: str) -> Correction:
+        """A step's corrections: from its signals when it has them, else from its reported poses, as the time
+        series they are (:meth:`~ivc.correct.PoseCorrector.track`: a continuing track keeps its branch)."""
         o = self.options
         if step.signal is not None:
-            return Corrector(self.table, hemisphere, o.interpolation, o.max_residual, **(precision or {})).batch(
-                step.signal, step.valid_mask)
-        if precision:
-            raise OptionsError("precision=True and max_precision=M predict a pose's precision from its signal's "
-                               "noise: the input holds reported poses only")
-        return PoseCorrector(self.table, hemisphere, o.interpolation, o.solver).batch(
-            step.position, step.quaternion, step.valid_mask)
+            corrector = Corrector(self.table, hemisphere, o.interpolation, o.max_residual, **self.precision)
+            self._gate(corrector.gate)
+            return corrector.batch(step.signal, step.valid_mask)
+        poses = PoseCorrector(self.table, hemisphere, o.interpolation, o.solver, **self.precision)
+        self._gate(poses.gate)
+        return poses.track(step.position, step.quaternion, step.valid_mask)
+
+    def _gate(self, gate) -> None:
+        """Say once how the precision is gated (the default limit, another, none, or why not predicted)."""
+        if not self._gate_said:
+            self._gate_said = True
+            self.say(NOTE if gate.note else INFO, gate.describe())
 
     def finish(self, name: str, step: Step, out: Correction, result: CorrectResult) -> None:
         """Report a step's summary and advice, and keep its correction in ``result``."""
@@ -317,9 +325,6 @@ class _Job:
         o = self.options
         if o.tracker_model is not None:
             raise OptionsError("tracker_model=FILE applies to signal matrices; a PLUS sequence holds poses only")
-        if self.precision:
-            raise OptionsError("precision=True and max_precision=M need signal matrices; a PLUS sequence holds "
-                               "poses only")
         as_csv = plus_output_is_csv(input_path, output_path, "corrected")
         sequence = read_plus(input_path)
         step = sequence.step
@@ -331,9 +336,11 @@ class _Job:
             fixed = self.predicted(fixed, out)
         with session_io.atomic_path(output_path) as tmp:
             if as_csv:
-                write_csv(fixed, tmp, {"flags": out.flags, "residual": out.residual}, length_unit="mm")
+                write_csv(fixed, tmp, {"flags": out.flags, "residual": out.residual, **precision_columns(out)},
+                          length_unit="mm")
             else:
-                write_plus(sequence, tmp, {PLUS_CORRECTED: (fixed.position, fixed.quaternion, out.flags)})
+                extra = {} if out.precision is None else {"PrecisionMm": 1000 * out.precision}
+                write_plus(sequence, tmp, {PLUS_CORRECTED: (fixed.position, fixed.quaternion, out.flags, extra)})
         result = CorrectResult(output_path, steps={input_path.name: fixed})
         self.finish(input_path.name, step, out, result)
         if sequence.other_transforms:
@@ -350,7 +357,7 @@ class _Job:
         hemisphere = o.hemisphere or self.table.hemisphere
         if o.tracker_model is not None:
             step = apply_tracker_file(Session(hemisphere, {"recording": step}), o.tracker_model).steps["recording"]
-        out = self.correct(step, hemisphere, self.precision)
+        out = self.correct(step, hemisphere)
         fixed = corrected_step(step, out, self.lut_file)
         fixed.signal = None
         fixed.valid = out.flags == 0  # valid: the corrected pose is trusted (flags say why not)
@@ -377,8 +384,7 @@ class _Job:
         data = apply_tracker_file(data, o.tracker_model, names)
         result = CorrectResult(output_path)
         for name in names:
-            self.finish(name, data.steps[name], self.correct(data.steps[name], data.hemisphere, self.precision),
-                        result)
+            self.finish(name, data.steps[name], self.correct(data.steps[name], data.hemisphere), result)
         fixed = {n: corrected_step(data.steps[n], result.corrections[n], self.lut_file) for n in names}
         if o.predictor:
             fixed = {n: self.predicted(fixed[n], result.corrections[n]) for n in names}
@@ -439,8 +445,8 @@ def live_corrector(lut_file: str | os.PathLike, url: str, options: CorrectOption
     table = lut.read(lut_file)
     hemisphere = options.hemisphere or table.hemisphere
     corrector = Corrector(table, hemisphere, options.interpolation, options.max_residual,
-                          **(options.precision_keywords() or {}))
-    poses = PoseCorrector(table, hemisphere, options.interpolation, options.solver)
+                          **options.precision_keywords())
+    poses = PoseCorrector(table, hemisphere, options.interpolation, options.solver, **options.precision_keywords())
     return LiveCorrector(corrector, parse_url(url), tuple(live.publish), length_unit=LENGTH_UNITS[live.length_unit],
                          predictor=options.predictor, horizon=options.horizon if options.predictor else 0.0,
                          rate_hz=live.rate_hz, tuning=tuning, pose_corrector=poses, sensors=list(live.sensors) or None)

@@ -17,6 +17,7 @@ from ivc.cli.flags import echo_report, usage_errors
 from ivc.cli.options import POSITIVE, solver_option
 from ivc.cli.predict import parse_horizon
 from ivc.cli.tracker import tracker_option
+from ivc.correct.precision import DEFAULT
 from ivc.correct.solver import MAX_RESIDUAL
 from ivc.predict import DEFAULT_FILTER, FILTERS
 from ivc.table.grid import INTERPOLATIONS
@@ -66,11 +67,13 @@ def _cold_note() -> None:
 @click.option("--rate-hz", type=POSITIVE, default=240.0, show_default=True,
               help="With --live --predict: the stream's sample rate.")
 @click.option("--duration", type=POSITIVE, help="With --live: stop after this many seconds (default: until Ctrl-C).")
-@click.option("--precision", "with_precision", is_flag=True,
-              help="Write each pose's predicted RMS position and orientation error (from the tracker's signal noise "
-                   "and the table's field; columns precision_mm, orientation_precision_mrad). Signal inputs only.")
-@click.option("--max-precision", type=POSITIVE, metavar="MM",
-              help="Flag (16) poses whose predicted RMS position error exceeds MM millimetres (implies --precision).")
+@click.option("--precision/--no-precision", "with_precision", default=True, show_default=True,
+              help="Predict each pose's RMS position and orientation error from the tracker's signal noise (columns "
+                   "precision_mm, orientation_precision_mrad), for signals and reported poses, wherever the noise "
+                   "is known (the table's fit measures it).")
+@click.option("--max-precision", "max_precision", metavar="MM|none",
+              help="Flag (16) poses predicted less precise than MM millimetres RMS (default: 1 mm wherever the "
+                   "tracker's noise is known; docs/trust.md says why); 'none' turns the gate off.")
 @click.option("--signal-noise", type=POSITIVE, help="The tracker's white noise per signal entry, in signal units "
               "(default: what the table's fit measured on the session's static steps).")
 @tracker_option
@@ -85,7 +88,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
 
     Every output sample carries flags: 0 = trusted; 1 outside the mapped volume, 2 not
     converged, 4 residual too high, 8 invalid input, 16 predicted precision over --max-precision
-    (bits combine). Signals are used when
+    (default 1 mm RMS, wherever the tracker's noise is known; bits combine). Signals are used when
     the input has them; otherwise the reported poses are corrected directly, by inverting the
     tracker's pose-domain distortion (docs/lut.md): then 4 means a reported pose the map does
     not produce, or not uniquely. With --predict, the corrected orientations of trusted
@@ -96,7 +99,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     """
     options = CorrectOptions(steps=steps, interpolation=interpolation, max_residual=max_residual, hemisphere=hemisphere,
                              solver=solver, precision=with_precision, signal_noise=signal_noise,
-                             max_precision=None if max_precision is None else max_precision / 1000,
+                             max_precision=precision_limit(max_precision),
                              tracker_model=tracker_file, predictor=predictor, tune=tune, tune_from=tune_from,
                              overwrite=force)
     with usage_errors("correct"):
@@ -120,6 +123,21 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     _cold_note()
 
 
+def precision_limit(text: str | None) -> float | str | None:
+    """``--max-precision``: millimetres to metres; ``none`` turns the gate off; not given: the library's default."""
+    if text is None:
+        return DEFAULT
+    if text.strip().lower() == "none":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise click.BadParameter(f"{text!r}: give a length in mm, or 'none'", param_hint="--max-precision") from None
+    if not (value > 0 and value < float("inf")):
+        raise click.BadParameter(f"{text!r}: give a positive length in mm, or 'none'", param_hint="--max-precision")
+    return value / 1000
+
+
 def _live(lut_file, url, options: CorrectOptions, live: LiveOptions, duration: float | None) -> None:
     import logging
 
@@ -128,7 +146,7 @@ def _live(lut_file, url, options: CorrectOptions, live: LiveOptions, duration: f
                "background while the stream is corrected by its interpreted form; `ivc warmup` does it ahead)",
                err=True)
     start = time.perf_counter()
-    # with --max-precision, signal samples whose predicted precision is over the limit are published flagged (16)
+    # samples predicted less precise than --max-precision are published flagged (16), with their precision
     corrector = live_corrector(lut_file, url, options, live, report=echo_report("correct"))
     state = "compiling in the background, interpreted until then" if corrector.compiling else "compiled"
     click.echo(f"ready in {time.perf_counter() - start:.1f} s ({state}): correcting {url} -> serving on "

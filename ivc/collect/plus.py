@@ -271,19 +271,22 @@ def _transform_text(m: np.ndarray) -> str:
 
 
 def write_plus(sequence: PlusSequence, path: str | os.PathLike,
-               added: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]]) -> None:
+               added: dict[str, tuple]) -> None:
     """Write ``sequence`` back to ``path`` (use :func:`ivc.session.atomic_path`) with transforms added.
 
     ``added``: {transform name (``<Tool>To<Frame>``): (positions (F, N) x 3 metres, quaternions (F, N, 4),
     flags (F, N) or None)} for the sequence's N sensors; a sample is ``OK`` when its pose is finite and
     its flags (if given) are 0, else ``INVALID`` (its matrix then the identity, as PLUS writes one).
     Each transform is written as ``<name>Transform`` with ``<name>TransformStatus`` and, with flags,
-    ``<name>Flags`` (ivc's flags: 0 trusted; see ``ivc correct --help``).
+    ``<name>Flags`` (ivc's flags: 0 trusted; see ``ivc correct --help``). A fourth element, {field suffix: values
+    (F, N)}, adds per-sample numbers as ``<name><suffix>`` (``PrecisionMm``: the predicted precision).
     """
     F = len(sequence.frames)
     new_fields: list[list[tuple[str, str]]] = [[] for _ in range(F)]
     names = []
-    for name_pattern, (position, quaternion, flags) in added.items():
+    for name_pattern, entry in added.items():
+        position, quaternion, flags = entry[:3]
+        extra = entry[3] if len(entry) > 3 else {}
         position, quaternion = np.asarray(position, float), np.asarray(quaternion, float)
         if position.shape[:2] != (F, len(sequence.tools)):
             raise PlusError(f"{name_pattern}: positions of shape {position.shape}, the sequence has {F} frames of "
@@ -298,11 +301,14 @@ def write_plus(sequence: PlusSequence, path: str | os.PathLike,
         for n, tool in enumerate(sequence.tools):
             name = name_pattern.format(tool=tool, tracker=sequence.tracker)
             names += [f"{name}Transform", f"{name}TransformStatus"] + ([f"{name}Flags"] if flags is not None else [])
+            names += [f"{name}{suffix}" for suffix in extra]
             for k in range(F):
                 new_fields[k] += [(f"{name}Transform", _transform_text(m[k, n])),
                                   (f"{name}TransformStatus", "OK" if ok[k, n] else "INVALID")]
                 if flags is not None:
                     new_fields[k].append((f"{name}Flags", str(int(flags[k, n]))))
+                for suffix, values in extra.items():
+                    new_fields[k].append((f"{name}{suffix}", f"{float(values[k, n]):.6g}"))
     existing = {key for frame in sequence.frames for key, _ in frame}
     clash = [n for n in names if n in existing]
     if clash:

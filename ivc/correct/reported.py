@@ -13,6 +13,10 @@ signal path, with these meanings:
                    (another room, a moved source, another hemisphere), or two distinct mapped
                    true positions produce it (see below)
 ``INVALID_INPUT``  the reported pose is not finite, or the sample was marked invalid
+``LOW_PRECISION``  the pose's predicted precision is worse than the limit (:mod:`ivc.correct.precision`): the
+                   tracker's noise on the reported pose, carried through the inverse map
+                   (:func:`ivc.pose.precision.reported_pose_covariance`), which grows without bound where
+                   the map folds
 
 Where the inversion starts: at the reported position itself (a stream's sensor: moved by its
 previous correction). Next to metal the map can send two distant true regions to the same
@@ -35,9 +39,11 @@ from scipy.spatial import cKDTree
 
 from ivc import compiled, rotations
 from ivc.correct import reported_kernels as _pose_kernels
+from ivc.correct.precision import DEFAULT, PrecisionGate
 from ivc.correct.solver import HIGH_RESIDUAL, INVALID_INPUT, Correction
 from ivc.dipole.pose import hemisphere_vector
 from ivc.errors import InputError
+from ivc.pose.precision import reported_noise, reported_pose_covariance, traces
 from ivc.pose.reported import invert_distortion
 from ivc.pose.tracker_solver import check_solver, distortion
 from ivc.table.grid import GridField
@@ -50,8 +56,18 @@ MAX_RESIDUAL_M = 1e-6
 MAX_ITERATIONS = 40
 #: two solutions farther apart than this (m) make a reported pose ambiguous
 AMBIGUITY = 1e-3
+#: a tracked sensor whose correction offset r − v moves more than this (m) between two of its samples is not
+#: continuing its track (the map's other branch, or a gap): that sample is tested as if it started a track
+TRACK_JUMP = 0.01
 #: probes per table cell edge
 SUBDIVISION = 2
+#: another mapped solution counts when it reproduces the reported position to this many times the reported
+#: position's predicted RMS noise (a 3-D Gaussian is that far off with probability about 2e-10)
+RIVAL_NOISE = 4.0
+#: rival starts tried per sample (the probes nearest in image)
+RIVALS = 4
+#: the regions rival probes are picked from: blocks of this many probe spacings
+REGION = 3
 
 
 class SeedMap:
@@ -104,6 +120,57 @@ class SeedMap:
             first = np.r_[True, i[1:] != i[:-1]]  # per probe, its partner with the nearest image
             self.partner[i[first]] = j[first]
         self.reach = 4.0 * self.spacing * max(float(np.max(stretch)), 1.0)
+        # every point of a probe's cell maps within ``cell_reach`` of the probe's image
+        self.cell_reach = stretch * self.spacing * np.sqrt(3.0) / 2
+        self.max_cell_reach = float(np.max(self.cell_reach))
+        # the probes by cell reach, in bins a factor 2 apart, each with its own tree: a query asks each bin
+        # for its own reach, not every probe for the largest
+        level = np.floor(np.log2(self.cell_reach / np.min(self.cell_reach))).astype(int)
+        self._bins = []
+        for b in np.unique(level):
+            members = np.flatnonzero(level == b)
+            self._bins.append((members, float(np.max(self.cell_reach[members])), cKDTree(self.images[members])))
+
+    def rivals(self, v: np.ndarray, r: np.ndarray, tolerance: np.ndarray, limit: int = RIVALS
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Probes from which to look for another solution of ``φ(x) = v``: for reported positions v (n, 3) m
+        solved at r (n, 3) m, the probes farther than two probe spacings from r whose cell can map within
+        ``tolerance`` (n,) m of v (``|φ(p) − v| ≤ tolerance + cell_reach``), one per region (blocks of three
+        probe spacings; the nearest in image), at most ``limit`` regions per sample, nearest in image first.
+        Returns (sample rows, probe indices)."""
+        all_rows, all_probes = [], []
+        for members, reach, tree in self._bins:
+            found = tree.query_ball_point(v, tolerance + reach)
+            counts = np.fromiter((len(f) for f in found), dtype=np.int64, count=len(found))
+            if counts.sum():
+                all_rows.append(np.repeat(np.arange(len(v)), counts))
+                all_probes.append(members[np.concatenate([np.asarray(f, dtype=np.int64) for f in found])])
+        if not all_rows:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        rows, probes = np.concatenate(all_rows), np.concatenate(all_probes)
+        distance = np.linalg.norm(self.images[probes] - v[rows], axis=1)
+        keep = (distance - self.cell_reach[probes] <= tolerance[rows]) & (
+            np.linalg.norm(self.probes[probes] - r[rows], axis=1) > 2 * self.spacing)
+        rows, probes, distance = rows[keep], probes[keep], distance[keep]
+        # one probe per region (blocks of three probe spacings), the nearest in image; then the nearest regions
+        block = np.floor(self.probes[probes] / (REGION * self.spacing)).astype(np.int64)
+        key = (block[:, 0] * 1_000_003 + block[:, 1]) * 1_000_003 + block[:, 2]
+        order = np.lexsort((distance, key, rows))
+        rows, probes, key, distance = rows[order], probes[order], key[order], distance[order]
+        first = np.r_[True, (rows[1:] != rows[:-1]) | (key[1:] != key[:-1])] if len(rows) else np.zeros(0, bool)
+        rows, probes, distance = rows[first], probes[first], distance[first]
+        order = np.lexsort((distance, rows))
+        rows, probes = rows[order], probes[order]
+        start = np.r_[0, np.flatnonzero(rows[1:] != rows[:-1]) + 1] if len(rows) else np.zeros(0, np.int64)
+        rank = np.arange(len(rows)) - np.repeat(start, np.diff(np.r_[start, len(rows)]))
+        take = rank < limit
+        return rows[take], probes[take]
+
+    def start_from(self, probes: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The linear start ``p + (∂φ/∂r)⁻¹ (v − φ(p))`` (n, 3) and its inverse Jacobian (n, 3, 3) from probes."""
+        H = self.inverse[probes]
+        return (np.ascontiguousarray(self.probes[probes] + np.einsum("nij,nj->ni", H, v - self.images[probes])),
+                np.ascontiguousarray(H))
 
     @property
     def ambiguous_fraction(self) -> float:
@@ -147,11 +214,16 @@ class PoseCorrector:
     ``closed-form``). ``hemisphere``: default the table's. ``max_residual``: the HIGH_RESIDUAL
     threshold in metres. ``check_ambiguity``: also invert each sample (not a stream's continuing
     track) from its nearest probe and that probe's partner, and flag distinct mapped solutions.
+    ``precision``, ``max_precision`` (m), ``signal_noise``: the predicted precision and its gate, as
+    :class:`~ivc.correct.Corrector`'s (the noise: what the table's fit measured on the reported poses of the
+    static steps, or on their signals).
     """
 
     def __init__(self, table: LookupTable | GridField, hemisphere: str | None = None, interpolation: str = "cubic",
                  solver: str | None = None, max_residual: float = MAX_RESIDUAL_M,
-                 max_iterations: int = MAX_ITERATIONS, tolerance: float = TOLERANCE, check_ambiguity: bool = True):
+                 max_iterations: int = MAX_ITERATIONS, tolerance: float = TOLERANCE, check_ambiguity: bool = True,
+                 precision: bool = True, max_precision: float | str | None = DEFAULT,
+                 signal_noise: float | None = None):
         self.field = table.field(interpolation) if isinstance(table, LookupTable) else table
         if solver is None:
             solver = table_solver(table) if isinstance(table, LookupTable) else "closed-form"
@@ -170,6 +242,9 @@ class PoseCorrector:
         self._tracked = np.zeros(16, dtype=bool)
         self._seeds: SeedMap | None = None
         self.check_ambiguity = bool(check_ambiguity)
+        self.gate = PrecisionGate.resolve(table, precision, max_precision, signal_noise)
+        #: which samples of the last batch (or frame) were flagged as ambiguous (their map has two branches there)
+        self.last_ambiguous = np.zeros(0, dtype=bool)
 
     def _secondary(self, r: np.ndarray) -> np.ndarray:
         return self.field.evaluate(r)[0]
@@ -212,19 +287,9 @@ class PoseCorrector:
         ambiguous = np.zeros(n, dtype=bool)
         check = np.flatnonzero(finite & ~tracked) if self.check_ambiguity else np.zeros(0, int)
         if len(check):  # a stream's continuing track needs no other start: its history tells which branch
-            p_start, p_H, q_start, q_H = self.seeds.starts(v[check])
-            other = [(check, p_start, p_H)]
-            has = np.all(np.isfinite(q_start), axis=1)
-            if has.any():
-                other.append((check[has], q_start[has], q_H[has]))
-            for idx, s0, H0 in other:
-                r2, C2, miss2, conv2, it2, mapped2 = self._invert(v[idx], s0, H0, serial)
-                good1 = converged[idx] & mapped[idx]
-                good2 = conv2 & mapped2
-                # a second solution elsewhere makes the pose ambiguous; where the first start failed, another
-                # start's solution is not taken either (measured: it is most often the wrong branch)
-                ambiguous[idx] |= good1 & good2 & (np.linalg.norm(r[idx] - r2, axis=1) > AMBIGUITY)
-                iterations[idx] += it2
+            ambiguous[check], extra = self._ambiguous(v[check], Q[check], r[check], converged[check] & mapped[check],
+                                                      serial)
+            iterations[check] += extra
         q, flags = np.empty((n, 4)), np.empty(n, dtype=np.uint8)
         contiguous = np.ascontiguousarray
         compose = compiled.choose(_pose_kernels.compose_kernel, n)
@@ -232,9 +297,66 @@ class PoseCorrector:
                 contiguous(mapped, dtype=bool), contiguous(converged, dtype=bool),
                 contiguous(miss, dtype=float), self.max_residual, q, flags)
         flags[ambiguous] |= HIGH_RESIDUAL
+        self.last_ambiguous = ambiguous
         flags[~finite] = INVALID_INPUT
         r[~finite], q[~finite], miss[~finite], iterations[~finite] = np.nan, np.nan, np.nan, 0
-        return Correction(r, q, flags, miss, iterations)
+        if not self.gate.predicts:
+            return Correction(r, q, flags, miss, iterations)
+        precision, orientation_precision = self.predict_precision(v, Q, r, serial)
+        self.gate.apply(precision, flags, finite)
+        return Correction(r, q, flags, miss, iterations, precision, orientation_precision)
+
+    def predict_precision(self, v: np.ndarray, Q: np.ndarray, r: np.ndarray, serial: bool = False
+                          ) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted RMS position (n,) m and orientation (n,) rad errors of the poses corrected from reported
+        positions v (n, 3) m and rotations Q (n, 3, 3) to positions r (n, 3) m
+        (:func:`ivc.pose.precision.reported_pose_covariance`, compiled for the closed-form solver)."""
+        n = len(v)
+        usable = np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(v), axis=1) & np.all(
+            np.isfinite(Q.reshape(n, 9)), axis=1)
+        v = np.ascontiguousarray(np.where(usable[:, None], v, 1.0))
+        Q = np.ascontiguousarray(np.where(usable[:, None, None], Q, np.eye(3)))
+        r_in = np.ascontiguousarray(np.where(usable[:, None], r, np.nan))
+        if self.solver == "closed-form":
+            out_r, out_a = np.empty(n), np.empty(n)
+            kernel = compiled.choose(_pose_kernels.precision_serial if serial else _pose_kernels.precision_kernel, n)
+            kernel(v, Q, r_in, self._h, self.field.kernel_grid, float(self.gate.sigma), out_r, out_a)
+            return out_r, out_a
+        g, dg, _ = self.field.evaluate(np.where(usable[:, None], r, 1.0))
+        _, _, d_phi, d_omega, _ = distortion(np.where(usable[:, None], r, 1.0), g.reshape(n, 3, 3),
+                                             dg.reshape(n, 3, 3, 3), self.solver, self.hemisphere, jacobian=True)
+        out_r, out_a = traces(reported_pose_covariance(v, Q, d_phi, d_omega, float(self.gate.sigma)))
+        out_r[~usable], out_a[~usable] = np.nan, np.nan
+        return out_r, out_a
+
+    def _ambiguous(self, v, Q, r, solved, serial) -> tuple[np.ndarray, np.ndarray]:
+        """Whether each reported position v (n, 3) m, solved at r (n, 3) m where ``solved``, has another mapped
+        solution, and the iterations spent looking. Another solution is one more than :data:`AMBIGUITY` from r
+        that reproduces v to a tolerance: :data:`RIVAL_NOISE` times the reported position's predicted RMS noise
+        where the noise is known (a region that produces v within the noise is as likely the truth), else
+        ``max_residual``. It is looked for from the nearest probe (:meth:`SeedMap.starts`: its start and its
+        partner's) and from :data:`RIVALS` probes elsewhere whose cells can map within the tolerance
+        (:meth:`SeedMap.rivals`)."""
+        n = len(v)
+        tolerance = np.full(n, self.max_residual)
+        if self.gate.predicts:
+            noise = reported_noise(v, Q, float(self.gate.sigma))
+            tolerance = np.maximum(tolerance, np.where(np.isfinite(noise), RIVAL_NOISE * noise, np.inf))
+        p_start, p_H, q_start, q_H = self.seeds.starts(v)
+        has = np.all(np.isfinite(q_start), axis=1)
+        rows, probes = self.seeds.rivals(v, r, np.minimum(tolerance, self.seeds.reach))
+        r_start, r_H = self.seeds.start_from(probes, v[rows])
+        idx = np.concatenate([np.arange(n), np.flatnonzero(has), rows])
+        start = np.concatenate([p_start, q_start[has], r_start])
+        H = np.concatenate([p_H, q_H[has], r_H])
+        r2, _, miss2, _, it2, mapped2 = self._invert(np.ascontiguousarray(v[idx]), np.ascontiguousarray(start),
+                                                     np.ascontiguousarray(H), serial)
+        other = mapped2 & (miss2 <= tolerance[idx]) & (np.linalg.norm(r2 - r[idx], axis=1) > AMBIGUITY)
+        ambiguous = np.zeros(n, dtype=bool)
+        ambiguous[idx[other]] = True
+        # where the first start failed, another start's solution is not taken either (measured: it is most
+        # often the wrong branch), nor is the sample called ambiguous: it is flagged already
+        return ambiguous & solved, np.bincount(idx, weights=it2, minlength=n).astype(np.int64)
 
     def invert_from_probes(self, position: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Invert ``φ`` at reported positions (n, 3) m from each one's nearest probe of :attr:`seeds` rather than
@@ -261,8 +383,41 @@ class PoseCorrector:
             bad = ~np.asarray(valid, bool).reshape(-1)
             v = np.where(bad[:, None], np.nan, v)
         out = self._run(v, Q, np.full((len(v), 3), np.nan), serial=len(v) < 64)
+        shaped = (None if a is None else a.reshape(lead) for a in (out.precision, out.orientation_precision))
         return Correction(out.position.reshape(*lead, 3), out.quaternion.reshape(*lead, 4), out.flags.reshape(lead),
-                          out.residual.reshape(lead), out.iterations.reshape(lead))
+                          out.residual.reshape(lead), out.iterations.reshape(lead), *shaped)
+
+    def track(self, position: np.ndarray, quaternion: np.ndarray, valid: np.ndarray | None = None) -> Correction:
+        """Correct a recorded time series of reported poses, positions (F, N, 3) m and quaternions (F, N, 4), frame
+        by frame per sensor as a stream would be (:meth:`update`'s branch logic): every sample as :meth:`batch`
+        does, then each sample flagged only as ambiguous whose sensor's previous frame is trusted is corrected again
+        from that frame's correction offset; kept when its offset moved at most :data:`TRACK_JUMP`. A track that
+        starts in an ambiguous region stays flagged until it leaves it. No sensor's warm start is touched."""
+        position, quaternion = np.asarray(position, float), np.asarray(quaternion, float)
+        if position.ndim != 3 or position.shape[-1] != 3 or quaternion.shape != position.shape[:-1] + (4,):
+            raise InputError(f"a track needs positions (F, N, 3) and quaternions (F, N, 4), got {position.shape} "
+                             f"and {quaternion.shape}")
+        out = self.batch(position, quaternion, valid)
+        if not self.check_ambiguity:
+            return out
+        ambiguous = self.last_ambiguous.reshape(position.shape[:2]) & (out.flags == HIGH_RESIDUAL)
+        frames = np.flatnonzero(ambiguous[1:].any(axis=1)) + 1
+        for f in frames:  # in time order: a sample resolved here continues the track for the next frame
+            k = np.flatnonzero(ambiguous[f] & (out.flags[f - 1] == 0))
+            if not len(k):
+                continue
+            v = position[f, k]
+            previous = out.position[f - 1, k] - position[f - 1, k]
+            with np.errstate(invalid="ignore"):
+                Q = rotations.to_matrix(quaternion[f, k])
+            again = self._run(v, Q, previous, serial=True)
+            keep = (again.flags == 0) & (np.linalg.norm(again.position - v - previous, axis=1) <= TRACK_JUMP)
+            for key in ("position", "quaternion", "flags", "residual", "iterations", "precision",
+                        "orientation_precision"):
+                target = getattr(out, key)
+                if target is not None:
+                    target[f, k[keep]] = getattr(again, key)[keep]
+        return out
 
     def update(self, position: np.ndarray, rotation: np.ndarray, sensors: list | tuple | None = None) -> Correction:
         """Correct the latest frame of a stream: positions (N, 3) m and rotation matrices (N, 3, 3), one per
@@ -278,6 +433,28 @@ class PoseCorrector:
         if len(Q) != len(v):
             raise InputError(f"a frame needs one rotation per position, got {len(v)} positions and {len(Q)} rotations")
         slots = self._slots(sensors, len(v))
+        if self.check_ambiguity:
+            before = np.where(self._tracked[slots][:, None], self._offset[slots], np.nan)
+            out = self._update(v, Q, slots)
+            # a continuing track whose correction jumps is not continuing: that sample gets the full test
+            jumped = np.linalg.norm(out.position - v - before, axis=1) > TRACK_JUMP
+            if jumped.any():
+                again = self._run(v[jumped], Q[jumped], np.full((int(jumped.sum()), 3), np.nan), serial=True)
+                for key in ("position", "quaternion", "flags", "residual", "iterations", "precision",
+                            "orientation_precision"):
+                    target = getattr(out, key)
+                    if target is not None:
+                        target[jumped] = getattr(again, key)
+                for n in np.flatnonzero(jumped):
+                    slot = slots[n]
+                    self._tracked[slot] = out.flags[n] == 0
+                    if out.flags[n] == 0:
+                        self._offset[slot] = out.position[n] - v[n]
+            return out
+        return self._update(v, Q, slots)
+
+    def _update(self, v: np.ndarray, Q: np.ndarray, slots: np.ndarray) -> Correction:
+        """:meth:`update` of a frame whose sensors are ``slots``."""
         if self.solver == "closed-form" and (not self.check_ambiguity or self._tracked[slots].all()):
             n = len(v)
             r, q, flags = np.empty((n, 3)), np.empty((n, 4)), np.empty(n, dtype=np.uint8)
@@ -286,7 +463,12 @@ class PoseCorrector:
             stream = compiled.choose(_pose_kernels.stream_kernel, n)
             stream(v, Q, slots, self._offset, self._tracked, self._h, f.kernel_grid, self.max_iterations,
                    self.tolerance, self.max_residual, r, q, flags, miss, iterations)
-            return Correction(r, q, flags, miss, iterations)
+            if not self.gate.predicts:
+                return Correction(r, q, flags, miss, iterations)
+            precision, orientation_precision = self.predict_precision(v, Q, r, serial=True)
+            self.gate.apply(precision, flags, (flags & INVALID_INPUT) == 0)
+            self._tracked[slots[flags != 0]] = False  # a pose the gate flags continues no track
+            return Correction(r, q, flags, miss, iterations, precision, orientation_precision)
         tracked = self._tracked[slots]
         offsets = np.where(tracked[:, None], self._offset[slots], np.nan)
         out = self._run(v, Q, offsets, serial=True)

@@ -21,8 +21,9 @@ import numba
 import numpy as np
 
 from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
-from ivc.dipole.kernels import closed_form_one, closed_form_position, field_matrix
+from ivc.dipole.kernels import closed_form_one, closed_form_position, dipole_jacobian, field_matrix
 from ivc.linalg import quaternion_of
+from ivc.pose.precision_kernels import crb_covariance_one
 from ivc.table.kernels import grid_value
 
 # The helpers below are plain compiled functions, not numba-inlined: inlined three and four times over into
@@ -221,3 +222,136 @@ def stream_kernel(v, Q, slots, offset, tracked, h, grid, max_iterations, toleran
         if flags[n] == 0:
             for a in range(3):
                 offset[slot, a] = r[n, a] - v[n, a]
+
+
+#: the step (m) of the central differences of φ and C in :func:`precision_one`
+DIFFERENCE_STEP = 1e-5
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _inverse3(D, out):
+    """out = D⁻¹ of a (3, 3) matrix by its adjugate; False where D is singular to 1e-12 of its scale."""
+    c00 = D[1, 1] * D[2, 2] - D[1, 2] * D[2, 1]
+    c01 = D[1, 2] * D[2, 0] - D[1, 0] * D[2, 2]
+    c02 = D[1, 0] * D[2, 1] - D[1, 1] * D[2, 0]
+    det = D[0, 0] * c00 + D[0, 1] * c01 + D[0, 2] * c02
+    scale = 0.0
+    for a in range(3):
+        for b in range(3):
+            scale += D[a, b] * D[a, b]
+    if not (abs(det) > 1e-12 * scale * np.sqrt(scale)) or not np.isfinite(det):
+        return False
+    out[0, 0], out[1, 0], out[2, 0] = c00 / det, c01 / det, c02 / det
+    out[0, 1] = (D[0, 2] * D[2, 1] - D[0, 1] * D[2, 2]) / det
+    out[1, 1] = (D[0, 0] * D[2, 2] - D[0, 2] * D[2, 0]) / det
+    out[2, 1] = (D[0, 1] * D[2, 0] - D[0, 0] * D[2, 1]) / det
+    out[0, 2] = (D[0, 1] * D[1, 2] - D[0, 2] * D[1, 1]) / det
+    out[1, 2] = (D[0, 2] * D[1, 0] - D[0, 0] * D[1, 2]) / det
+    out[2, 2] = (D[0, 0] * D[1, 1] - D[0, 1] * D[1, 0]) / det
+    return True
+
+
+@numba.njit(cache=True, error_model="numpy")
+def precision_one(v, Q, r, h, grid, sigma):
+    """Predicted RMS position (m) and orientation (rad) error of the pose corrected from the reported pose
+    ``(v (3,), Q (3, 3))`` to the position ``r`` (3,), for white signal noise ``sigma``: the reported pose's
+    Cramér-Rao covariance (free space, at the reported pose; the closed form reaches it there) carried through
+    the inverse map, ``δr = (∂φ/∂r)⁻¹ δv`` and ``δt = δq − Qᵀ (∂ω/∂r) δr`` (rotation increments in the sensor
+    frame, ∂ω/∂r the left increment of C per metre), both derivatives by central differences. NaN where r is
+    not finite; inf where the map is singular there (the reported pose does not fix the true one)."""
+    for a in range(3):
+        if not (np.isfinite(r[a]) and np.isfinite(v[a])):
+            return np.nan, np.nan
+    nc = grid[0].shape[3]
+    g = np.empty(nc)
+    wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
+    F, wa, wb, B, Fd, K = (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+                           np.empty((3, 3)))
+    ev = np.empty(3)
+    phi_p, phi_m, x = np.empty(3), np.empty(3), np.empty(3)
+    C_p, C_m = np.empty((3, 3)), np.empty((3, 3))
+    D = np.empty((3, 3))  # ∂φ/∂r
+    W = np.empty((3, 3))  # ∂ω/∂r
+    for k in range(3):
+        for a in range(3):
+            x[a] = r[a]
+        x[k] = r[k] + DIFFERENCE_STEP
+        usable, _ = _field_at(x, grid, g, wx, wy, wz, dx, dy, dz, F)
+        closed_form_one(F, h, phi_p, C_p, wa, wb, ev, B, Fd, K)
+        x[k] = r[k] - DIFFERENCE_STEP
+        usable_m, _ = _field_at(x, grid, g, wx, wy, wz, dx, dy, dz, F)
+        closed_form_one(F, h, phi_m, C_m, wa, wb, ev, B, Fd, K)
+        if not (usable and usable_m):
+            return np.inf, np.inf
+        for a in range(3):
+            D[a, k] = (phi_p[a] - phi_m[a]) / (2 * DIFFERENCE_STEP)
+        # C₊ C₋ᵀ ≈ exp([2 δ w]×): w from its antisymmetric part
+        for i in range(3):
+            for j in range(3):
+                s = 0.0
+                for b in range(3):
+                    s += C_p[i, b] * C_m[j, b]
+                B[i, j] = s
+        W[0, k] = (B[2, 1] - B[1, 2]) / (4 * DIFFERENCE_STEP)
+        W[1, k] = (B[0, 2] - B[2, 0]) / (4 * DIFFERENCE_STEP)
+        W[2, k] = (B[1, 0] - B[0, 1]) / (4 * DIFFERENCE_STEP)
+    for a in range(3):
+        for b in range(3):
+            if not np.isfinite(D[a, b]):
+                return np.inf, np.inf
+    H = np.empty((3, 3))
+    if not _inverse3(D, H):
+        return np.inf, np.inf
+    # the reported pose's covariance (unit noise), free space at (v, Q)
+    M, dM, J, S_v = np.empty((3, 3)), np.empty((3, 3, 3)), np.empty((9, 6)), np.empty((6, 6))
+    field_matrix(v[0], v[1], v[2], M)
+    dipole_jacobian(v, dM)
+    if not crb_covariance_one(Q, M, dM, J, S_v):
+        return np.inf, np.inf
+    # A = [[H, 0], [−Qᵀ W H, I]]
+    A = np.zeros((6, 6))
+    QtW = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            s = 0.0
+            for b in range(3):
+                s += Q[b, i] * W[b, j]
+            QtW[i, j] = s
+    for i in range(3):
+        for j in range(3):
+            A[i, j] = H[i, j]
+            s = 0.0
+            for b in range(3):
+                s += QtW[i, b] * H[b, j]
+            A[3 + i, j] = -s
+        A[3 + i, 3 + i] = 1.0
+    # only the diagonal of A S_v Aᵀ is needed
+    p2, o2 = 0.0, 0.0
+    for i in range(6):
+        d = 0.0
+        for a in range(6):
+            if A[i, a] == 0.0:
+                continue
+            row = 0.0
+            for b in range(6):
+                row += S_v[a, b] * A[i, b]
+            d += A[i, a] * row
+        if i < 3:
+            p2 += d
+        else:
+            o2 += d
+    return sigma * np.sqrt(p2), sigma * np.sqrt(o2)
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def precision_kernel(v, Q, r, h, grid, sigma, position_out, orientation_out):  # pragma: no cover - compiled
+    """:func:`precision_one` for every sample n: reported poses v (n, 3), Q (n, 3, 3), corrected positions r (n, 3)."""
+    for n in numba.prange(v.shape[0]):
+        position_out[n], orientation_out[n] = precision_one(v[n], Q[n], r[n], h, grid, sigma)
+
+
+@numba.njit(cache=True, nogil=True)
+def precision_serial(v, Q, r, h, grid, sigma, position_out, orientation_out):  # pragma: no cover - compiled
+    """:func:`precision_kernel` without threads: a live frame's few samples."""
+    for n in range(v.shape[0]):
+        position_out[n], orientation_out[n] = precision_one(v[n], Q[n], r[n], h, grid, sigma)

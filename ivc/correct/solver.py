@@ -6,7 +6,8 @@ Every result carries per-sample flags; a pose is never returned without them:
 ``NOT_CONVERGED``  the solve did not converge
 ``HIGH_RESIDUAL``  the model explains the signal poorly: rms(M − T S)/rms(S) above the threshold
 ``INVALID_INPUT``  the signal (or reported pose) is not finite or is all zeros, or the sample was marked invalid
-``LOW_PRECISION``  asked for (``max_precision``): the pose's predicted precision is worse than the limit
+``LOW_PRECISION``  the pose's predicted precision is worse than the limit (default 1 mm RMS where the
+                   tracker's noise is known: :mod:`ivc.correct.precision`)
 
 Flags combine bitwise; 0 means the pose is trusted.
 """
@@ -17,13 +18,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ivc import compiled, dipole
+from ivc import compiled, dipole, rotations
 from ivc.correct import kernels as _kernels
 from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, LOW_PRECISION, NOT_CONVERGED, OUTSIDE
+from ivc.correct.precision import DEFAULT, PrecisionGate
 from ivc.dipole.pose import hemisphere_vector
 from ivc.errors import InputError
-from ivc.pose.precision import SMALL as PRECISION_SMALL
-from ivc.pose.precision import pose_precision
+from ivc.pose import precision_kernels
 from ivc.table.grid import GridField
 from ivc.table.lookup import LookupTable
 
@@ -37,24 +38,6 @@ STEP_TOLERANCE = 1e-7  # m: a tenth of a micrometre
 #: batches of at least this many frames start cold frames from the table's correction map
 #: (``ivc.correct.seed_map``, built once per corrector: about as long as correcting a few thousand frames)
 SEED_MAP_FRAMES = 4096
-
-
-def _positive(name: str, value: float | None) -> float | None:
-    if value is None:
-        return None
-    if not (np.isfinite(value) and value > 0):
-        raise InputError(f"{name} must be a positive number, got {value}")
-    return float(value)
-
-
-def _table_noise(table: LookupTable | GridField) -> float:
-    """The signal noise a table's fit measured (``ivc.lut.signal_noise``), or a clear error."""
-    noise = table.signal_noise if isinstance(table, LookupTable) else None
-    if noise is None:
-        raise InputError("the table records no signal noise (fitted from reported poses, from a session without "
-                         "static steps of signals, or by an older ivc): give the tracker's noise per signal "
-                         "entry (signal_noise=NOISE) to predict precision")
-    return noise
 
 
 def describe(flags: int) -> str:
@@ -95,16 +78,18 @@ class Corrector:
     frames of batches of at least :data:`SEED_MAP_FRAMES` start from the table's correction map
     (``ivc.correct.seed_map``; False: always from the fixed point, as smaller batches do).
 
-    Predicted precision (docs/lut.md, "Predicted precision"): with ``precision`` True or a
-    ``max_precision`` (m), every pose carries its predicted RMS position and orientation error, the
-    Cramér-Rao bound of a single frame from the table's field and the tracker's white signal noise
-    ``signal_noise`` (signal units; default: the noise the table's fit measured on the session's static
-    steps), and poses whose predicted position error exceeds ``max_precision`` are flagged LOW_PRECISION.
+    Predicted precision (docs/trust.md): every pose carries its predicted RMS position and orientation
+    error, the Cramér-Rao bound of a single frame from the table's field and the tracker's white signal
+    noise ``signal_noise`` (signal units; default: the noise the table's fit measured on the session's
+    static steps), and poses predicted less precise than ``max_precision`` (m; default
+    :data:`ivc.correct.precision.MAX_PRECISION`; None: no gate) are flagged LOW_PRECISION. Where the noise is
+    unknown nothing is predicted and :attr:`gate` says so; ``precision=False`` predicts nothing.
     """
 
     def __init__(self, table: LookupTable | GridField, hemisphere: str | None = None, interpolation: str = "cubic",
                  max_residual: float = MAX_RESIDUAL, max_iterations: int = MAX_ITERATIONS, seed_map: bool = True,
-                 precision: bool = False, max_precision: float | None = None, signal_noise: float | None = None):
+                 precision: bool = True, max_precision: float | str | None = DEFAULT,
+                 signal_noise: float | None = None):
         self.field = table.field(interpolation) if isinstance(table, LookupTable) else table
         hemisphere = hemisphere or (table.hemisphere if isinstance(table, LookupTable) else "+x")
         self.hemisphere = hemisphere
@@ -114,29 +99,44 @@ class Corrector:
         self._previous: dict = {}
         self._seed_map = None
         self.use_seed_map = bool(seed_map)
-        self.max_precision = _positive("max_precision", max_precision)
-        self.signal_noise = None
-        if precision or self.max_precision is not None:
-            self.signal_noise = _positive("signal_noise", signal_noise) or _table_noise(table)
+        self.gate = PrecisionGate.resolve(table, precision, max_precision, signal_noise)
+
+    @property
+    def signal_noise(self) -> float | None:
+        """The white noise per signal entry the precision is predicted from (None: not predicted)."""
+        return self.gate.sigma
+
+    @property
+    def max_precision(self) -> float | None:
+        """The LOW_PRECISION limit (m; None: no gate)."""
+        return self.gate.limit
 
     def predict_precision(self, position: np.ndarray, quaternion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predicted RMS position error (N,) m and orientation error (N,) rad of single-frame poses at
         ``position`` (N, 3) m, ``quaternion`` (N, 4), from the table's field and :attr:`signal_noise`
         (``ivc.pose.precision``); NaN where the pose is not finite."""
         if self.signal_noise is None:
-            raise InputError("this corrector knows no signal noise: create it with precision=True (and "
-                             "signal_noise= when the table records none)")
-        position, quaternion = np.asarray(position, float), np.asarray(quaternion, float)
-        out_r, out_a = np.full(len(position), np.nan), np.full(len(position), np.nan)
-        finite = np.all(np.isfinite(position), axis=1) & np.all(np.isfinite(quaternion), axis=1)
-        if finite.any():
-            parallel = finite.sum() > PRECISION_SMALL
+            raise InputError(f"this corrector predicts no precision ({self.gate.note})")
+        position = np.ascontiguousarray(np.asarray(position, float).reshape(-1, 3))
+        quaternion = np.asarray(quaternion, float).reshape(-1, 4)
+        if len(position) != len(quaternion):
+            raise InputError(f"{len(position)} positions but {len(quaternion)} orientations")
+        with np.errstate(invalid="ignore"):
+            T = np.ascontiguousarray(rotations.to_matrix(quaternion))
+        return self._precision(position, T)
 
-            def secondary(r):
-                return self.field.value_and_jacobian(r, parallel)
-
-            out_r[finite], out_a[finite] = pose_precision(position[finite], quaternion[finite], self.signal_noise,
-                                                          secondary)
+    def _precision(self, r: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = len(r)
+        serial = n < 64
+        G, dG, _ = self.field.evaluate(np.where(np.isfinite(r), r, 1.0), parallel=not serial)
+        out_r, out_a = np.empty(n), np.empty(n)
+        bad = ~(np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(T.reshape(n, 9)), axis=1))
+        r = np.where(bad[:, None], np.nan, r)
+        kernel = compiled.choose(precision_kernels.precision_serial if serial else precision_kernels.precision_kernel,
+                                 n)
+        kernel(r, np.ascontiguousarray(np.where(bad[:, None, None], np.eye(3), T)),
+               np.ascontiguousarray(G.reshape(n, 3, 3)), np.ascontiguousarray(dG.reshape(n, 3, 3, 3)),
+               float(self.signal_noise), out_r, out_a)
         return out_r, out_a
 
     def seed_map(self) -> GridField:
@@ -170,9 +170,8 @@ class Corrector:
             r[~finite], q[~finite], residual[~finite] = np.nan, np.nan, np.nan
         if self.signal_noise is None:
             return Correction(r, q, flags, residual, iterations)
-        precision, orientation_precision = self.predict_precision(r, q)
-        if self.max_precision is not None:
-            flags[~(precision <= self.max_precision) & finite] |= LOW_PRECISION
+        precision, orientation_precision = self._precision(r, T)
+        self.gate.apply(precision, flags, finite)
         return Correction(r, q, flags, residual, iterations, precision, orientation_precision)
 
     def batch(self, S: np.ndarray, valid: np.ndarray | None = None, seeds: np.ndarray | None = None) -> Correction:

@@ -10,7 +10,9 @@ Single-threaded around a selector, so nothing waits on anything it does not have
   ``retry_s``; each sensor's warm start and predictor restart after a reconnect.
 * downstream (a server on ``publish``): per corrected sample a TRANSFORM named
   ``<device><suffix>`` with the input's timestamp and, in its v2 metadata, ``ivc_flags`` (0 =
-  trusted) and ``ivc_predicted``; per batch a TDATA ``ivc`` with every trusted sensor.
+  trusted; the bits of ``ivc correct``), ``ivc_predicted`` and, where the tracker's noise is known,
+  ``ivc_precision_mm`` and ``ivc_orientation_precision_mrad`` (predicted RMS errors); per batch a
+  TDATA ``ivc`` with every trusted sensor.
   A client that reads too slowly loses its oldest queued messages, never anyone else's time.
 
 Malformed bytes are skipped up to the next header whose body passes its CRC-64; messages of
@@ -354,10 +356,12 @@ class LiveCorrector:
             parts[flag] = (idx, self._correct([samples[i] for i in idx], [names[i] for i in idx]))
         n = len(samples)
         merged = Correction(np.empty((n, 3)), np.empty((n, 4)), np.empty(n, np.uint8), np.empty(n),
-                            np.empty(n, np.int64))
+                            np.empty(n, np.int64), np.full(n, np.nan), np.full(n, np.nan))
         for idx, out in parts.values():
-            for key in ("position", "quaternion", "flags", "residual", "iterations"):
-                getattr(merged, key)[idx] = getattr(out, key)
+            for key in ("position", "quaternion", "flags", "residual", "iterations", "precision",
+                        "orientation_precision"):
+                if getattr(out, key) is not None:
+                    getattr(merged, key)[idx] = getattr(out, key)
         return merged
 
     def _correct_round(self, samples) -> None:
@@ -383,6 +387,11 @@ class LiveCorrector:
         index = np.flatnonzero(sent)
         metadata = [{"ivc_flags": str(int(out.flags[n])), "ivc_predicted": "1" if predicted[n] else "0"}
                     for n in index]
+        if out.precision is not None:  # the predicted precision, where the tracker's noise is known
+            for meta, n in zip(metadata, index, strict=True):
+                if np.isfinite(out.precision[n]):
+                    meta["ivc_precision_mm"] = f"{1000 * out.precision[n]:.4g}"
+                    meta["ivc_orientation_precision_mrad"] = f"{1000 * out.orientation_precision[n]:.4g}"
         messages = encode_transforms([self._published_name(names[n]) for n in index], [stamps[n] for n in index],
                                      m[index], metadata)
         tools = {names[n]: m[n] for n in np.flatnonzero(ok & sent)}

@@ -20,12 +20,13 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ivc import dipole, rotations
+from ivc import compiled, dipole, rotations
 from ivc.dipole import numpy_kernels
 from ivc.errors import InputError
+from ivc.pose import precision_kernels
 from ivc.pose.solver import signal_residual
 
-__all__ = ["pose_covariance", "pose_precision"]
+__all__ = ["pose_covariance", "pose_precision", "reported_noise", "reported_pose_covariance", "traces"]
 
 #: at most this many poses are evaluated in NumPy (a live frame's sensors)
 SMALL = 64
@@ -70,6 +71,51 @@ def pose_precision(positions: np.ndarray, quaternions: np.ndarray, sigma: float,
                    secondary: SecondaryField | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The RMS position error (N,) m and RMS orientation error (N,) rad a single frame cannot beat:
     ``sqrt(tr C_rr)`` and ``sqrt(tr C_ωω)`` of :func:`pose_covariance` (same arguments)."""
-    covariance = pose_covariance(positions, quaternions, sigma, secondary)
+    return traces(pose_covariance(positions, quaternions, sigma, secondary))
+
+
+def reported_pose_covariance(position: np.ndarray, rotation: np.ndarray, d_phi: np.ndarray, d_omega: np.ndarray,
+                             sigma: float) -> np.ndarray:
+    """Covariance (N, 6, 6) of poses corrected from reported poses alone, for white signal noise ``sigma``.
+
+    The tracker reports ``(v, Q) = (φ(r), C(r) T)`` for a sensor at ``(r, T)``; ivc corrects ``r = φ⁻¹(v)``,
+    ``T = C(r)ᵀ Q``. The reported pose ``(v, Q)`` (``position`` (N, 3) m, ``rotation`` (N, 3, 3)) is taken to
+    scatter as a free-space solve does at it, :func:`pose_covariance`; the correction carries that through
+    ``δr = (∂φ/∂r)⁻¹ δv`` and ``δt = δq − Qᵀ (∂ω/∂r) δr`` (rotation increments in the sensor frame; ``d_phi``
+    = ∂φ/∂r (N, 3, 3) and ``d_omega`` = ∂ω/∂r (N, 3, 3), the left increment of C per metre, at the corrected
+    position: :func:`ivc.pose.tracker_solver.distortion` with ``jacobian=True``). A singular ∂φ/∂r (the
+    reported pose does not fix the true one) gives an infinite covariance."""
+    rotation = np.asarray(rotation, float).reshape(-1, 3, 3)
+    reported = pose_covariance(position, rotations.from_matrix(rotation), sigma)
+    n = len(rotation)
+    A = np.zeros((n, 6, 6))
+    covariance = np.full((n, 6, 6), np.inf)
+    usable = np.all(np.isfinite(d_phi.reshape(n, 9)), axis=1) & np.all(np.isfinite(d_omega.reshape(n, 9)), axis=1)
+    usable[usable] = np.linalg.cond(d_phi[usable]) < 1e12
+    H = np.linalg.inv(d_phi[usable])
+    A[usable, :3, :3] = H
+    A[usable, 3:, :3] = -np.swapaxes(rotation[usable], -1, -2) @ d_omega[usable] @ H
+    A[usable, 3:, 3:] = np.eye(3)
+    covariance[usable] = A[usable] @ reported[usable] @ np.swapaxes(A[usable], -1, -2)
+    return covariance
+
+
+def traces(covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """RMS position (m) and orientation (rad) errors of pose covariances (N, 6, 6): ``sqrt(tr C_rr)``,
+    ``sqrt(tr C_ωω)``."""
     return (np.sqrt(np.trace(covariance[:, :3, :3], axis1=1, axis2=2)),
             np.sqrt(np.trace(covariance[:, 3:, 3:], axis1=1, axis2=2)))
+
+
+def reported_noise(position: np.ndarray, rotation: np.ndarray, sigma: float) -> np.ndarray:
+    """The RMS noise (N,) m of reported positions ``position`` (N, 3) m with orientations ``rotation`` (N, 3, 3),
+    for white signal noise ``sigma``: the free-space Cramér-Rao bound at the reported pose (compiled;
+    :func:`pose_precision` without a secondary field is the NumPy form). NaN where the pose is not finite."""
+    position = np.ascontiguousarray(np.asarray(position, float).reshape(-1, 3))
+    rotation = np.ascontiguousarray(np.asarray(rotation, float).reshape(-1, 3, 3))
+    n = len(position)
+    zero = np.zeros((n, 3, 3))
+    out, _ = np.empty(n), np.empty(n)
+    kernel = compiled.choose(precision_kernels.precision_serial if n < SMALL else precision_kernels.precision_kernel, n)
+    kernel(position, rotation, zero, np.zeros((n, 3, 3, 3)), float(sigma), out, _)
+    return out

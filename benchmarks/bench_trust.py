@@ -1,0 +1,118 @@
+"""A trusted pose is an accurate pose (issue 37): the flag's promise on every built-in scene, both inputs.
+
+Per scene (default, mild, severe, cockpit; seed 0, the scene's whole protocol with 10,000 check poses),
+the session is fitted twice, from its signals and from its reported poses alone (signals removed), and
+the check poses are corrected by each table with the default trust test: the predicted precision
+gated at 1 mm RMS (``ivc.correct.precision``) and, for reported poses, the ambiguity test. Reported poses
+are corrected each on its own (batch) and as the recorded track they are (``PoseCorrector.track``).
+Errors are in the declared cube frame, among the trusted poses.
+
+Targets: >= 95 % trusted; no trusted pose more than 5 mm off; at most 0.05 % of trusted poses more than
+2 mm off; the median of actual / predicted error within 0.7-1.4; at most 0.1 % of trusted poses more
+than 5x their prediction. Baseline in the same run: the same table without the precision gate
+(``max_precision=None``), the correction the gate is added to.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from benchmarks.harness import Figure
+from ivc.correct import Corrector, PoseCorrector
+from ivc.correct.evaluate import check_errors
+from ivc.lut import FitOptions, fit_lut
+from ivc.session import Session
+from ivc.sim import Simulator, load_scene
+from ivc.truth import declared_frame_map
+
+SCENES = ("default", "mild", "severe", "cockpit")
+CHECK_POSES = 10_000
+
+
+def _sessions(name: str) -> tuple[Session, Session]:
+    """The scene's protocol with signals, and the same with its signals removed."""
+    simulator = Simulator(load_scene(name), seed=0)
+    signals = simulator.protocol({"check": CHECK_POSES})
+    poses = Session(signals.hemisphere, {k: replace(s, signal=None) for k, s in signals.steps.items()},
+                    signals.truth, signals.attrs)
+    return signals, poses
+
+
+def _errors(out, session: Session) -> np.ndarray:
+    truth = session.truth["check"]
+    D_R, D_t, _ = declared_frame_map(session)
+    return 1000 * np.linalg.norm(out.position - (truth.position @ D_R.T + D_t), axis=-1)
+
+
+def _figures(label: str, error: np.ndarray, ok: np.ndarray, predicted: np.ndarray | None, base_error: np.ndarray,
+             base_ok: np.ndarray) -> list[Figure]:
+    trusted = 100 * ok.mean()
+    worst = float(error[ok].max()) if ok.any() else float("nan")
+    over2 = 100 * float(np.mean(error[ok] > 2)) if ok.any() else float("nan")
+    base_over2 = 100 * float(np.mean(base_error[base_ok] > 2))
+    figures = [
+        Figure(f"{label}: trusted", trusted, "%", "no precision gate", 100 * base_ok.mean(), ">= 95 %",
+               passed=trusted >= 95),
+        Figure(f"{label}: max error, trusted", worst, "mm", "no precision gate", float(base_error[base_ok].max()),
+               "<= 5 mm", passed=worst <= 5, higher_is_better=False),
+        Figure(f"{label}: trusted > 2 mm off", over2, "%", "no precision gate", base_over2, "<= 0.05 %",
+               passed=over2 <= 0.05, higher_is_better=False),
+        Figure(f"{label}: median error", float(np.median(error[ok])), "mm", "no precision gate",
+               float(np.median(base_error[base_ok])), higher_is_better=False),
+    ]
+    if predicted is not None:
+        ratio = error[ok] / predicted[ok]
+        median = float(np.median(ratio))
+        beyond = 100 * float(np.mean(ratio > 5))
+        figures += [Figure(f"{label}: median actual / predicted", median, "", target="0.7-1.4",
+                           passed=0.7 <= median <= 1.4),
+                    Figure(f"{label}: trusted > 5x predicted", beyond, "%", target="<= 0.1 %", passed=beyond <= 0.1,
+                           higher_is_better=False)]
+    return figures
+
+
+def scene_figures(name: str) -> list[Figure]:
+    start = time.perf_counter()
+    signals, poses = _sessions(name)
+    simulated = time.perf_counter() - start
+    figures = []
+    for kind, session in (("signals", signals), ("reported poses", poses)):
+        start = time.perf_counter()
+        table = fit_lut(session, FitOptions())
+        fitted = time.perf_counter() - start
+        cls = Corrector if kind == "signals" else PoseCorrector
+        gated, open_ = cls(table), cls(table, max_precision=None)
+        e, base = check_errors(gated, session), check_errors(open_, session)
+        print(f"  {name}, {kind}: simulated in {simulated:.0f} s, fitted in {fitted:.0f} s; {gated.gate.describe()}",
+              flush=True)
+        figures += _figures(f"{name}, {kind}", e.ivc_position_mm, e.ok, e.precision_mm, base.ivc_position_mm, base.ok)
+        if kind == "reported poses":
+            check = session.steps["check"]
+            tracked = gated.track(check.position, check.quaternion, check.valid_mask)
+            error = _errors(tracked, session)
+            figures += _figures(f"{name}, reported poses as a track", error, tracked.flags == 0,
+                                1000 * tracked.precision if tracked.precision is not None else None,
+                                base.ivc_position_mm, base.ok)
+    return figures
+
+
+def run(scenes: tuple[str, ...] = SCENES) -> list[Figure]:
+    figures = []
+    for name in scenes:
+        figures += scene_figures(name)
+    return figures
+
+
+if __name__ == "__main__":  # python -m benchmarks.bench_trust [SCENE ...]
+    import sys
+
+    from benchmarks.harness import HEADER
+
+    print(HEADER)
+    chosen = run(tuple(sys.argv[1:]) or SCENES)
+    for figure in chosen:
+        print(figure.line())
+    sys.exit(1 if any(f.passed is False for f in chosen) else 0)

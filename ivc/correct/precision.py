@@ -1,0 +1,97 @@
+"""The precision part of the trust test, shared by the signal and the pose-only correction.
+
+Every corrected pose carries its predicted precision (RMS position error, m, and orientation error, rad,
+of that single frame, from the tracker's white signal noise; :mod:`ivc.pose.precision`) wherever ivc
+knows the noise: the table's fit measures it on the session's static steps (``ivc.lut.signal_noise``,
+from the signals, or from the reported poses of a pose-only session), or the user gives it.
+
+A pose predicted less precise than the limit is flagged LOW_PRECISION. The default limit,
+:data:`MAX_PRECISION` = 1 mm RMS, is what makes the trusted flag a bound: a pose whose single-frame
+error is Gaussian with RMS ``p ≤ 1 mm`` is more than 5 mm off with probability below 1e-10 (the
+3-D RMS is ``√3`` times the per-axis deviation: 5 mm is 8.7 of those), and more than 2 mm off with
+probability below 1 % even at the limit; most trusted poses sit far below it (docs/trust.md measures
+both). ``max_precision=None`` turns the gate off; a number replaces the limit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ivc.correct.flags import LOW_PRECISION
+from ivc.errors import InputError
+from ivc.table.grid import GridField
+from ivc.table.lookup import LookupTable
+
+#: the default limit (m) of a trusted pose's predicted RMS position error
+MAX_PRECISION = 1e-3
+#: ``max_precision`` of a corrector that uses :data:`MAX_PRECISION` where the noise is known (no gate elsewhere)
+DEFAULT = "default"
+
+
+def _positive(name: str, value: float) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a positive number (or None), got {value!r}") from None
+    if not (np.isfinite(number) and number > 0):
+        raise InputError(f"{name} must be a positive number (or None), got {value}")
+    return number
+
+
+@dataclass(frozen=True)
+class PrecisionGate:
+    """How a corrector predicts and gates precision.
+
+    ``sigma``: the tracker's white noise per signal entry (signal units; None: precision is not predicted);
+    ``limit`` (m): poses predicted less precise are flagged LOW_PRECISION (None: no gate); ``note``: why
+    precision is not predicted or not gated, in words for the output (None when both are on by default)."""
+
+    sigma: float | None
+    limit: float | None
+    note: str | None = None
+
+    @classmethod
+    def resolve(cls, table: LookupTable | GridField, precision: bool = True,
+                max_precision: float | str | None = DEFAULT, signal_noise: float | None = None) -> PrecisionGate:
+        """The gate for ``table``: noise ``signal_noise`` (default: the one the table's fit measured), limit
+        ``max_precision`` (m; :data:`DEFAULT`: :data:`MAX_PRECISION` where the noise is known; None: no gate).
+        ``precision`` False predicts nothing unless a limit is given. A numeric limit without a known noise is
+        refused (:class:`~ivc.errors.InputError`)."""
+        explicit = max_precision is not None and not (isinstance(max_precision, str) and max_precision == DEFAULT)
+        limit = _positive("max_precision", max_precision) if explicit else None
+        sigma = None if signal_noise is None else _positive("signal_noise", signal_noise)
+        if not (precision or explicit or sigma is not None):
+            return cls(None, None, "precision not predicted (precision=False)")
+        if sigma is None:
+            sigma = table.signal_noise if isinstance(table, LookupTable) else None
+        if sigma is None:
+            if explicit:
+                raise InputError("the table records no signal noise (fitted by an older ivc, or from a session "
+                                 "without static steps): give the tracker's noise per signal entry "
+                                 "(signal_noise=NOISE) to gate on precision")
+            return cls(None, None, "precision not predicted: the table records no signal noise (fit it again "
+                                   "with this ivc, or give signal_noise=NOISE)")
+        if max_precision is None:
+            return cls(sigma, None, "no precision gate (max_precision=None): trusted poses may be as imprecise as "
+                                    "the tracker's noise makes them")
+        return cls(sigma, limit if explicit else MAX_PRECISION)
+
+    @property
+    def predicts(self) -> bool:
+        return self.sigma is not None
+
+    def apply(self, precision: np.ndarray, flags: np.ndarray, usable: np.ndarray) -> None:
+        """Flag (LOW_PRECISION, in place) the ``usable`` samples whose predicted position precision (m) is over
+        the limit or unknown (NaN, inf: the measurement does not fix the pose)."""
+        if self.limit is not None:
+            flags[~(precision <= self.limit) & usable] |= LOW_PRECISION
+
+    def describe(self) -> str:
+        """One line for the output: the limit, or why there is none."""
+        if self.note:
+            return self.note
+        default = " (the default)" if self.limit == MAX_PRECISION else ""
+        return (f"precision gate: poses predicted less precise than {1000 * self.limit:g} mm RMS are flagged (16)"
+                f"{default}")
