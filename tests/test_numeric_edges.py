@@ -316,3 +316,13 @@ def test_correct_writes_an_unsolvable_pose_into_plus_and_csv(translation, table_
     assert read_plus(tmp_path / "out.igs.mha").step.n_frames == 5
     lines = (tmp_path / "out.csv").read_text().splitlines()
     assert len(lines) == 6 and int(lines[3].split(",")[lines[0].split(",").index("flags")]) == flags[2]
+
+
+@pytest.mark.parametrize("value", EDGES, ids=IDS)
+def test_the_live_loop_names_an_unusable_signal_matrix(value):
+    from ivc.live.igtl import Frame
+    from ivc.live.loop import unusable_frames
+
+    frames = [Frame("NDARRAY", "coil", 0.0, np.full((3, 3), value)), Frame("NDARRAY", "coil", 0.0, np.eye(3))]
+    problems = unusable_frames(frames, 1e-3)
+    assert set(problems) == {0} and problems[0]
