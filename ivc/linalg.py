@@ -207,7 +207,7 @@ def principal_eigenvector(B, work_a, work_b, v):
         v[2] = w2 / nrm
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")  # a zero determinant or norm mid-iteration: NaN below, not an exception
 def rotation_polar_factor(K, X, work, out):
     """Rotation nearest to K (orthogonal Procrustes), written into out.
 
@@ -233,6 +233,11 @@ def rotation_polar_factor(K, X, work, out):
     for it in range(60):
         inverse_transpose3(X, work)
         gamma = np.sqrt(frobenius3(work) / frobenius3(X)) if it < 10 else 1.0
+        if not (gamma > 0.0 and np.isfinite(gamma)):  # K at the edge of double precision (huge or denormal)
+            for i in range(3):
+                for j in range(3):
+                    out[i, j] = np.nan
+            return
         change = 0.0
         for i in range(3):
             for j in range(3):

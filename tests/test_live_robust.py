@@ -201,3 +201,20 @@ def test_every_kind_of_unusable_message_is_named():
                         2: "its rotation part is not a rotation matrix",
                         3: "its translation is 200 m from the source (more than 100 m)",
                         4: "it holds NaN or inf", 5: "the signal matrix is all zeros (a dropout?)"}
+
+
+@pytest.mark.slow
+def test_every_unusable_signal_matrix_is_dropped_logged_once_and_the_loop_goes_on(exact_table, rng, caplog):  # noqa: F811
+    """Zero, huge, denormal (either sign) and non-finite NDARRAY messages (issue 41: one −1e-300 matrix ended the
+    loop with ZeroDivisionError): each dropped and counted, one log line per sensor, the good frames corrected."""
+    r, T, S = distorted(rng, 6)
+    edges = [0.0, 1e300, 1e-300, -1e-300, np.inf, np.nan]
+    payloads = []
+    for k in range(6):
+        stamp = 4000.0 + k / 120
+        payloads.append(NDArrayMessage(np.full((3, 3), edges[k]), timestamp=stamp, device_name="Coil").pack())
+        payloads.append(NDArrayMessage(S[k], timestamp=stamp + 1 / 240, device_name="Coil").pack())
+    names, stats, log = _run_live(exact_table, payloads, 6, caplog)
+    assert names.count("Coil_ivc") == 6
+    assert stats.rejected == 6 and stats.received == 6 and stats.corrected == 6
+    assert sum("'Coil': dropped a NDARRAY message" in w for w in log) == 1

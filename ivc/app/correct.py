@@ -192,9 +192,11 @@ def timing_text(label: str, step: Step, valid: np.ndarray | None = None) -> str 
 
 
 def corrected_step(step: Step, out: Correction, lut_file: str | os.PathLike) -> Step:
-    """The step with its reported poses replaced by the corrected ones (signals kept as measured)."""
+    """The step with its reported poses replaced by the corrected ones (signals kept as measured); a sample
+    without a corrected pose (flagged: invalid input, not converged) is written as not valid."""
     attrs = dict(step.attrs, corrected_with=str(lut_file))
-    return Step(step.time, step.signal, out.position, out.quaternion, step.valid_mask, step.sample_rate_hz,
+    posed = np.all(np.isfinite(out.position), axis=-1) & np.all(np.isfinite(out.quaternion), axis=-1)
+    return Step(step.time, step.signal, out.position, out.quaternion, step.valid_mask & posed, step.sample_rate_hz,
                 step.sensor_ids, f"{step.description} (corrected by ivc)".strip(), attrs)
 
 

@@ -171,7 +171,8 @@ def correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations,
             p = T[i, 0] * S[0, j] + T[i, 1] * S[1, j] + T[i, 2] * S[2, j]
             lam += (Ma[i, j] - p) ** 2
             s2 += S[i, j] ** 2
-    return converged, iterations, np.sqrt(lam / s2), mapped
+    relative = np.sqrt(lam / s2) if s2 > 0.0 else np.nan  # s2 = 0: a signal of zeros or denormals, no pose
+    return converged, iterations, relative, mapped
 
 
 @numba.njit(cache=True)

@@ -153,9 +153,8 @@ class Corrector:
         r, T, q = np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 4))
         converged, iterations = np.empty(n, dtype=bool), np.empty(n, dtype=np.int64)
         residual, mapped = np.empty(n), np.empty(n, dtype=bool)
-        flat = S.reshape(n, 9)
-        # an all-zero matrix (what a dropout can produce) carries no pose: invalid, not a kernel division by zero
-        finite = np.all(np.isfinite(flat), axis=1) & np.any(flat != 0, axis=1)
+        # an all-zero, denormal or huge matrix carries no pose: invalid, not a kernel division by zero
+        finite = dipole.usable_signals(S)
         S = np.where(finite[:, None, None], S, np.eye(3))
         kernel = compiled.choose(_kernels.correct_serial if serial else _kernels.correct_kernel, n)
         use_map = self.use_seed_map and (self._seed_map is not None
@@ -165,6 +164,7 @@ class Corrector:
                self.max_residual, r, T, q, converged, iterations, residual, mapped)
         flags = (np.where(mapped, 0, OUTSIDE) | np.where(converged, 0, NOT_CONVERGED)
                  | np.where(residual <= self.max_residual, 0, HIGH_RESIDUAL)).astype(np.uint8)
+        flags[~(np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(q), axis=1))] |= NOT_CONVERGED  # no pose came out
         flags[~finite] = INVALID_INPUT
         if not finite.all():
             r[~finite], q[~finite], residual[~finite] = np.nan, np.nan, np.nan

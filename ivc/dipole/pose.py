@@ -18,6 +18,11 @@ from ivc.errors import InputError
 FloatArray = NDArray[np.float64]
 
 HEMISPHERES = ("+x", "-x", "+y", "-y", "+z", "-z")
+#: the source distances (m) a usable signal matrix may stand for: in free space ``‖S‖_F = √6 / |r|³``
+#: (docs/math.md §3), so this bounds ‖S‖_F to about 2.4e-12 … 2.4e12 (signal units), far beyond any tracker's
+#: reach either way, and keeps every square and product of a solve inside double precision
+USABLE_RANGE_M = (1e-4, 1e4)
+_NORM_BOUNDS = (np.sqrt(6.0) / USABLE_RANGE_M[1] ** 3, np.sqrt(6.0) / USABLE_RANGE_M[0] ** 3)
 
 
 def hemisphere_vector(hemisphere: str) -> FloatArray:
@@ -28,6 +33,21 @@ def hemisphere_vector(hemisphere: str) -> FloatArray:
     v = np.zeros(3)
     v[axis] = 1.0 if hemisphere[0] == "+" else -1.0
     return v
+
+
+def usable_signals(S: ArrayLike) -> NDArray[np.bool_]:
+    """Whether each signal matrix of ``S`` (..., 3, 3) can be solved at all: every entry finite and the
+    Frobenius norm that of a source between :data:`USABLE_RANGE_M` metres away (all zeros, denormals such
+    as 1e-300 and huge values such as 1e300 are not). The wrappers of the compiled solves mark the others
+    invalid input before the kernels see them. Shape (...)."""
+    S = np.asarray(S, dtype=np.float64)
+    if S.shape[S.ndim - 2:] != (3, 3) or S.ndim < 2:
+        raise InputError(f"S must have shape (..., 3, 3), got {S.shape}")
+    flat = S.reshape(S.shape[:-2] + (9,))
+    finite = np.all(np.isfinite(flat), axis=-1)
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        norm = np.sqrt(np.sum(np.where(finite[..., None], flat, 0.0) ** 2, axis=-1))
+    return finite & (norm >= _NORM_BOUNDS[0]) & (norm <= _NORM_BOUNDS[1])
 
 
 def closed_form_pose(S: ArrayLike, hemisphere: str = "+x") -> tuple[FloatArray, FloatArray]:

@@ -64,7 +64,7 @@ LIVE_KERNELS = (_correct_kernels.correct_serial, _pose_kernels.invert_serial, _p
 def unusable_frames(frames, length_unit: float) -> dict[int, str]:
     """{index in ``frames``: why that decoded TRANSFORM or NDARRAY cannot be corrected}, checked for all the
     frames of a read at once (NaN or inf, a translation beyond MAX_RANGE_M, a rotation part that is not a
-    rotation, an all-zero signal matrix)."""
+    rotation, a signal matrix that cannot be solved: all zeros, denormal or huge)."""
     problems: dict[int, str] = {}
     transforms = [k for k, f in enumerate(frames) if f.message_type == "TRANSFORM" and f.payload is not None]
     if transforms:
@@ -89,12 +89,16 @@ def unusable_frames(frames, length_unit: float) -> dict[int, str]:
                 problems[k] = "it holds NaN or inf"
             elif f.payload.shape == (3, 3) and not np.any(f.payload):
                 problems[k] = "the signal matrix is all zeros (a dropout?)"
+            elif f.payload.shape == (3, 3) and not dipole.usable_signals(f.payload):
+                largest = float(np.abs(f.payload).max())
+                problems[k] = (f"its signal matrix (largest entry {largest:.3g}) is no source's between "
+                               f"{dipole.USABLE_RANGE_M[0]:g} and {dipole.USABLE_RANGE_M[1]:g} m away")
     return problems
 
 
 @dataclass
 class LiveStats:
-    """Counters of a run (``rejected``: decoded messages that cannot be corrected: NaN, all-zero signals,
+    """Counters of a run (``rejected``: decoded messages that cannot be corrected: NaN, unusable signals,
     translations beyond MAX_RANGE_M, rotations that are not rotations);
     ``latency_s``: per batch (the latest LATENCY_HISTORY), seconds from its bytes arriving to
     its results being sent."""

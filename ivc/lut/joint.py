@@ -133,7 +133,7 @@ def _prepare(S, use, wand, position0, rotation0):
     r, T = np.array(position0, float), np.array(rotation0, float)
     if r.shape != (F, 3) or T.shape != (F, 3, 3):
         raise InputError(f"solve_wand: starting poses must be ({F}, 3) and ({F}, 3, 3), got {r.shape} and {T.shape}")
-    use = use & np.all(np.isfinite(S.reshape(*S.shape[:2], -1)), axis=-1)
+    use = use & dipole.usable_signals(S)
     S = np.where(use[..., None, None], S, 0.0)
     scale = np.where(use, np.sqrt(np.mean(S**2, axis=(-1, -2))), 1.0)
     active = use.any(axis=1) & np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(T.reshape(F, 9)), axis=1)

@@ -172,7 +172,7 @@ def solve_rigid(S: np.ndarray, valid: np.ndarray, wand: WandCalibration, cube_fi
     the frames are solved in compiled code (the same rules, one frame at a time) unless ``compiled``
     is False.
     """
-    valid = valid & np.all(np.isfinite(S.reshape(*S.shape[:2], -1)), axis=-1)
+    valid = valid & dipole.usable_signals(S)
     S = np.where(valid[..., None, None], S, 0.0)
     scale = np.sqrt(np.mean(S**2, axis=(-1, -2)))
     scale = np.where(valid, scale, 1.0)

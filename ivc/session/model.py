@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ivc import rotations
-from ivc.dipole import HEMISPHERES, closed_form_pose, signal_from_pose
+from ivc.dipole import HEMISPHERES, closed_form_pose, signal_from_pose, usable_signals
 from ivc.errors import SessionError
 
 FORMAT_NAME = "session"
@@ -156,10 +156,14 @@ class Step:
 
     @property
     def valid_mask(self) -> NDArray[np.bool_]:
-        """``valid``, or all True when the step has none."""
-        if self.valid is None:
-            return np.ones((self.n_frames, self.n_sensors), dtype=bool)
-        return np.asarray(self.valid, dtype=bool)
+        """The samples to use: ``valid`` (all True when the step has none), and, in a step of signals, only where
+        the signal matrix can be solved at all (:func:`ivc.dipole.usable_signals`: finite, neither all zeros nor
+        denormal nor huge); the others are dropped, and flagged invalid input, like a sample marked invalid."""
+        valid = (np.ones((self.n_frames, self.n_sensors), dtype=bool) if self.valid is None
+                 else np.asarray(self.valid, dtype=bool))
+        if self.signal is None or np.shape(self.signal) != valid.shape + (3, 3):
+            return valid
+        return valid & usable_signals(self.signal)
 
     @property
     def names(self) -> list[str]:

@@ -24,14 +24,17 @@ GRID = ("padded", "valid_cells", "origin", "spacing", "shape", "cubic")
 
 @numba.njit(inline="always")
 def cell_of(p, origin, spacing, n):
-    """Cell index in [0, n − 2] and the local coordinate clamped to [0, 1], and whether p is in the grid."""
+    """Cell index in [0, n − 2] and the local coordinate clamped to [0, 1], and whether p is in the grid.
+    A NaN p gives cell 0 and a NaN coordinate (clamped before the integer conversion, which NaN or inf
+    would break)."""
     u = (p - origin) / spacing
-    i = int(np.floor(u))
     inside = 0.0 <= u <= n - 1.0
-    if i < 0:
-        i = 0
-    elif i > n - 2:
+    if u >= n - 2.0:
         i = n - 2
+    elif u >= 0.0:
+        i = int(np.floor(u))
+    else:
+        i = 0
     t = u - i
     if t < 0.0:
         t = 0.0
