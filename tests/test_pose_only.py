@@ -243,7 +243,7 @@ def test_report_corrects_pose_only_check_poses_through_the_pose_path(pose_only_t
 
 @pytest.mark.slow  # the live loop end to end over sockets
 def test_live_transform_input_is_corrected_and_published_as_trusted_tdata(exact_table, rng):
-    r, T, v, Q = reported(rng, 8 * 3)
+    r, T, v, Q = tracks(rng, 8, sensors=3)  # three sensors moving as a stream's do
     m = np.zeros((8, 3, 4, 4))
     m[..., :3, :3], m[..., :3, 3], m[..., 3, 3] = Q.reshape(8, 3, 3, 3), 1000 * v.reshape(8, 3, 3), 1.0
     m = m.astype(np.float32)
@@ -264,8 +264,8 @@ def test_live_transform_input_is_corrected_and_published_as_trusted_tdata(exact_
             upstream.sendall(b"".join(TransformMessage(m[k, n], timestamp=1000.0 + k / 240,
                                                        device_name=f"S{n}").pack() for n in range(3)))
         framer = Framer()
-        consumer.settimeout(5.0)
-        deadline = time.monotonic() + 20
+        consumer.settimeout(30.0)  # a bound on waiting for the next message, not a timing (interpreted kernels)
+        deadline = time.monotonic() + 60
         while (len(transforms) < 24 or len(tdata) < 8) and time.monotonic() < deadline:
             framer.feed(consumer.recv(1 << 16))
             for f in framer.messages():

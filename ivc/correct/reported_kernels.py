@@ -31,8 +31,12 @@ from ivc.table.kernels import grid_value
 # of a parallel kernel (inf/NaN, no exception) that they had when inlined.
 
 _OPTS = dict(parallel=True, cache=True, nogil=True)
-#: step halvings tried before a sample is given up
+#: step halvings tried before the inverse Jacobian is recomputed
 BACKTRACKS = 12
+#: recomputations of the inverse Jacobian (central differences) before a sample is given up
+RESTARTS = 2
+#: the step (m) of the central differences of φ and C
+DIFFERENCE_STEP = 1e-5
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -49,6 +53,54 @@ def _field_at(r, grid, g, wx, wy, wz, dx, dy, dz, F):
             F[i, j] += g[3 * i + j]
             tr += F[i, j] * F[i, j]
     return (tr > 0.0) and np.isfinite(tr), mapped
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _inverse3(D, out):
+    """out = D⁻¹ of a (3, 3) matrix by its adjugate; False where D is singular to 1e-12 of its scale."""
+    c00 = D[1, 1] * D[2, 2] - D[1, 2] * D[2, 1]
+    c01 = D[1, 2] * D[2, 0] - D[1, 0] * D[2, 2]
+    c02 = D[1, 0] * D[2, 1] - D[1, 1] * D[2, 0]
+    det = D[0, 0] * c00 + D[0, 1] * c01 + D[0, 2] * c02
+    scale = 0.0
+    for a in range(3):
+        for b in range(3):
+            scale += D[a, b] * D[a, b]
+    if not (abs(det) > 1e-12 * scale * np.sqrt(scale)) or not np.isfinite(det):
+        return False
+    out[0, 0], out[1, 0], out[2, 0] = c00 / det, c01 / det, c02 / det
+    out[0, 1] = (D[0, 2] * D[2, 1] - D[0, 1] * D[2, 2]) / det
+    out[1, 1] = (D[0, 0] * D[2, 2] - D[0, 2] * D[2, 0]) / det
+    out[2, 1] = (D[0, 1] * D[2, 0] - D[0, 0] * D[2, 1]) / det
+    out[0, 2] = (D[0, 1] * D[1, 2] - D[0, 2] * D[1, 1]) / det
+    out[1, 2] = (D[0, 2] * D[1, 0] - D[0, 0] * D[1, 2]) / det
+    out[2, 2] = (D[0, 0] * D[1, 1] - D[0, 1] * D[1, 0]) / det
+    return True
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _jacobian_inverse(r, h, grid, H):
+    """H = (∂φ/∂r)⁻¹ at r (3,) by central differences; False where it is singular or not defined."""
+    nc = grid[0].shape[3]
+    g = np.empty(nc)
+    wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
+    F, wa, wb, B = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    ev, phi_p, phi_m, x = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    D = np.empty((3, 3))
+    for k in range(3):
+        for a in range(3):
+            x[a] = r[a]
+        x[k] = r[k] + DIFFERENCE_STEP
+        usable, _ = _field_at(x, grid, g, wx, wy, wz, dx, dy, dz, F)
+        closed_form_position(F, h, phi_p, wa, wb, ev, B)
+        x[k] = r[k] - DIFFERENCE_STEP
+        usable_m, _ = _field_at(x, grid, g, wx, wy, wz, dx, dy, dz, F)
+        closed_form_position(F, h, phi_m, wa, wb, ev, B)
+        if not (usable and usable_m):
+            return False
+        for a in range(3):
+            D[a, k] = (phi_p[a] - phi_m[a]) / (2 * DIFFERENCE_STEP)
+    return _inverse3(D, H)
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -80,6 +132,7 @@ def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, 
         miss += e[a] * e[a]
     miss = np.sqrt(miss)
     iterations = 0
+    restarts = 0
     converged = miss <= tolerance
     while not converged and iterations < max_iterations:
         for a in range(3):
@@ -106,7 +159,11 @@ def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, 
             for a in range(3):
                 step[a] *= 0.5
         if not accepted:
-            break
+            # Broyden's estimate has gone stale (near a fold of the map it does): restart from the Jacobian itself
+            if restarts >= RESTARTS or not _jacobian_inverse(r, h, grid, H):
+                break
+            restarts += 1
+            continue
         # Broyden (good) update of the inverse Jacobian: H += (Δx − H Δy) Δxᵀ H / (Δxᵀ H Δy), Δy = Δφ = e − e_t
         den = 0.0
         for a in range(3):
@@ -222,33 +279,6 @@ def stream_kernel(v, Q, slots, offset, tracked, h, grid, max_iterations, toleran
         if flags[n] == 0:
             for a in range(3):
                 offset[slot, a] = r[n, a] - v[n, a]
-
-
-#: the step (m) of the central differences of φ and C in :func:`precision_one`
-DIFFERENCE_STEP = 1e-5
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _inverse3(D, out):
-    """out = D⁻¹ of a (3, 3) matrix by its adjugate; False where D is singular to 1e-12 of its scale."""
-    c00 = D[1, 1] * D[2, 2] - D[1, 2] * D[2, 1]
-    c01 = D[1, 2] * D[2, 0] - D[1, 0] * D[2, 2]
-    c02 = D[1, 0] * D[2, 1] - D[1, 1] * D[2, 0]
-    det = D[0, 0] * c00 + D[0, 1] * c01 + D[0, 2] * c02
-    scale = 0.0
-    for a in range(3):
-        for b in range(3):
-            scale += D[a, b] * D[a, b]
-    if not (abs(det) > 1e-12 * scale * np.sqrt(scale)) or not np.isfinite(det):
-        return False
-    out[0, 0], out[1, 0], out[2, 0] = c00 / det, c01 / det, c02 / det
-    out[0, 1] = (D[0, 2] * D[2, 1] - D[0, 1] * D[2, 2]) / det
-    out[1, 1] = (D[0, 0] * D[2, 2] - D[0, 2] * D[2, 0]) / det
-    out[2, 1] = (D[0, 1] * D[2, 0] - D[0, 0] * D[2, 1]) / det
-    out[0, 2] = (D[0, 1] * D[1, 2] - D[0, 2] * D[1, 1]) / det
-    out[1, 2] = (D[0, 2] * D[1, 0] - D[0, 0] * D[1, 2]) / det
-    out[2, 2] = (D[0, 0] * D[1, 1] - D[0, 1] * D[1, 0]) / det
-    return True
 
 
 @numba.njit(cache=True, error_model="numpy")

@@ -1,0 +1,174 @@
+"""A trusted pose is an accurate pose (issue 37): the predicted precision, its gate, and the branch tests."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ivc import dipole, rotations
+from ivc.correct import Corrector, PoseCorrector
+from ivc.correct.flags import HIGH_RESIDUAL, LOW_PRECISION, NOT_CONVERGED, OUTSIDE
+from ivc.lut.signal_noise import measure_reported_noise, measure_signal_noise
+from ivc.pose.precision import pose_precision, reported_pose_covariance, traces
+from ivc.pose.tracker_solver import distortion, reported_pose
+from ivc.session import Session
+from ivc.table.grid import Grid
+from ivc.table.lookup import LookupTable
+from tests.helpers import CENTRE, quadratic_field
+
+SIGMA = 1e-4
+
+
+def poses(rng, n, radius=0.12):
+    r = CENTRE + rng.uniform(-radius, radius, (n, 3))
+    return r, rotations.random(n, rng)
+
+
+def test_compiled_precision_matches_the_numpy_cramer_rao_bound(exact_table, rng):
+    r, q = poses(rng, 300)
+    corrector = Corrector(exact_table, signal_noise=SIGMA)
+    field = corrector.field
+    expected = pose_precision(r, q, SIGMA, field.value_and_jacobian)
+    for n in (300, 5):  # the parallel kernel and the serial one (a live frame)
+        got = corrector.predict_precision(r[:n], q[:n])
+        np.testing.assert_allclose(got[0], expected[0][:n], rtol=1e-9)
+        np.testing.assert_allclose(got[1], expected[1][:n], rtol=1e-9)
+
+
+def test_reported_pose_precision_kernel_matches_the_analytic_reference(exact_table, rng):
+    """The compiled pose-path prediction (central differences of φ and C) against the same covariance from the
+    closed form's analytic Jacobians (ivc.pose.tracker_solver.distortion)."""
+    r, q = poses(rng, 200)
+    T = rotations.to_matrix(q)
+    v, C = distortion(r, quadratic_field(r))
+    Q = C @ T
+    corrector = PoseCorrector(exact_table, signal_noise=SIGMA)
+    got = corrector.predict_precision(v, Q, r)
+    g, dg, _ = corrector.field.evaluate(r)
+    _, _, d_phi, d_omega, _ = distortion(r, g.reshape(-1, 3, 3), dg.reshape(-1, 3, 3, 3), jacobian=True)
+    expected = traces(reported_pose_covariance(v, Q, d_phi, d_omega, SIGMA))
+    np.testing.assert_allclose(got[0], expected[0], rtol=1e-4)
+    np.testing.assert_allclose(got[1], expected[1], rtol=1e-4)
+    # the least-squares tracker's path is that reference itself
+    ls = PoseCorrector(exact_table, solver="least-squares", signal_noise=SIGMA).predict_precision(v, Q, r)
+    assert np.all(np.isfinite(ls[0])) and np.all(ls[0] > 0)
+
+
+@pytest.mark.parametrize("path", ["signals", "reported poses"])
+def test_predicted_precision_matches_the_simulated_error(exact_table, rng, path):
+    """Monte Carlo: single-frame errors of noisy measurements against their prediction. A 3-D Gaussian error's
+    median length over its RMS is 0.67-0.89 (from one axis to isotropic); the issue's band is 0.7-1.4."""
+    r, q = poses(rng, 3000)
+    T = rotations.to_matrix(q)
+    S = dipole.signal(r, T, quadratic_field(r)) + SIGMA * rng.standard_normal((len(r), 3, 3))
+    if path == "signals":
+        out = Corrector(exact_table, signal_noise=SIGMA, max_precision=None).batch(S)
+    else:
+        v, Q = reported_pose(S)
+        out = PoseCorrector(exact_table, signal_noise=SIGMA, max_precision=None).batch(v, rotations.from_matrix(Q))
+    ok = out.flags == 0
+    assert ok.mean() > 0.99
+    ratio = np.linalg.norm(out.position[ok] - r[ok], axis=1) / out.precision[ok]
+    assert 0.7 <= np.median(ratio) <= 1.0, np.median(ratio)
+    assert np.mean(ratio > 5) < 1e-3
+
+
+def test_the_default_gate_flags_only_poses_predicted_worse_than_1_mm(exact_table, rng):
+    r, q = poses(rng, 500, radius=0.2)
+    S = dipole.signal(r, rotations.to_matrix(q), quadratic_field(r))
+    gated = Corrector(exact_table, signal_noise=3e-3).batch(S)
+    open_ = Corrector(exact_table, signal_noise=3e-3, max_precision=None).batch(S)
+    assert 0 < np.mean(open_.precision > 1e-3) < 1  # some poses are that imprecise with this much noise
+    np.testing.assert_array_equal(gated.flags, open_.flags | np.where(open_.precision > 1e-3, LOW_PRECISION, 0))
+    good = Corrector(exact_table, signal_noise=SIGMA).batch(S)  # where the precision is good: no flag changes
+    np.testing.assert_array_equal(good.flags, Corrector(exact_table, precision=False).batch(S).flags)
+
+
+def test_the_signal_noise_is_measured_from_reported_poses_alone(small_session):
+    _, session = small_session
+    from_signals = measure_signal_noise(session)
+    poses_only = Session(session.hemisphere, {k: s.__class__(**{**s.__dict__, "signal": None})
+                                              for k, s in session.steps.items()})
+    from_poses = measure_reported_noise(poses_only)
+    assert from_poses.source == "reported poses" and from_signals.source == "signals"
+    assert from_poses.sigma == pytest.approx(from_signals.sigma, rel=0.1)
+    assert measure_signal_noise(poses_only).sigma == from_poses.sigma  # the fit's measurement falls back to it
+
+
+# --- the map's other branch ------------------------------------------------------------------------------------
+
+#: the folded room's tracker noise per signal entry: the default scene's
+NOISE = 6.5e-4
+#: the middle of the folded room's table
+FOLD_CENTRE = np.array([0.45, 0.0, 0.0])
+
+
+def mirror_field(r):
+    """A conductor's image source behind the volume: strong enough that the reported-pose map folds."""
+    return 0.05 * dipole.field(r - np.array([0.9, 0.0, 0.0])) @ np.diag([-1.0, 1.0, 1.0])
+
+
+@pytest.fixture(scope="module")
+def folded():
+    grid = Grid(FOLD_CENTRE - 0.15, 0.03, (11, 11, 11))
+    values = mirror_field(grid.nodes().reshape(-1, 3)).reshape(*grid.shape, 3, 3)
+    table = LookupTable(grid, values, np.ones(grid.shape, bool), np.full(grid.shape, 100))
+    corrector = PoseCorrector(table, signal_noise=NOISE)
+    rng = np.random.default_rng(3)
+    r = FOLD_CENTRE + rng.uniform(-0.14, 0.14, (3000, 3))
+    v, C = distortion(r, mirror_field(r))
+    q = rotations.from_matrix(C @ rotations.to_matrix(rotations.random(len(r), rng)))
+    out = corrector.batch(v, q)
+    return table, corrector, r, v, q, out, corrector.last_ambiguous.copy()
+
+
+def reported_at(r, rng):
+    v, C = distortion(r, mirror_field(r))
+    return v, rotations.from_matrix(C @ rotations.to_matrix(rotations.random(len(r), rng)))
+
+
+def test_a_pose_the_map_produces_twice_is_flagged(folded):
+    _, _, r, _, _, out, ambiguous = folded
+    error = np.linalg.norm(out.position - r, axis=1)
+    # solved in the mapped volume, on the other branch
+    wrong = (error > 2e-3) & ((out.flags & (OUTSIDE | NOT_CONVERGED)) == 0)
+    assert wrong.sum() > 20 and ambiguous.sum() > 20
+    caught = out.flags != 0
+    # this room folds the map far harder than any built-in scene (a fifth of its volume is contested); here
+    # the search misses a percent of the wrong branches (benchmarks/bench_trust.py: none on those scenes)
+    assert np.mean(caught[wrong]) > 0.98
+    assert np.all(out.flags[ambiguous] & HIGH_RESIDUAL)
+
+
+def test_a_track_keeps_its_branch_and_a_stream_that_starts_there_is_flagged(folded):
+    table, corrector, r, _, _, out, ambiguous = folded
+    rng = np.random.default_rng(4)
+    right = np.flatnonzero(ambiguous & (np.linalg.norm(out.position - r, axis=1) < 1e-3))
+    assert len(right) > 5
+    kept = 0
+    for end in r[right[:10]]:
+        # a path into the contested place from an uncontested one nearby
+        for direction in rotations.random(20, rng)[:, 1:]:
+            start = end + 0.03 * direction / np.linalg.norm(direction)
+            v0, q0 = reported_at(start[None], rng)
+            first = corrector.batch(v0, q0)
+            if first.flags[0] == 0 and np.linalg.norm(first.position[0] - start) < 1e-3:
+                break
+        else:
+            continue
+        path = start + np.linspace(0, 1, 61)[:, None] * (end - start)
+        v, q = reported_at(path, rng)
+        tracked = corrector.track(v[:, None], q[:, None])
+        if not np.all(tracked.flags == 0):
+            continue  # the path crossed a fold the tracker cannot follow (flagged, not wrong)
+        kept += 1
+        np.testing.assert_allclose(tracked.position[:, 0], path, atol=1e-3)  # the continuing track kept its branch
+        stream = PoseCorrector(table, signal_noise=NOISE)  # the same, live
+        frames = [stream.update(v[k][None], rotations.to_matrix(q[k])[None], sensors=["s"]) for k in range(len(v))]
+        assert all(f.flags[0] == 0 for f in frames)
+        np.testing.assert_allclose(frames[-1].position[0], end, atol=1e-3)
+        # a stream (and a recorded track) that starts at the contested pose is flagged: nothing decides its branch
+        late = PoseCorrector(table, signal_noise=NOISE)
+        assert late.update(v[-1][None], rotations.to_matrix(q[-1])[None], sensors=["s"]).flags[0] & HIGH_RESIDUAL
+        assert corrector.track(v[-1:, None], q[-1:, None]).flags[0, 0] & HIGH_RESIDUAL
+    assert kept >= 3
