@@ -9,8 +9,8 @@ from ivc import dipole, rotations
 from ivc.correct import Corrector, PoseCorrector
 from ivc.correct.flags import HIGH_RESIDUAL, LOW_PRECISION, NOT_CONVERGED, OUTSIDE
 from ivc.lut.signal_noise import measure_reported_noise, measure_signal_noise
-from ivc.pose.precision import pose_precision, reported_pose_covariance, traces
-from ivc.pose.tracker_solver import distortion, reported_pose
+from ivc.pose.precision import pose_covariance, pose_precision, reported_pose_covariance, traces
+from ivc.pose.tracker_solver import distortion, reported_pose, reported_pose_jacobian
 from ivc.session import Session
 from ivc.table.grid import Grid
 from ivc.table.lookup import LookupTable
@@ -52,6 +52,18 @@ def test_reported_pose_precision_kernel_matches_the_analytic_reference(exact_tab
     # the least-squares tracker's path is that reference itself
     ls = PoseCorrector(exact_table, solver="least-squares", signal_noise=SIGMA).predict_precision(v, Q, r)
     assert np.all(np.isfinite(ls[0])) and np.all(ls[0] > 0)
+
+
+def test_the_closed_form_reaches_the_bound_in_free_space(rng):
+    """Why a reported pose's scatter is taken as the free-space bound at it: the closed form's own Jacobian
+    (ivc.pose.tracker_solver) spreads noise exactly as the Cramér-Rao covariance says."""
+    r, q = poses(rng, 200, radius=0.2)
+    S = dipole.signal(r, rotations.to_matrix(q))
+    _, _, J = reported_pose_jacobian(S)
+    spread = J @ np.swapaxes(J, -1, -2)
+    bound = pose_covariance(r, q, 1.0)
+    np.testing.assert_allclose(traces(spread)[0], traces(bound)[0], rtol=1e-6)
+    np.testing.assert_allclose(traces(spread)[1], traces(bound)[1], rtol=1e-6)
 
 
 @pytest.mark.parametrize("path", ["signals", "reported poses"])
