@@ -39,7 +39,8 @@ def test_correct_file_on_a_csv_is_the_corrector_on_its_signals(tmp_path):
     np.testing.assert_array_equal(written.position, direct.position)  # 17 significant digits: exact
     np.testing.assert_array_equal(written.valid_mask, direct.flags == 0)
     assert written.signal is None and result.output == out
-    assert messages[0][0] == "info" and messages[0][1].startswith(f"{CHECK_CSV.name}: 240 samples")
+    assert ("info", "precision gate: poses predicted less precise than 0.2 mm RMS are flagged (16)") in messages
+    assert any(kind == "info" and text.startswith(f"{CHECK_CSV.name}: 240 samples") for kind, text in messages)
 
 
 def test_correct_file_on_a_session_writes_the_corrected_datasets_session_io_reads(tmp_path):
@@ -57,7 +58,9 @@ def test_correct_file_on_a_session_writes_the_corrected_datasets_session_io_read
     direct = Corrector(lut.read(TABLE), data.hemisphere).batch(data.steps["check"].signal,
                                                                data.steps["check"].valid_mask)
     np.testing.assert_array_equal(stored["check"].flags, direct.flags)
-    assert result.trusted == int(np.sum(direct.flags == 0)) == 999  # one sample is invalid in the recording
+    # one sample is invalid in the recording, two are predicted less precise than the default 1 mm
+    assert result.trusted == int(np.sum(direct.flags == 0)) == 997
+    assert np.sum(direct.flags == 16) == 2
     with pytest.raises(FileExistsError, match="overwrite=True"):
         ivc.correct_file(TABLE, CHECK, out)
 

@@ -170,7 +170,7 @@ def test_bad_input_is_dropped_and_logged_once_and_slow_clients_do_not_block(exac
         upstream.sendall(os.urandom(500))
         send(11, "S2", matrices[5, 2])
         framer = Framer()
-        consumer.settimeout(5.0)
+        consumer.settimeout(30.0)  # a bound on waiting, not a timing
         names = []
         deadline = time.monotonic() + 20
         while names.count("S2_ivc") < 7 and time.monotonic() < deadline:
@@ -227,7 +227,7 @@ def test_live_prediction_matches_offline_correct_then_predict(exact_table, rng):
             upstream.sendall(b"".join(TransformMessage(matrices[k, n], timestamp=1000.0 + k / rate,
                                                        device_name=f"S{n}").pack() for n in range(2)))
         framer = Framer()
-        consumer.settimeout(5.0)
+        consumer.settimeout(30.0)  # a bound on waiting, not a timing
         deadline = time.monotonic() + 20
         while len(received) < 2 * frames and time.monotonic() < deadline:
             framer.feed(consumer.recv(1 << 16))
