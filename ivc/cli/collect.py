@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from ivc import rotations
 from ivc import session as session_io
-from ivc.cli.options import POSITIVE, SIM_FRAMES
+from ivc.cli.options import POSITIVE, RATE_HZ, SIM_FRAMES
 from ivc.cli.paths import refuse_inputs_as_outputs
 from ivc.cli.progress import ON_TERMINAL
 from ivc.cli.tracker import tracker_option
@@ -160,7 +160,7 @@ def _step_name(ctx, param, value: str) -> str:
 @click.option("--check-frames", type=SIM_FRAMES, help="protocol: check poses (default 10,000).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Simulator seed.")
 @click.option("--hemisphere", help="Hemisphere of a replayed recording (default +x; a scene declares its own).")
-@click.option("--rate", type=POSITIVE, help="Sample rate (Hz) of a replayed CSV (default: inferred from its times).")
+@click.option("--rate", type=RATE_HZ, help="Sample rate (Hz) of a replayed CSV (default: inferred from its times).")
 @click.option("--declared-position", callback=_floats(3), help="cube_survey: declared cube position x,y,z in m.")
 @click.option("--declared-quaternion", callback=_floats(4), help="cube_survey: declared cube orientation w,x,y,z.")
 @click.option("--force", is_flag=True, help="Replace a step that is already in the session file.")

@@ -14,7 +14,7 @@ import numpy as np
 from ivc import compiled
 from ivc.app.correct import CorrectOptions, LiveOptions, correct_file, live_corrector
 from ivc.cli.flags import echo_report, usage_errors
-from ivc.cli.options import POSITIVE, solver_option
+from ivc.cli.options import POSITIVE, RATE_HZ, solver_option
 from ivc.cli.predict import parse_horizon
 from ivc.cli.tracker import tracker_option
 from ivc.correct.solver import MAX_RESIDUAL
@@ -63,7 +63,7 @@ def _cold_note() -> None:
               help="With --live: length unit of the stream's translations (PLUS and Slicer use mm).")
 @click.option("--sensor", "sensors", multiple=True, help="With --live: correct only these device names "
               "(default: every device that sends TRANSFORM or NDARRAY messages).")
-@click.option("--rate-hz", type=POSITIVE, default=240.0, show_default=True,
+@click.option("--rate-hz", type=RATE_HZ, default=240.0, show_default=True,
               help="With --live --predict: the stream's sample rate.")
 @click.option("--duration", type=POSITIVE, help="With --live: stop after this many seconds (default: until Ctrl-C).")
 @click.option("--precision", "with_precision", is_flag=True,
@@ -73,10 +73,13 @@ def _cold_note() -> None:
               help="Flag (16) poses whose predicted RMS position error exceeds MM millimetres (implies --precision).")
 @click.option("--signal-noise", type=POSITIVE, help="The tracker's white noise per signal entry, in signal units "
               "(default: what the table's fit measured on the session's static steps).")
+@click.option("--allow-corrected", is_flag=True, help="Take an INPUT_FILE that is ivc's corrected output (a session "
+              "with corrected_with, a CSV with flags and residual columns): refused otherwise, as its poses would be "
+              "corrected twice.")
 @tracker_option
 def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, solver, force, predictor,
             horizon, tune, tune_from, live_url, publish, length_unit, sensors, rate_hz, duration, with_precision,
-            max_precision, signal_noise, tracker_file):
+            max_precision, signal_noise, allow_corrected, tracker_file):
     """Correct the poses in INPUT_FILE (session .h5, recording .csv or PLUS sequence .igs.mha) with LUT_FILE.
 
     A PLUS sequence (.igs.mha, .seq.mha, .igs.nrrd) is written back with each
@@ -98,7 +101,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
                              solver=solver, precision=with_precision, signal_noise=signal_noise,
                              max_precision=None if max_precision is None else max_precision / 1000,
                              tracker_model=tracker_file, predictor=predictor, tune=tune, tune_from=tune_from,
-                             overwrite=force)
+                             overwrite=force, allow_corrected=allow_corrected)
     with usage_errors("correct"):
         options.check()
         if live_url:

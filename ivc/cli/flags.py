@@ -34,6 +34,8 @@ FLAGS = {
     "length_unit": "--unit",
     "sensors": "--sensor",
     "output": "-o",
+    "plot": "--plot",
+    "allow_corrected": "--allow-corrected",
     "rate_hz": "--rate",
     "sample_rate_hz": "--rate",
 }
