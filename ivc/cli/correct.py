@@ -18,6 +18,7 @@ from ivc.cli.options import POSITIVE, RATE_HZ, solver_option
 from ivc.cli.predict import parse_horizon
 from ivc.cli.tracker import tracker_option
 from ivc.correct.solver import MAX_RESIDUAL
+from ivc.igtl import parse_url
 from ivc.predict import DEFAULT_FILTER, FILTERS
 from ivc.table.grid import INTERPOLATIONS
 from ivc.units import LENGTH_UNITS
@@ -108,8 +109,9 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
             if input_file or output:
                 raise click.UsageError("--live reads from the network: give no INPUT_FILE or --output")
             host, _, port = publish.rpartition(":")
-            if not host or not port.isdigit():
-                raise click.UsageError(f"--publish wants HOST:PORT, got {publish!r}")
+            if not host or not port.isdigit() or int(port) > 65535:
+                raise click.UsageError(f"--publish wants HOST:PORT with a port from 0 to 65535, got {publish!r}")
+            parse_url(live_url)  # its port checked before the table is read
             if predictor:
                 options.horizon = parse_horizon(horizon)
             _live(lut_file, live_url, options, LiveOptions((host, int(port)), length_unit, sensors, rate_hz), duration)
