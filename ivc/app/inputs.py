@@ -146,8 +146,13 @@ def expect_kind(path: str | os.PathLike, wanted: tuple[str, ...], keyword: str) 
     kind = file_kind(path)
     if kind is not None and kind not in wanted:
         asked = " or ".join(f"a {w}" for w in wanted)
-        advice = ("make it a session step first (`ivc collect STEP --source replay:FILE`)" if kind == FOREIGN
-                  else "check the order of the files")
+        if kind == FOREIGN:
+            advice = "make it a session step first (`ivc collect STEP --source replay:FILE`)"
+        elif kind == RECORDING and RIG in wanted:
+            advice = ("its poses are the tracker's own reports, each with a time and a sensor; a rig CSV holds the "
+                      "rig's known motion of each point (x,y,z,qw,qx,qy,qz and s00..s22, no time or sensor column)")
+        else:
+            advice = "check the order of the files"
         raise InputError(f"{keyword} {path} is a {kind} ({MADE_BY[kind]}), not {asked}: {advice}")
     return kind
 

@@ -11,12 +11,13 @@ import click
 import numpy as np
 from tqdm import tqdm
 
+from ivc.app.inputs import RIG, expect_kind
 from ivc.cli.progress import ON_TERMINAL
 from ivc.collect.ilemt import folder_sign_fixes, parse_sign_fix, read_ilemt, stack
 from ivc.collect.rig_csv import read_rig_csv
 from ivc.dipole.tracker import load_tracker, save_tracker
 from ivc.pose.calibrate import calibrate as fit_tracker
-from ivc.pose.tracker_check import check_tracker, fixtures_of
+from ivc.pose.tracker_check import beyond_calibration, check_tracker, fixtures_of
 from ivc.session import Session
 
 
@@ -27,7 +28,8 @@ def _load(paths, carrier: str, compensate: bool, sign_fixes=()):
     """
     parts = []
     for p in paths:
-        if str(p).lower().endswith(".csv"):
+        kind = expect_kind(p, (RIG,), "the recording")  # a session, table or recording CSV is refused by name
+        if kind == RIG or str(p).lower().endswith(".csv"):
             parts.append(read_rig_csv(p))
         else:
             fixes = tuple(sign_fixes) + folder_sign_fixes(Path(p).parent)
@@ -198,7 +200,12 @@ def check(tracker_file, recordings, carrier, no_stage_compensation, sign_fixes, 
     fixes = tuple(parse_sign_fix(text) for text in sign_fixes)
     _, S, J_so, J_st = _load(recordings, carrier, not no_stage_compensation, fixes)
     report = check_tracker(model, fixtures, S, J_so, J_st)
+    warning = beyond_calibration(model, report)
+    if warning:
+        report["warning"] = warning
     click.echo(json.dumps(report, indent=2) if as_json else render("Points", report))
+    if warning:
+        click.echo(f"WARNING: {warning}", err=True)
 
 
 def tracker_option(command: Callable) -> Callable:
