@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from ivc.errors import InputError
-from ivc.files import atomic_path
+from ivc.files import atomic_path, check_writable
 
 
 def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
@@ -46,11 +46,13 @@ def refuse_inputs_as_outputs(outputs: Mapping[str, str | os.PathLike | None],
 
 def check_output(output: str | os.PathLike, overwrite: bool, inputs: Mapping[str, str | os.PathLike | None],
                  name: str = "OUTPUT") -> Path:
-    """The output path after the checks: not one of ``inputs``; absent unless ``overwrite``."""
+    """The output path after the checks: not one of ``inputs``; absent unless ``overwrite``; in a folder it can be
+    written to (:func:`ivc.files.check_writable`), all before any work."""
     refuse_inputs_as_outputs({name: output}, inputs)
     path = Path(output)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+    check_writable(path)
     return path
 
 

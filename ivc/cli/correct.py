@@ -142,9 +142,12 @@ def _live(lut_file, url, options: CorrectOptions, live: LiveOptions, duration: f
         stats = corrector.run(duration)
     except KeyboardInterrupt:
         stats = corrector.stats
-    latency = np.median(stats.latency_s) * 1e3 if stats.latency_s else float("nan")
+    latency = (f"median processing {np.median(stats.latency_s) * 1e3:.3f} ms per batch" if stats.latency_s
+               else "no batch processed")
     click.echo(f"received {stats.received}, corrected {stats.corrected}, flagged {stats.flagged}, out of order "
                f"{stats.out_of_order}, unknown {stats.unknown}, unusable {stats.rejected}, malformed bytes "
                f"{stats.garbage_bytes}, dropped for "
-               f"slow clients {stats.dropped_for_slow_clients}, connections {stats.connections}; median processing "
-               f"{latency:.3f} ms per batch", err=True)
+               f"slow clients {stats.dropped_for_slow_clients}, connections {stats.connections}; {latency}", err=True)
+    if stats.connections == 0:
+        raise click.ClickException(f"never reached a tracking server at {url}: nothing was corrected. Is the server "
+                                   "(PLUS, 3D Slicer, `ivc serve`) running, and are its host and port these?")

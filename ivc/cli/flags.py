@@ -27,6 +27,7 @@ FLAGS = {
     "max_residual": "--max-residual",
     "max_error": "--max-error-mm",
     "max_refinements": "--max-refinements",
+    "max_frames": "--max-frames",
     "hemisphere": "--hemisphere",
     "solver": "--solver",
     "tracker_model": "--tracker-model",
