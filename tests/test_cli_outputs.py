@@ -305,3 +305,87 @@ def test_an_itk_export_on_a_full_disk_is_one_line_and_leaves_nothing(tmp_path, m
                                                     "--force"]))
     assert "could not write" in text and "disk full" in text and "No space left on device" in text
     assert out.read_bytes() == b"the previous export" and [p.name for p in tmp_path.iterdir()] == ["field.h5"]
+
+
+# ---- messages that sent the user the wrong way ----------------------------------------------------------------------
+
+def test_fit_with_too_few_frames_names_max_frames_not_the_sweep(small_session, tmp_path):
+    """`--max-frames 1` said the samples were mostly invalid and to redo the sweep."""
+    path = tmp_path / "s.h5"
+    session_io.write(small_session[1], path)
+    text = _one_line_error(CliRunner().invoke(cli, ["fit", str(path), "-o", str(tmp_path / "t.h5"),
+                                                    "--max-frames", "1"]))
+    assert "every 3000-th of the sweep's 3000 frames" in text and "a larger --max-frames N" in text
+    assert "redo" not in text and "invalid" not in text
+
+
+def test_live_with_no_server_reached_fails_and_says_so(tmp_path):
+    """It exited 0 with 'median processing nan ms per batch'."""
+    import socket
+
+    with socket.socket() as probe:  # a port nothing listens on
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    result = CliRunner().invoke(cli, ["correct", str(LUT), "--live", f"igtl://127.0.0.1:{port}", "--publish",
+                                      "127.0.0.1:0", "--duration", "1"])
+    text = _one_line_error(result, code=(1,))
+    assert "never reached a tracking server" in text and "nan" not in text and "no batch processed" in text
+
+
+def test_an_unwritable_output_folder_is_refused_before_the_work_and_named(tmp_path, monkeypatch):
+    """A read-only folder was found only after the work, and the message named a hidden temporary file."""
+    import tempfile
+
+    import ivc.app.correct as correct_app
+    from ivc.files import atomic_path
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    text = _one_line_error(CliRunner().invoke(cli, ["correct", str(LUT), str(CHECK_CSV), "-o",
+                                                    str(blocker / "out.csv")]))
+    assert f"{blocker / 'out.csv'}: cannot write it" in text and "not a folder" in text
+
+    def read_only(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(correct_app, "_Job", lambda *a, **k: pytest.fail("the work started"))
+    monkeypatch.setattr(tempfile, "TemporaryFile", read_only)
+    monkeypatch.setattr(tempfile, "mkstemp", read_only)
+    out = tmp_path / "locked" / "out.csv"
+    for args in (["correct", str(LUT), str(CHECK_CSV), "-o", str(out)],
+                 ["predict", str(HEAD), "--evaluate", "--plot", str(tmp_path / "p.png")],
+                 ["export", str(LUT), "--format", "csv", "-o", str(out)]):
+        text = _one_line_error(CliRunner().invoke(cli, args))
+        assert "is not writable (Permission denied)" in text and ".tmp" not in text, args
+    with pytest.raises(PermissionError) as raised, atomic_path(out):
+        pass
+    assert raised.value.filename == str(out) and ".tmp" not in str(raised.value)
+
+
+@pytest.mark.parametrize("separator", [";", "\t"])
+def test_a_csv_with_another_separator_is_named_as_the_problem(tmp_path, separator):
+    """A semicolon or decimal-comma CSV got 'the header needs one time column ...'."""
+    path = tmp_path / "semicolons.csv"
+    path.write_text("\n".join(separator.join(c.replace(".", ",") for c in line.split(","))
+                              for line in CHECK_CSV.read_text().splitlines()[:5]) + "\n")
+    text = _one_line_error(CliRunner().invoke(cli, ["correct", str(LUT), str(path), "-o", str(tmp_path / "o.csv")]))
+    assert "its columns are separated by" in text and "commas" in text and "0.25, not 0,25" in text
+
+
+def test_evaluate_draws_no_progress_bar_into_a_redirected_log(tmp_path):
+    result = CliRunner().invoke(cli, ["predict", str(_short_head(tmp_path)), "--evaluate", "--filter", "poly1",
+                                      "--horizon", "25ms"])
+    assert result.exit_code == 0, result.output
+    assert "filter/s" not in result.output and "\r" not in result.output
+
+
+def test_tracker_calibrate_warns_of_stage_positions_in_another_unit(rig, tmp_path):
+    """ILEMT positions in m instead of mm ended in 'source_moments is singular' or a model of points 6 mm away."""
+    lines = (rig / "calibration.csv").read_text().splitlines()
+    metres_read_as_mm = tmp_path / "mm.csv"
+    metres_read_as_mm.write_text("\n".join([lines[0].replace("x,y,z", "x_mm,y_mm,z_mm"), *lines[1:]]) + "\n")
+    result = CliRunner().invoke(cli, ["tracker", "calibrate", str(metres_read_as_mm), "-o", str(tmp_path / "t.json"),
+                                      "--one-centre", "--no-sign-check"])
+    assert "mm.csv: its stage positions span 0.1 mm in all" in result.stderr and "in metres" in result.stderr
+    same = CliRunner().invoke(cli, ["tracker", "check", str(rig / "tracker.json"), str(rig / "held_out.csv")])
+    assert "stage positions span" not in same.output
