@@ -152,6 +152,19 @@ def test_corrected_outputs_are_recognised(corrected):
     assert "corrected_with" in corrected_by(corrected / "poses_once.h5")
 
 
+def test_a_corrected_plus_sequence_is_recognised(tmp_path):
+    from ivc.collect.plus import read_plus, write_plus
+
+    path = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "plus" / "Prostate10_tracker.igs.mha"
+    if not path.exists():
+        pytest.skip(f"{path} is not here (shared data beside the repository)")
+    sequence = read_plus(path)
+    out = tmp_path / "corrected.igs.mha"
+    write_plus(sequence, out, {"{tool}To{tracker}Ivc": (sequence.step.position, sequence.step.quaternion, None)})
+    assert file_kind(path) == file_kind(out) == PLUS
+    assert corrected_by(path) is None and "IvcTransform" in corrected_by(out)
+
+
 @pytest.mark.parametrize("name", ["once.csv", "once.h5", "poses_once.h5"])
 def test_correct_refuses_its_own_output_unless_allowed(corrected, tmp_path, name):
     """A corrected CSV fed back moved positions another 73 mm median, 203 of 240 trusted (issue 41)."""
@@ -353,6 +366,7 @@ def test_an_unwritable_output_folder_is_refused_before_the_work_and_named(tmp_pa
     monkeypatch.setattr(tempfile, "mkstemp", read_only)
     out = tmp_path / "locked" / "out.csv"
     for args in (["correct", str(LUT), str(CHECK_CSV), "-o", str(out)],
+                 ["collect", "check", "--source", "sim", "--frames", "100", "-o", str(tmp_path / "locked" / "s.h5")],
                  ["predict", str(HEAD), "--evaluate", "--plot", str(tmp_path / "p.png")],
                  ["export", str(LUT), "--format", "csv", "-o", str(out)]):
         text = _one_line_error(CliRunner().invoke(cli, args))

@@ -25,6 +25,8 @@ from ivc.errors import InputError, OptionsError
 #: report a few thousand frames a second; beyond, a rate is a typing slip (and a predictor's horizon in frames grows
 #: with it)
 RATE_RANGE_HZ = (0.1, 10_000.0)
+#: what h5py raises on a damaged file (its readers say what is wrong with it)
+_UNREADABLE = (OSError, KeyError, RuntimeError, ValueError, TypeError)
 #: a file's first bytes that say it is HDF5
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
@@ -49,7 +51,7 @@ def _hdf5_kind(path: Path) -> str | None:
     try:
         with h5py.File(path, "r") as h5:
             found = h5.attrs.get("ivc_format")
-    except OSError:
+    except _UNREADABLE:  # a damaged file: its reader says what is wrong
         return None
     found = found.decode() if isinstance(found, bytes) else found
     return {"lut": TABLE, "session": SESSION}.get(str(found))
@@ -100,17 +102,10 @@ def corrected_by(path: str | os.PathLike, kind: str | None = None) -> str | None
     path = Path(path)
     kind = kind or file_kind(path)
     if kind == SESSION:
-        import h5py
-
-        with h5py.File(path, "r") as h5:
-            if "corrected_with" in h5.attrs:
-                return f"its attribute corrected_with = {_text(h5.attrs['corrected_with'])}"
-            for name, step in h5.get("steps", {}).items():
-                if "corrected_with" in step.attrs:
-                    return f"its step {name}'s attribute corrected_with = {_text(step.attrs['corrected_with'])}"
-                if "flags" in step:
-                    return f"its step {name}'s correction flags"
-        return None
+        try:
+            return _session_corrected_by(path)
+        except _UNREADABLE:  # a damaged session: its reader says what is wrong
+            return None
     if kind == RECORDING:
         header = _header(path)
         if all(c in header for c in CORRECTED_COLUMNS):
@@ -120,6 +115,21 @@ def corrected_by(path: str | os.PathLike, kind: str | None = None) -> str | None
         text = _head(path, 1 << 16).decode("latin-1")
         if "IvcTransform" in text:
             return "its ...IvcTransform frame fields"
+    return None
+
+
+def _session_corrected_by(path: Path) -> str | None:
+    import h5py
+
+    with h5py.File(path, "r") as h5:
+        if "corrected_with" in h5.attrs:
+            return f"its attribute corrected_with = {_text(h5.attrs['corrected_with'])}"
+        steps = h5.get("steps")
+        for name, step in (steps.items() if isinstance(steps, h5py.Group) else ()):
+            if "corrected_with" in step.attrs:
+                return f"its step {name}'s attribute corrected_with = {_text(step.attrs['corrected_with'])}"
+            if isinstance(step, h5py.Group) and "flags" in step:
+                return f"its step {name}'s correction flags"
     return None
 
 

@@ -19,6 +19,7 @@ from ivc.cli.tracker import tracker_option
 from ivc.collect import check_step, replay
 from ivc.collect.guide import instruction, save_step
 from ivc.collect.sources import is_live_spec
+from ivc.files import check_writable
 from ivc.fixtures.geometry import load_geometries, part_declared_pose
 from ivc.session import STEPS, Session, SessionError, Step, Truth, is_extension_step
 from ivc.sim import Simulator, load_scene
@@ -199,6 +200,7 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
     makes a valid step, else dropped, and the output says which (docs/collect.md).
     """
     kind, argument = _parse_source(source)
+    check_writable(output)  # a folder it cannot write into is found now, not after a step of collection
     geometries = load_geometries(geometry_files)
     if "cube" in geometries and (declared_position is not None or declared_quaternion is not None):
         declared_position, declared_quaternion = part_declared_pose(geometries["cube"], declared_position,
