@@ -403,3 +403,14 @@ def test_tracker_calibrate_warns_of_stage_positions_in_another_unit(rig, tmp_pat
     assert "mm.csv: its stage positions span 0.1 mm in all" in result.stderr and "in metres" in result.stderr
     same = CliRunner().invoke(cli, ["tracker", "check", str(rig / "tracker.json"), str(rig / "held_out.csv")])
     assert "stage positions span" not in same.output
+
+
+def test_fixtures_print_checks_its_folders_before_building_the_part(tmp_path, monkeypatch):
+    import ivc.fixtures.printing as printing
+
+    monkeypatch.setattr(printing, "build_part", lambda *a, **k: pytest.fail("the part was built"))
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    text = _one_line_error(CliRunner().invoke(cli, ["fixtures", "print", "cube", "-o", str(tmp_path / "cube.stl"),
+                                                    "--preview", str(blocker / "cube.png")]))
+    assert f"{blocker / 'cube.png'}: cannot write it" in text and "not a folder" in text
