@@ -21,9 +21,9 @@ from pathlib import Path
 
 from ivc.errors import InputError, OptionsError
 
-#: the sample rates (Hz) a tracker stream may be given: ILEMT logs rows at 1 Hz and below, the fastest AC trackers
-#: report a few thousand frames a second; beyond, a rate is a typing slip (and a predictor's horizon in frames grows
-#: with it)
+#: the sample rates (Hz) a tracker stream may be given: a stage recording without time stamps is read at 1 Hz (one
+#: row a second, ILEMT's), the fastest AC trackers report a few thousand frames a second; beyond, a rate is a typing
+#: slip (and a predictor's horizon in frames grows with it)
 RATE_RANGE_HZ = (0.1, 10_000.0)
 #: what h5py raises on a damaged file (its readers say what is wrong with it)
 _UNREADABLE = (OSError, KeyError, RuntimeError, ValueError, TypeError)
