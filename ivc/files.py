@@ -8,6 +8,7 @@ provenance and a corrected recording record of their input.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
 import shutil
@@ -15,7 +16,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["atomic_path", "file_digest"]
+__all__ = ["atomic_path", "check_writable", "file_digest"]
 
 
 @contextlib.contextmanager
@@ -26,8 +27,11 @@ def atomic_path(path: str | os.PathLike, copy_existing: bool = False) -> Iterato
     exception the temporary file is removed and ``path`` is untouched.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as error:  # name the file asked for, not the hidden temporary one beside it
+        raise type(error)(error.errno, f"cannot write it into {path.parent} ({error.strerror})", str(path)) from None
     os.close(fd)
     tmp = Path(tmp)
     umask = os.umask(0)
@@ -41,6 +45,23 @@ def atomic_path(path: str | os.PathLike, copy_existing: bool = False) -> Iterato
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def check_writable(path: str | os.PathLike) -> None:
+    """Refuse, before any work, a file ``path`` that could not be written: its nearest existing folder is not a
+    folder, or not one this process may create files in (an OSError naming ``path``)."""
+    path = Path(path)
+    folder = path.parent
+    while not folder.exists() and folder.parent != folder:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, f"cannot write it: {folder} is a file, not a folder", str(path))
+    try:  # a real file made and removed: os.access cannot tell a read-only mount or quota from a folder's mode
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        raise type(error)(error.errno, f"cannot write it: the folder {folder} is not writable ({error.strerror}); "
+                          "choose another place", str(path)) from None
 
 
 def file_digest(path: str | Path) -> str:

@@ -61,7 +61,11 @@ def parse_url(url: str) -> tuple[str, int]:
     parsed = urlparse(url if "://" in url else f"igtl://{url}")
     if parsed.scheme != "igtl" or not parsed.hostname:
         raise InputError(f"expected igtl://HOST:PORT, got {url!r}")
-    return parsed.hostname, parsed.port or DEFAULT_PORT
+    try:
+        port = parsed.port
+    except ValueError:  # not a number, or outside 0-65535
+        raise InputError(f"{url!r}: the port must be a whole number from 1 to 65535") from None
+    return parsed.hostname, port or DEFAULT_PORT
 
 
 @dataclass

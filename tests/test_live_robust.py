@@ -90,12 +90,28 @@ def test_a_header_split_across_reads_is_not_lost_by_the_garbage_scan():
 
 def test_long_device_names_keep_the_suffix():
     assert output_device_name("S0") == "S0_ivc"
-    assert output_device_name("StylusTipToReference") == "StylusTipToRefer_ivc"  # 20 characters in
+    assert output_device_name("StylusTipToReference") == "StylusTipTo-2523_ivc"  # 20 characters in: tagged
     assert output_device_name("ProbeToTrackerXY") == "ProbeToTrackerXY_ivc"  # 16 + 4 = 20: kept whole
     for n in range(1, 30):
         name = output_device_name("A" * n)
         assert name.endswith("_ivc") and len(name.encode()) <= 20
     assert output_device_name("Sondeé" * 4).endswith("_ivc")  # cut on a character boundary
+
+
+def test_long_names_that_share_their_start_are_published_under_different_names():
+    """Issue 41: `StylusTipToReference` and `StylusTipToReferenc2` were both published as `StylusTipToRefer_ivc`."""
+    import hashlib
+
+    first, second = output_device_name("StylusTipToReference"), output_device_name("StylusTipToReferenc2")
+    assert first != second and len(first.encode()) == len(second.encode()) == 20
+    assert second == output_device_name("StylusTipToReferenc2")  # the same name every run
+    assert second.endswith(hashlib.sha1(b"StylusTipToReferenc2").hexdigest()[:4] + "_ivc")
+    names = [f"ProbeToTrackerPosition{k}" for k in range(200)]  # 200 names alike in their first 20 bytes
+    published: set[str] = set()
+    for name in names:
+        published.add(output_device_name(name, taken=published))
+    assert len(published) == 200 and all(len(p.encode()) <= 20 and p.endswith("_ivc") for p in published)
+    assert output_device_name("StylusTipToReference", taken={first}) != first  # a tag already taken grows
 
 
 def _run_live(table, payloads, names_wanted, caplog, sensors=None):
@@ -143,12 +159,27 @@ def test_zero_signals_and_absurd_translations_are_dropped_and_logged_and_the_loo
         payloads.append(TransformMessage(good[k], timestamp=stamp + (k + 1) / 240,
                                          device_name="StylusTipToReference").pack())
     names, stats, log = _run_live(exact_table, payloads, 12, caplog)
-    assert names.count("Coil_ivc") == 6 and names.count("StylusTipToRefer_ivc") == 6
+    assert names.count("Coil_ivc") == 6 and names.count("StylusTipTo-2523_ivc") == 6
     assert stats.rejected == 2 and stats.received == 12
     assert sum("'Coil': dropped a NDARRAY message: the signal matrix is all zeros" in w for w in log) == 1
     assert sum("'StylusTipToReference': dropped a TRANSFORM message: its translation is 1.73e+27 m" in w
                for w in log) == 1
-    assert sum("published as 'StylusTipToRefer_ivc'" in w for w in log) == 1
+    assert sum("'StylusTipToReference' is published as 'StylusTipTo-2523_ivc'" in w for w in log) == 1
+
+
+@pytest.mark.slow
+def test_two_long_sensor_names_alike_in_their_start_stay_two_streams(exact_table, rng, caplog):  # noqa: F811
+    """Issue 41 item 7: both were published as `StylusTipToRefer_ivc`, one stream's poses mixed into the other's."""
+    r, T, S = distorted(rng, 4)
+    good = reported_matrices(S).astype(float)
+    sensors = ("StylusTipToReference", "StylusTipToReferenc2")
+    payloads = [TransformMessage(good[k], timestamp=4000.0 + k / 240, device_name=name).pack()
+                for k in range(4) for name in sensors]
+    names, _, log = _run_live(exact_table, payloads, 8, caplog)
+    published = [output_device_name(name) for name in sensors]
+    assert published[0] != published[1] and names.count(published[0]) == names.count(published[1]) == 4
+    for name, out in zip(sensors, published, strict=True):  # which name stands for which, said once
+        assert sum(f"{name!r} is published as {out!r}" in w for w in log) == 1
 
 
 @pytest.mark.slow

@@ -20,6 +20,7 @@ import numpy as np
 
 from ivc import lut
 from ivc import session as session_io
+from ivc.app.inputs import check_correct_inputs
 from ivc.app.messages import INFO, NOTE, WARNING, Report, silent
 from ivc.app.paths import input_and_output
 from ivc.collect.checks import rate_warning
@@ -63,7 +64,8 @@ class CorrectOptions:
     ``predictor``: then predict each sensor's corrected orientation ``horizon`` s ahead with this filter
     (``ivc.predict.FILTERS``) from the trusted samples; ``tune``: tune Himberg's filters to each corrected step's
     trusted samples; ``tune_from``: tune them from this recording or session instead (``tuning``: a tuning already
-    made from it). ``overwrite``: replace the output if it exists (never an input).
+    made from it). ``overwrite``: replace the output if it exists (never an input). ``allow_corrected``: take an
+    input that is ivc's corrected output (refused otherwise: its poses would be corrected twice).
     """
 
     steps: Sequence[str] = ()
@@ -81,6 +83,7 @@ class CorrectOptions:
     tune_from: str | os.PathLike | None = None
     tuning: Tuning | None = None
     overwrite: bool = False
+    allow_corrected: bool = False
 
     def precision_keywords(self) -> dict:
         """The correctors' precision keywords (:class:`~ivc.correct.Corrector`, :class:`~ivc.correct.PoseCorrector`)."""
@@ -140,6 +143,7 @@ def correct_file(lut_file: str | os.PathLike, input_file: str | os.PathLike, out
     ['flags', 'residual', 'precision_mm', 'orientation_precision_mrad']
     """
     options = options or CorrectOptions()
+    check_correct_inputs(lut_file, input_file, options.allow_corrected)
     say = report or silent
     options.check()
     input_path, output_path = input_and_output(input_file, output, options.overwrite,

@@ -7,11 +7,14 @@ never replace a recording or a table that is being read.
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
+from typing import BinaryIO
 
 from ivc.errors import InputError
+from ivc.files import atomic_path, check_writable
 
 
 def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
@@ -43,11 +46,13 @@ def refuse_inputs_as_outputs(outputs: Mapping[str, str | os.PathLike | None],
 
 def check_output(output: str | os.PathLike, overwrite: bool, inputs: Mapping[str, str | os.PathLike | None],
                  name: str = "OUTPUT") -> Path:
-    """The output path after the checks: not one of ``inputs``; absent unless ``overwrite``."""
+    """The output path after the checks: not one of ``inputs``; absent unless ``overwrite``; in a folder it can be
+    written to (:func:`ivc.files.check_writable`), all before any work."""
     refuse_inputs_as_outputs({name: output}, inputs)
     path = Path(output)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+    check_writable(path)
     return path
 
 
@@ -60,3 +65,34 @@ def input_and_output(input_file: str | os.PathLike, output: str | os.PathLike, o
         raise FileNotFoundError(f"{input_path}: no such file")
     output_path = check_output(output, overwrite, {"the input": input_file, **dict(other_inputs)})
     return input_path, output_path
+
+
+def plot_format(path: str | os.PathLike) -> str:
+    """The figure format matplotlib writes ``path`` in, from its extension; :class:`InputError` naming the formats
+    it can write when it cannot (so a plot is refused before the work that draws it, not after)."""
+    from matplotlib.figure import Figure
+
+    formats = sorted(Figure().canvas.get_supported_filetypes())
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if suffix not in formats:
+        found = f"'.{suffix}'" if suffix else "no extension"
+        raise InputError(f"plot={path}: a figure is written in the format of its extension ({', '.join(formats)}); "
+                         f"this has {found}: name it e.g. {Path(path).with_suffix('.png').name}")
+    return suffix
+
+
+def check_plot(path: str | os.PathLike, overwrite: bool, inputs: Mapping[str, str | os.PathLike | None]) -> Path:
+    """A figure's path after the checks of :func:`check_output` and :func:`plot_format`, before any work."""
+    plot_format(path)
+    return check_output(path, overwrite, inputs, "plot")
+
+
+@contextlib.contextmanager
+def atomic_figure(path: str | os.PathLike) -> Iterator[BinaryIO]:
+    """A binary file to ``savefig`` into, renamed over ``path`` only once the figure is whole; matplotlib writes it
+    in ``path``'s format (:func:`plot_format`), though the temporary file beside it has another extension."""
+    import matplotlib
+
+    fmt = plot_format(path)
+    with atomic_path(path) as tmp, open(tmp, "wb") as handle, matplotlib.rc_context({"savefig.format": fmt}):
+        yield handle

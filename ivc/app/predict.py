@@ -14,6 +14,7 @@ from pathlib import Path
 
 from ivc import session as session_io
 from ivc.app.correct import plus_output_is_csv, prediction_tuning, timing_text
+from ivc.app.inputs import check_rate
 from ivc.app.messages import INFO, WARNING, Report, silent
 from ivc.app.paths import input_and_output
 from ivc.collect.checks import rate_warning
@@ -84,6 +85,7 @@ def predict_file(input_file: str | os.PathLike, output: str | os.PathLike, optio
     """
     options = options or PredictOptions()
     say = report or silent
+    check_rate(options.rate_hz)
     input_path, output_path = input_and_output(input_file, output, options.overwrite,
                                                [("tune_from", options.tune_from)])
     tuning = prediction_tuning(options.filter, options.tune, options.tune_from, options.tuning, say)

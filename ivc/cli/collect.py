@@ -12,13 +12,14 @@ from tqdm import tqdm
 
 from ivc import rotations
 from ivc import session as session_io
-from ivc.cli.options import POSITIVE, SIM_FRAMES
+from ivc.cli.options import POSITIVE, RATE_HZ, SIM_FRAMES
 from ivc.cli.paths import refuse_inputs_as_outputs
 from ivc.cli.progress import ON_TERMINAL
 from ivc.cli.tracker import tracker_option
 from ivc.collect import check_step, replay
 from ivc.collect.guide import instruction, save_step
 from ivc.collect.sources import is_live_spec
+from ivc.files import check_writable
 from ivc.fixtures.geometry import load_geometries, part_declared_pose
 from ivc.session import STEPS, Session, SessionError, Step, Truth, is_extension_step
 from ivc.sim import Simulator, load_scene
@@ -160,7 +161,7 @@ def _step_name(ctx, param, value: str) -> str:
 @click.option("--check-frames", type=SIM_FRAMES, help="protocol: check poses (default 10,000).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Simulator seed.")
 @click.option("--hemisphere", help="Hemisphere of a replayed recording (default +x; a scene declares its own).")
-@click.option("--rate", type=POSITIVE, help="Sample rate (Hz) of a replayed CSV (default: inferred from its times).")
+@click.option("--rate", type=RATE_HZ, help="Sample rate (Hz) of a replayed CSV (default: inferred from its times).")
 @click.option("--declared-position", callback=_floats(3), help="cube_survey: declared cube position x,y,z in m.")
 @click.option("--declared-quaternion", callback=_floats(4), help="cube_survey: declared cube orientation w,x,y,z.")
 @click.option("--force", is_flag=True, help="Replace a step that is already in the session file.")
@@ -199,6 +200,7 @@ def collect(step, source, output, frames, sweep_frames, check_frames, seed, hemi
     makes a valid step, else dropped, and the output says which (docs/collect.md).
     """
     kind, argument = _parse_source(source)
+    check_writable(output)  # a folder it cannot write into is found now, not after a step of collection
     geometries = load_geometries(geometry_files)
     if "cube" in geometries and (declared_position is not None or declared_quaternion is not None):
         declared_position, declared_quaternion = part_declared_pose(geometries["cube"], declared_position,

@@ -14,11 +14,12 @@ import numpy as np
 from ivc import compiled
 from ivc.app.correct import CorrectOptions, LiveOptions, correct_file, live_corrector
 from ivc.cli.flags import echo_report, usage_errors
-from ivc.cli.options import POSITIVE, solver_option
+from ivc.cli.options import POSITIVE, RATE_HZ, solver_option
 from ivc.cli.predict import parse_horizon
 from ivc.cli.tracker import tracker_option
 from ivc.correct.precision import DEFAULT
 from ivc.correct.solver import MAX_RESIDUAL
+from ivc.igtl import parse_url
 from ivc.predict import DEFAULT_FILTER, FILTERS
 from ivc.table.grid import INTERPOLATIONS
 from ivc.units import LENGTH_UNITS
@@ -64,7 +65,7 @@ def _cold_note() -> None:
               help="With --live: length unit of the stream's translations (PLUS and Slicer use mm).")
 @click.option("--sensor", "sensors", multiple=True, help="With --live: correct only these device names "
               "(default: every device that sends TRANSFORM or NDARRAY messages).")
-@click.option("--rate-hz", type=POSITIVE, default=240.0, show_default=True,
+@click.option("--rate-hz", type=RATE_HZ, default=240.0, show_default=True,
               help="With --live --predict: the stream's sample rate.")
 @click.option("--duration", type=POSITIVE, help="With --live: stop after this many seconds (default: until Ctrl-C).")
 @click.option("--precision/--no-precision", "with_precision", default=True, show_default=True,
@@ -76,10 +77,13 @@ def _cold_note() -> None:
                    "tracker's noise is known; docs/trust.md says why); 'none' turns the gate off.")
 @click.option("--signal-noise", type=POSITIVE, help="The tracker's white noise per signal entry, in signal units "
               "(default: what the table's fit measured on the session's static steps).")
+@click.option("--allow-corrected", is_flag=True, help="Take an INPUT_FILE that is ivc's corrected output (a session "
+              "with corrected_with, a CSV with flags and residual columns): refused otherwise, as its poses would be "
+              "corrected twice.")
 @tracker_option
 def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, solver, force, predictor,
             horizon, tune, tune_from, live_url, publish, length_unit, sensors, rate_hz, duration, with_precision,
-            max_precision, signal_noise, tracker_file):
+            max_precision, signal_noise, allow_corrected, tracker_file):
     """Correct the poses in INPUT_FILE (session .h5, recording .csv or PLUS sequence .igs.mha) with LUT_FILE.
 
     A PLUS sequence (.igs.mha, .seq.mha, .igs.nrrd) is written back with each
@@ -101,15 +105,16 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
                              solver=solver, precision=with_precision, signal_noise=signal_noise,
                              max_precision=precision_limit(max_precision),
                              tracker_model=tracker_file, predictor=predictor, tune=tune, tune_from=tune_from,
-                             overwrite=force)
+                             overwrite=force, allow_corrected=allow_corrected)
     with usage_errors("correct"):
         options.check()
         if live_url:
             if input_file or output:
                 raise click.UsageError("--live reads from the network: give no INPUT_FILE or --output")
             host, _, port = publish.rpartition(":")
-            if not host or not port.isdigit():
-                raise click.UsageError(f"--publish wants HOST:PORT, got {publish!r}")
+            if not host or not port.isdigit() or int(port) > 65535:
+                raise click.UsageError(f"--publish wants HOST:PORT with a port from 0 to 65535, got {publish!r}")
+            parse_url(live_url)  # its port checked before the table is read
             if predictor:
                 options.horizon = parse_horizon(horizon)
             _live(lut_file, live_url, options, LiveOptions((host, int(port)), length_unit, sensors, rate_hz), duration)
@@ -155,9 +160,12 @@ def _live(lut_file, url, options: CorrectOptions, live: LiveOptions, duration: f
         stats = corrector.run(duration)
     except KeyboardInterrupt:
         stats = corrector.stats
-    latency = np.median(stats.latency_s) * 1e3 if stats.latency_s else float("nan")
+    latency = (f"median processing {np.median(stats.latency_s) * 1e3:.3f} ms per batch" if stats.latency_s
+               else "no batch processed")
     click.echo(f"received {stats.received}, corrected {stats.corrected}, flagged {stats.flagged}, out of order "
                f"{stats.out_of_order}, unknown {stats.unknown}, unusable {stats.rejected}, malformed bytes "
                f"{stats.garbage_bytes}, dropped for "
-               f"slow clients {stats.dropped_for_slow_clients}, connections {stats.connections}; median processing "
-               f"{latency:.3f} ms per batch", err=True)
+               f"slow clients {stats.dropped_for_slow_clients}, connections {stats.connections}; {latency}", err=True)
+    if stats.connections == 0:
+        raise click.ClickException(f"never reached a tracking server at {url}: nothing was corrected. Is the server "
+                                   "(PLUS, 3D Slicer, `ivc serve`) running, and are its host and port these?")

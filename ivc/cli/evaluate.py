@@ -8,6 +8,7 @@ import click
 
 from ivc import lut
 from ivc import session as session_io
+from ivc.app.inputs import RECORDING, SESSION, TABLE, expect_kind, refuse_corrected
 from ivc.cli.options import POSITIVE, solver_option
 from ivc.cli.tracker import tracker_option, with_tracker
 from ivc.correct.evaluate import evaluate as evaluate_table
@@ -67,10 +68,14 @@ def render_table(report: dict) -> str:
 @solver_option("Check poses reported only: the tracker's own pose solver (default: the one the table was fitted "
                "for, else closed-form).")
 @click.option("--json", "as_json", is_flag=True, help="Print the table as JSON.")
+@click.option("--allow-corrected", is_flag=True, help="Evaluate the reported poses of a CHECK_FILE that is ivc's "
+              "corrected output (refused otherwise: they would be corrected twice).")
 @tracker_option
-def evaluate(lut_file, check_file, step, interpolation, max_residual, solver, as_json, tracker_file):
+def evaluate(lut_file, check_file, step, interpolation, max_residual, solver, as_json, allow_corrected, tracker_file):
     """Correct the check poses of CHECK_FILE with LUT_FILE and compare with their truth (Himberg 2010's Table 24)."""
-    if session_io.is_recording_csv(check_file):
+    expect_kind(lut_file, (TABLE,), "LUT_FILE")
+    kind = expect_kind(check_file, (SESSION, RECORDING), "CHECK_FILE")
+    if kind == RECORDING or session_io.is_recording_csv(check_file):
         raise click.UsageError(f"{check_file}: a recording CSV holds no true poses; evaluate a session .h5 with "
                                "/truth/check (a simulation or a precision rig), or correct the CSV with `ivc correct`")
     table = lut.read(lut_file)
@@ -78,7 +83,8 @@ def evaluate(lut_file, check_file, step, interpolation, max_residual, solver, as
     if tracker_file is not None and step in check.steps:
         check = with_tracker(check, tracker_file, [step])
     measurement = measurement_of(check.steps[step]) if step in check.steps else SignalInput()
-    if isinstance(measurement, PoseInput):
+    if isinstance(measurement, PoseInput):  # the reported poses are corrected: refuse ivc's corrected ones
+        refuse_corrected(check_file, allow_corrected, "CHECK_FILE", kind)
         options = {"solver": solver}
     else:  # the tracker's noise, when the table's fit measured it, gives each pose's predicted precision
         options = {"max_residual": max_residual, "precision": table.signal_noise is not None}

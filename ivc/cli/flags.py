@@ -27,6 +27,7 @@ FLAGS = {
     "max_residual": "--max-residual",
     "max_error": "--max-error-mm",
     "max_refinements": "--max-refinements",
+    "max_frames": "--max-frames",
     "hemisphere": "--hemisphere",
     "solver": "--solver",
     "tracker_model": "--tracker-model",
@@ -34,6 +35,8 @@ FLAGS = {
     "length_unit": "--unit",
     "sensors": "--sensor",
     "output": "-o",
+    "plot": "--plot",
+    "allow_corrected": "--allow-corrected",
     "rate_hz": "--rate",
     "sample_rate_hz": "--rate",
 }

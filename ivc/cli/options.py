@@ -25,6 +25,27 @@ class PositiveFloat(click.ParamType):
 
 
 POSITIVE = PositiveFloat()
+
+
+class RateHz(PositiveFloat):
+    """A sample rate (Hz) inside :data:`ivc.app.inputs.RATE_RANGE_HZ`, refused before any work."""
+
+    name = "Hz"
+
+    def convert(self, value, param, ctx):
+        from ivc.app.inputs import RATE_RANGE_HZ
+
+        rate = super().convert(value, param, ctx)
+        low, high = RATE_RANGE_HZ
+        if not low <= rate <= high:
+            self.fail(f"{rate:g} Hz is outside the sample rates of a tracker stream, {low:g} to {high:g} Hz", param,
+                      ctx)
+        return rate
+
+
+RATE_HZ = RateHz()
+#: a seed NumPy takes (non-negative) and a session stores (a 64-bit signed attribute: ivc.sim.protocol.MAX_SEED)
+SEED = click.IntRange(0, 2**63 - 1)
 #: most frames one simulated step may have: 20 times the protocol's 100,000-frame sweep (memory grows with it)
 MAX_SIM_FRAMES = 2_000_000
 SIM_FRAMES = click.IntRange(1, MAX_SIM_FRAMES)

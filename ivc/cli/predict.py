@@ -12,9 +12,10 @@ import numpy as np
 
 from ivc import session as session_io
 from ivc.app.correct import timing_text
+from ivc.app.paths import atomic_figure, check_plot
 from ivc.app.predict import PredictOptions, predict_file
 from ivc.cli.flags import echo_report, usage_errors
-from ivc.cli.options import POSITIVE
+from ivc.cli.options import RATE_HZ, SEED
 from ivc.cli.progress import ON_TERMINAL
 from ivc.collect.imports import read_recording, sniff
 from ivc.predict import DEFAULT_FILTER, FILTERS, make
@@ -77,7 +78,8 @@ def run_evaluation(path, step: Step, names: list[str], horizons: list[float], pl
     wanted = sorted(set(horizons) | ({round(0.0125 * k, 4) for k in range(1, 1 + int(max(horizons) / 0.0125))}
                                      if plot else set()))
     results = {}
-    with tqdm(total=len(names) * step.n_sensors, desc="evaluate", unit="filter", leave=False) as bar:
+    with tqdm(total=len(names) * step.n_sensors, desc="evaluate", unit="filter", leave=False,
+              disable=True if as_json else ON_TERMINAL) as bar:
         for s, sensor in enumerate(step.names):
             predictors = [make(n, step.sample_rate_hz) for n in names]
             results[sensor] = score(predictors, step.quaternion[:, s], step.time, wanted, step.valid_mask[:, s],
@@ -95,7 +97,8 @@ def run_evaluation(path, step: Step, names: list[str], horizons: list[float], pl
                    "measured orientation)")
     if plot:
         first = next(iter(results))
-        plot_scores(results[first], plot, title=f"{Path(path).name}, sensor {first}")
+        with atomic_figure(plot) as handle:
+            plot_scores(results[first], handle, title=f"{Path(path).name}, sensor {first}")
         click.echo(f"wrote {plot}")
 
 
@@ -153,7 +156,8 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
         click.echo(velocity_table(results) + "\n")
         click.echo(snr_table(results))
     if plot:
-        plot_error_vs_horizon(results, plot)
+        with atomic_figure(plot) as handle:
+            plot_error_vs_horizon(results, handle)
         click.echo(f"wrote {plot}")
 
 
@@ -171,18 +175,18 @@ def run_benchmark(motions, filters, frames, rate, seed, reference, plot, as_json
               help="Position unit of a Polhemus Liberty logger CSV (the file does not say; a Liberty reports inches).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), help="Output: session .h5 or .csv, as the input.")
 @click.option("--step", "steps", multiple=True, help="Session input: step(s) to predict (default: all).")
-@click.option("--rate", type=POSITIVE, help="Sample rate (Hz) of a CSV without a usable time column.")
-@click.option("--force", is_flag=True, help="Replace OUTPUT if it exists (never the input).")
+@click.option("--rate", type=RATE_HZ, help="Sample rate (Hz) of a CSV without a usable time column.")
+@click.option("--force", is_flag=True, help="Replace OUTPUT (or the --plot file) if it exists (never the input).")
 @click.option("--benchmark", is_flag=True, help="Evaluate predictors on synthetic head motion and print the "
               "thesis's tables (horizons 0-117 ms).")
 @click.option("--motion", "motions", multiple=True, type=click.Choice(MOTIONS), help="Benchmark motion(s).")
 @click.option("--frames", type=int, default=12_000, show_default=True, help="Benchmark frames per motion.")
 @click.option("--bench-rate", type=click.Choice(["120", "240"]), default="120", show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--reference", type=click.Choice(["measured", "truth"]), default="measured", show_default=True,
               help="Benchmark reference: time-shifted measurements (the thesis) or the noiseless truth.")
 @click.option("--plot", type=click.Path(dir_okay=False), help="--benchmark or --evaluate: write the error-vs-horizon "
-              "PNG here.")
+              "figure here, in the format of its extension (.png, .svg, .pdf, ...); an existing one only with --force.")
 @click.option("--json", "as_json", is_flag=True, help="--benchmark or --evaluate: print the figures as JSON.")
 @click.option("--tune", is_flag=True, help="Tune Himberg 2010's filters (q-ekf, dqekf-*, mmdq*) by the thesis's "
               "procedure (measurement noise from the data, process noise at each model's λ) instead of using the "
@@ -208,6 +212,10 @@ def predict(input_file, filters, horizon, evaluate, import_unit, output, steps, 
     synthetic head motion and prints the thesis's tables (Tables 5-6, 11, 12-15 layouts, and the
     SNR of Figs. 16-17).
     """
+    if plot:
+        if not (benchmark or evaluate):
+            raise click.UsageError("--plot draws the scores of --evaluate or --benchmark")
+        check_plot(plot, force, {"INPUT_FILE": input_file, "--tune-from": tune_from})
     if tune_from and (benchmark or compensators):
         raise click.UsageError("--tune-from tunes the prediction of an INPUT_FILE; --benchmark --tune tunes on "
                                "synthetic data")

@@ -11,12 +11,14 @@ import click
 import numpy as np
 from tqdm import tqdm
 
+from ivc.app.inputs import RIG, expect_kind
+from ivc.cli.paths import check_output
 from ivc.cli.progress import ON_TERMINAL
 from ivc.collect.ilemt import folder_sign_fixes, parse_sign_fix, read_ilemt, stack
 from ivc.collect.rig_csv import read_rig_csv
 from ivc.dipole.tracker import load_tracker, save_tracker
 from ivc.pose.calibrate import calibrate as fit_tracker
-from ivc.pose.tracker_check import check_tracker, fixtures_of
+from ivc.pose.tracker_check import beyond_calibration, check_tracker, fixtures_of
 from ivc.session import Session
 
 
@@ -27,15 +29,34 @@ def _load(paths, carrier: str, compensate: bool, sign_fixes=()):
     """
     parts = []
     for p in paths:
-        if str(p).lower().endswith(".csv"):
+        kind = expect_kind(p, (RIG,), "the recording")  # a session, table or recording CSV is refused by name
+        if kind == RIG or str(p).lower().endswith(".csv"):
             parts.append(read_rig_csv(p))
         else:
             fixes = tuple(sign_fixes) + folder_sign_fixes(Path(p).parent)
             S, J_so, J_st, _ = stack([read_ilemt(p, carrier=carrier, compensate=compensate, sign_fixes=fixes)])
             parts.append((S, J_so, J_st))
+    for p, part in zip(paths, parts, strict=True):
+        _unit_warning(p, part[2])
     S, J_so, J_st = (np.concatenate([part[k] for part in parts]) for k in range(3))
     index = np.concatenate([np.full(len(part[0]), k) for k, part in enumerate(parts)])
     return index, S, J_so, J_st
+
+
+#: a rig's stage that moves the sensor at all moves it more than this (m); less is a length in another unit
+MIN_STAGE_TRAVEL_M = 1e-3
+
+
+def _unit_warning(path, J_st: np.ndarray) -> None:
+    """Warn when a recording's stage positions move, but by less than a millimetre in all: metres in a file that
+    reads millimetres (ILEMT's .dat, a rig CSV's x_mm columns), which the calibration cannot fit (its coil model
+    comes out singular or its points a few mm from the source)."""
+    travel = float(np.max(np.ptp(J_st[:, :3, 3], axis=0), initial=0.0))
+    if 0.0 < travel < MIN_STAGE_TRAVEL_M:
+        click.echo(f"WARNING: {Path(path).name}: its stage positions span {1e3 * travel:.3g} mm in all, where a "
+                   "calibration rig moves the sensor by centimetres: are they in metres where the file reads "
+                   "millimetres (an ILEMT .dat gives stage X Y Z in mm; a rig CSV names its unit x_mm or x)?",
+                   err=True)
 
 
 def _sign_findings(paths, index, S, J_so, J_st) -> list[dict]:
@@ -136,11 +157,7 @@ def calibrate(recordings, output, one_centre, bias, no_output_correction, source
     and stored in the tracker file, so that `ivc tracker check` can score other recordings
     made on the same rig.
     """
-    output_path = Path(output)
-    if any(output_path.resolve() == Path(p).resolve() for p in (*recordings, *tests)):
-        raise click.UsageError("OUTPUT must not be one of the recordings: raw recordings are never overwritten")
-    if output_path.exists() and not force:
-        raise FileExistsError(f"{output_path} exists; pass --force to replace it")
+    output_path = check_output(output, force, {f"the recording {p}": p for p in (*recordings, *tests)})
     compensate = not no_stage_compensation
     fixes = tuple(parse_sign_fix(text) for text in sign_fixes)
     index, S, J_so, J_st = _load(recordings, carrier, compensate, fixes)
@@ -198,7 +215,12 @@ def check(tracker_file, recordings, carrier, no_stage_compensation, sign_fixes, 
     fixes = tuple(parse_sign_fix(text) for text in sign_fixes)
     _, S, J_so, J_st = _load(recordings, carrier, not no_stage_compensation, fixes)
     report = check_tracker(model, fixtures, S, J_so, J_st)
+    warning = beyond_calibration(model, report)
+    if warning:
+        report["warning"] = warning
     click.echo(json.dumps(report, indent=2) if as_json else render("Points", report))
+    if warning:
+        click.echo(f"WARNING: {warning}", err=True)
 
 
 def tracker_option(command: Callable) -> Callable:

@@ -215,6 +215,11 @@ def _layout(path: Path, header: list[str]) -> _Layout:
     units = [u for u in LENGTH_UNITS if all(c in header for c in _position_columns(u))]
     orientations = [c for c in (QUATERNION_COLUMNS, EULER_COLUMNS) if all(n in header for n in c)]
     has_signal = all(c in header for c in SIGNAL_COLUMNS)
+    if len(header) == 1 and any(mark in header[0] for mark in ";\t"):
+        mark = ";" if ";" in header[0] else "tab"
+        raise CsvError(f"{path}: line 1: its columns are separated by {mark!r}: a recording CSV separates them by "
+                       "commas and writes decimals with a point (0.25, not 0,25), as spreadsheets do in an English "
+                       "locale; save it again that way")
     problems = []
     partial = [(name, [c for c in group if c not in header]) for name, group in
                (("signal", SIGNAL_COLUMNS), ("quaternion", QUATERNION_COLUMNS), ("Euler angle", EULER_COLUMNS),

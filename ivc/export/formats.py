@@ -194,7 +194,12 @@ def _itk(table: LookupTable, path: Path, unit: str, spacing: float | None = None
     transform = sitk.DisplacementFieldTransform(image)
     with tempfile.TemporaryDirectory(dir=path.parent, prefix=f".{path.name}.") as tmp:
         written = Path(tmp) / "transform.h5"  # ITK picks its HDF5 transform IO by the extension
-        sitk.WriteTransform(transform, str(written))
+        try:
+            sitk.WriteTransform(transform, str(written))
+        except RuntimeError as error:  # SimpleITK says every failure so: a full disk, a folder gone read-only
+            reason = next((line.strip() for line in str(error).splitlines()[::-1] if line.strip()), "no reason")
+            raise ExportError(f"{path}: SimpleITK could not write the transform (is the disk full, or the folder "
+                              f"read-only?); nothing was written. SimpleITK said: {reason}") from None
         with h5py.File(written, "r+") as h5:
             if slicer:
                 group = h5["TransformGroup/0"]

@@ -22,12 +22,14 @@ timestamps are dropped. Each kind of problem is logged once (per sensor or clien
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import selectors
 import socket
 import threading
 import time
 from collections import deque
+from collections.abc import Collection
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,6 +40,7 @@ from ivc.correct import kernels as _correct_kernels
 from ivc.correct import reported_kernels as _pose_kernels
 from ivc.correct.reported import PoseCorrector
 from ivc.dipole import kernels as _dipole_kernels
+from ivc.errors import LiveError
 from ivc.igtl import Downstream, Framer, TrackingDataMessage, encode_transforms
 from ivc.predict import Tuning
 from ivc.predict import make as make_predictor
@@ -156,6 +159,7 @@ class LiveCorrector:
         self._streams: dict = {}
         self._stream_time: dict[str, float] = {}  # each predictor stream's latest time stamp (s)
         self._logged: set = set()
+        self._published: dict[str, str] = {}  # sensor name -> the device name its corrections are published under
         #: seconds from start-up until the background compilation finished (None: none ran, or not yet)
         self.compiled_after_s: float | None = None
         self._compiler: threading.Thread | None = None
@@ -405,12 +409,16 @@ class LiveCorrector:
         self.stats.published_batches += 1
 
     def _published_name(self, name: str) -> str:
-        """``<name><suffix>`` within OpenIGTLink's 20 bytes: a long name loses the end of its base, never the
-        suffix (else it would collide with the raw stream's node); said once per name."""
-        published = output_device_name(name, self.suffix)
-        if published != name + self.suffix:
-            self._once(("renamed", name), f"sensor {name!r} is published as {published!r}: OpenIGTLink device "
-                       f"names hold {DEVICE_NAME_BYTES} bytes, so its name was shortened to keep {self.suffix!r}")
+        """``<name><suffix>`` within OpenIGTLink's 20 bytes (:func:`output_device_name`): a long name loses the end
+        of its base, never the suffix (else it would collide with the raw stream's node), and gains a tag that keeps
+        it apart from every other sensor's; said once per name, with the name it stands for."""
+        published = self._published.get(name)
+        if published is None:
+            published = self._published[name] = output_device_name(name, self.suffix, set(self._published.values()))
+            if published != name + self.suffix:
+                self._once(("renamed", name), f"sensor {name!r} is published as {published!r}: OpenIGTLink device "
+                           f"names hold {DEVICE_NAME_BYTES} bytes, so its name was shortened to keep {self.suffix!r} "
+                           "and tagged from the whole name to tell it from other sensors")
         return published
 
     # ---- downstream ---------------------------------------------------------------------------
@@ -451,9 +459,23 @@ class LiveCorrector:
         self._clients.close(self._listener)
 
 
-def output_device_name(name: str, suffix: str = "_ivc") -> str:
-    """The device name ``name`` is published under: ``name + suffix`` in at most DEVICE_NAME_BYTES bytes of
-    UTF-8, the base shortened (on a character boundary) when it is too long, the suffix kept whole."""
-    room = DEVICE_NAME_BYTES - len(suffix.encode())
-    base = name.encode()[:max(room, 0)].decode(errors="ignore")
-    return (base + suffix).encode()[:DEVICE_NAME_BYTES].decode(errors="ignore")
+def output_device_name(name: str, suffix: str = "_ivc", taken: Collection[str] = ()) -> str:
+    """The device name ``name`` is published under, within OpenIGTLink's DEVICE_NAME_BYTES bytes of UTF-8.
+
+    ``name + suffix`` when it fits. A longer name keeps the suffix whole and the start of its base (cut on a
+    character boundary), then ``-`` and a tag of hex digits of the whole name's SHA-1, so two names that share
+    their first bytes (``StylusTipToReference``, ``StylusTipToReferenc2``) are published under two names, the same
+    ones every run. ``taken``: names already published for other sensors; the tag grows until the name is not
+    among them."""
+    whole = name + suffix
+    if len(whole.encode()) <= DEVICE_NAME_BYTES and whole not in taken:
+        return whole
+    digest = hashlib.sha1(name.encode()).hexdigest()
+    for digits in range(4, len(digest) + 1):
+        tail = f"-{digest[:digits]}{suffix}"
+        room = max(DEVICE_NAME_BYTES - len(tail.encode()), 0)
+        published = (name.encode()[:room].decode(errors="ignore") + tail).encode()[:DEVICE_NAME_BYTES].decode(
+            errors="ignore")
+        if published not in taken:
+            return published
+    raise LiveError(f"no unique OpenIGTLink device name left for sensor {name!r}")

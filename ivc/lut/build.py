@@ -93,7 +93,7 @@ def _fit_signals(session: Session, measurement: SignalInput, options: FitOptions
     session, recorded, stride = decimated(session, options.max_frames)
     sweep = session.steps["wand_sweep"]
     mapping = measurement.map_sweep(session, model, progress("solving the sweep in the cube", sweep.n_frames))
-    check_enough(mapping.kept, mapping.keep.size, mapping.dropped, DROP_REASONS, ADVICE)
+    check_enough(mapping.kept, mapping.keep.size, mapping.dropped, DROP_REASONS, ADVICE, recorded, stride)
     samples = FieldSamples.from_mapping(mapping)
     if options.origin is not None:
         grid = Grid(np.asarray(options.origin, float), options.spacing, tuple(options.shape))

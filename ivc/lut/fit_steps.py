@@ -40,11 +40,19 @@ def decimated(session: Session, max_frames: int) -> tuple[Session, int, int]:
 
 
 def check_enough(kept: int, total: int, dropped: dict[str, int], reasons: tuple[str, ...],
-                 advice: dict[str, str]) -> None:
+                 advice: dict[str, str], recorded: int | None = None, stride: int = 1) -> None:
     """Refuse a sweep of which fewer than MIN_SAMPLES samples, or MIN_KEPT_FRACTION of them, passed the gates,
-    naming the gate (of ``reasons``, in their order) that dropped most and its ``advice``."""
+    naming the gate (of ``reasons``, in their order) that dropped most and its ``advice``; or, when the gates kept
+    their share and the sweep is only too short (``recorded`` frames, every ``stride``-th solved), saying so."""
     if kept >= MIN_SAMPLES and kept >= MIN_KEPT_FRACTION * total:
         return
+    if kept >= MIN_KEPT_FRACTION * total:  # the gates are not the cause: too few samples were solved
+        if recorded is not None and stride > 1:
+            raise SessionError(f"only {total} wand samples were solved (every {stride}-th of the sweep's {recorded} "
+                               f"frames) and {kept} passed the gates; the fit needs at least {MIN_SAMPLES}: solve "
+                               "more of the sweep's frames (a larger max_frames=N)")
+        raise SessionError(f"the sweep holds {total} wand samples and {kept} passed the gates; the fit needs at least "
+                           f"{MIN_SAMPLES}: record a longer sweep (`ivc collect wand_sweep`)")
     reason = max(reasons, key=lambda k: dropped.get(k, 0))
     detail = ", ".join(f"{n} {k}" for k, n in dropped.items() if n)
     raise SessionError(f"only {kept} of {total} wand samples passed the gates (dropped: {detail}); need at least "

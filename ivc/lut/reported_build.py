@@ -71,7 +71,7 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
     sweep = session.steps["wand_sweep"]
     mapping = measurement.map_sweep(session, model, progress("tracing sensor 0 into the cube", sweep.n_frames))
     total = int(mapping.keep.size)
-    check_enough(mapping.kept, total, mapping.dropped, DROP_REASONS, _ADVICE)
+    check_enough(mapping.kept, total, mapping.dropped, DROP_REASONS, _ADVICE, recorded, stride)
     pairs = mapping.pairs
     thin = max(1, -(-len(pairs) // max_pairs))
     used = pairs.subset(slice(None, None, thin)) if thin > 1 else pairs

@@ -18,11 +18,17 @@ from ivc.dipole.tracker import Tracker
 from ivc.errors import TrackerError
 from ivc.pose.calibrate import Fixtures, chain, predicted_signal, residue, solve_chain_poses
 
-__all__ = ["WRONG_DEG", "WRONG_MM", "check_tracker", "fixtures_of"]
+__all__ = ["BEYOND_FACTOR", "BEYOND_FLOOR_PERCENT", "BEYOND_FLOOR_MM", "WRONG_DEG", "WRONG_MM", "beyond_calibration",
+           "check_tracker", "fixtures_of"]
 
 #: a converged pose this far from the chain's (mm, degrees) sits in a wrong minimum
 WRONG_MM = 10.0
 WRONG_DEG = 5.0
+#: a check's rms residue or pose error this many times the calibration's own (and above the floors) is data the
+#: model and its fixtures do not describe: another source or sensor fixturing, another device
+BEYOND_FACTOR = 5.0
+BEYOND_FLOOR_PERCENT = 1.0
+BEYOND_FLOOR_MM = 5.0
 
 
 def fixtures_of(tracker: Tracker) -> Fixtures:
@@ -87,3 +93,26 @@ def check_tracker(tracker: Tracker, fixtures: Fixtures, S: np.ndarray, J_so: np.
                       "failed_by_range": _failures(~ok, ranges, bins, "range_mm", 1e3),
                       "failed_by_off_axis_angle": _failures(~ok, off_axis, bins, "angle_deg", 1.0)}
     return out
+
+
+def beyond_calibration(tracker: Tracker, report: dict) -> str | None:
+    """Plain words when :func:`check_tracker`'s ``report`` is far beyond the calibration's own figures (stored in
+    the tracker file): an rms residue or pose error :data:`BEYOND_FACTOR` times the calibration's and above
+    :data:`BEYOND_FLOOR_PERCENT` % or :data:`BEYOND_FLOOR_MM` mm. None when within, or when the file holds no
+    calibration report."""
+    own = tracker.calibration.get("report", {}).get("calibration") if isinstance(tracker.calibration, dict) else None
+    if not own:
+        return None
+    found = []
+    residue_now, residue_own = report["residue_rms_percent"], own.get("residue_rms_percent")
+    if residue_own is not None and residue_now > max(BEYOND_FACTOR * residue_own, BEYOND_FLOOR_PERCENT):
+        found.append(f"residue rms {residue_now:.3g} % (the calibration's: {residue_own:.3g} %)")
+    pose_now, pose_own = report.get("pose", {}).get("position_rms_mm"), own.get("pose", {}).get("position_rms_mm")
+    if pose_now is not None and pose_own is not None and pose_now > max(BEYOND_FACTOR * pose_own, BEYOND_FLOOR_MM):
+        found.append(f"position error rms {pose_now:.3g} mm (the calibration's: {pose_own:.3g} mm)")
+    if not found:
+        return None
+    return (f"{' and '.join(found)}: far beyond the calibration's own. These points were not recorded with the "
+            "source and sensor fixturing (or the device) the model was calibrated on, so its fixtures do not place "
+            "them: calibrate with these recordings among the calibration's, or check them against a model calibrated "
+            "on their rig")
