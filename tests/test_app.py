@@ -147,3 +147,16 @@ def test_live_corrector_refuses_what_a_stream_cannot_do_before_it_connects(tmp_p
                            ivc.LiveOptions(rate_hz=240.0))
     with pytest.raises(OptionsError, match="length_unit='furlong'"):
         ivc.live_corrector(TABLE, url, live=ivc.LiveOptions(length_unit="furlong"))
+
+
+@pytest.mark.parametrize("scale, hemisphere", [(1000.0, None), (1.0, "-x")])
+def test_signals_in_another_scale_or_hemisphere_are_not_sent_to_sweep_the_room(scale, hemisphere):
+    """Signals x1000 or the wrong hemisphere land outside the map and off its field: the advice names the scale,
+    the units and the hemisphere, not more sweeping (issue 41's messages)."""
+    from ivc.app.correct import correction_advice
+    from ivc.collect.replay import read_csv
+
+    step = read_csv(CHECK_CSV)
+    out = Corrector(lut.read(TABLE), hemisphere).batch(step.signal * scale, step.valid_mask)
+    advice = correction_advice(out, 1e-3)
+    assert "scale" in advice and "hemisphere" in advice and "sweep the wand there" not in advice

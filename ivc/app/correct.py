@@ -256,6 +256,10 @@ def correction_advice(out: Correction, max_residual: float, pose_only: bool = Fa
              for bit in (OUTSIDE, HIGH_RESIDUAL, NOT_CONVERGED, LOW_PRECISION)}
     bit = max(share, key=share.get)
     percent = f"{100 * share[bit]:.0f}% of the valid samples"
+    if bit == OUTSIDE and np.mean((flags[valid] & (OUTSIDE | HIGH_RESIDUAL)) == (OUTSIDE | HIGH_RESIDUAL)) >= 0.5:
+        return (f"{percent} lie outside the table's mapped volume and do not fit its field either: check the "
+                "signals' scale and units (the table's session's, e.g. not x1000), the hemisphere (hemisphere=AXIS), "
+                "and that this was recorded with the same source, before sweeping more of the room")
     if bit == OUTSIDE:
         return (f"{percent} lie outside the table's mapped volume: sweep the wand there and fit again "
                 "(`ivc report` shows the coverage)")
