@@ -18,7 +18,8 @@ import numpy as np
 from ivc.dipole.kernels import closed_form_one, closed_form_position, dipole_jacobian, field_matrix
 from ivc.linalg import quaternion_of, rotate_increment, rotation_polar_factor, solve_spd6
 from ivc.pose.kernels import accept_step, damped_matrix, gauss_newton_matrix, pose_residual, residual_cost
-from ivc.table.kernels import grid_contains, grid_point_separable, grid_value
+from ivc.pose.precision_kernels import crb_covariance_one, traces
+from ivc.table.kernels import grid_contains, grid_point_separable, grid_value, pose_model
 
 FIXED_POINT_STEPS = 2
 
@@ -258,3 +259,34 @@ def correct_serial(S, seeds, hemisphere, grid, seed_map, use_map, max_iterations
             S[n], seeds[n], hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r_out[n],
             T_out[n], ws)
         quaternion_of(T_out[n], q_out[n])
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _precision_at(r, T, grid, sigma):
+    """Predicted RMS position (m) and orientation (rad) error of the pose (r (3,), T (3, 3)) whose signal carries
+    the table's field (``grid``) and white noise ``sigma``: ivc.pose.precision_kernels.crb_covariance_one with
+    M and ∂M/∂r from the table (ivc.table.kernels.pose_model). NaN where r is not finite."""
+    if not (np.isfinite(r[0]) and np.isfinite(r[1]) and np.isfinite(r[2])):
+        return np.nan, np.nan
+    nc = grid[0].shape[3]
+    g, dg = np.empty(nc), np.empty((nc, 3))
+    wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
+    M, dM, J, covariance = np.empty((3, 3)), np.empty((3, 3, 3)), np.empty((9, 6)), np.empty((6, 6))
+    pose_model(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz)
+    crb_covariance_one(T, M, dM, J, covariance)
+    p, a = traces(covariance)
+    return sigma * p, sigma * a
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def precision_kernel(r, T, grid, sigma, position_out, orientation_out):  # pragma: no cover - compiled
+    """:func:`_precision_at` of every pose n: r (n, 3) m, T (n, 3, 3)."""
+    for n in numba.prange(r.shape[0]):
+        position_out[n], orientation_out[n] = _precision_at(r[n], T[n], grid, sigma)
+
+
+@numba.njit(cache=True, nogil=True)
+def precision_serial(r, T, grid, sigma, position_out, orientation_out):  # pragma: no cover - compiled
+    """:func:`precision_kernel` without threads: a live frame's few poses."""
+    for n in range(r.shape[0]):
+        position_out[n], orientation_out[n] = _precision_at(r[n], T[n], grid, sigma)

@@ -24,7 +24,6 @@ from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, LOW_PRECISION, NOT_C
 from ivc.correct.precision import DEFAULT, PrecisionGate
 from ivc.dipole.pose import hemisphere_vector
 from ivc.errors import InputError
-from ivc.pose import precision_kernels
 from ivc.table.grid import GridField
 from ivc.table.lookup import LookupTable
 
@@ -127,15 +126,11 @@ class Corrector:
 
     def _precision(self, r: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         n = len(r)
-        serial = n < 64
-        G, dG, _ = self.field.evaluate(np.where(np.isfinite(r), r, 1.0), parallel=not serial)
         out_r, out_a = np.empty(n), np.empty(n)
         bad = ~(np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(T.reshape(n, 9)), axis=1))
-        r = np.where(bad[:, None], np.nan, r)
-        kernel = compiled.choose(precision_kernels.precision_serial if serial else precision_kernels.precision_kernel,
-                                 n)
-        kernel(r, np.ascontiguousarray(np.where(bad[:, None, None], np.eye(3), T)),
-               np.ascontiguousarray(G.reshape(n, 3, 3)), np.ascontiguousarray(dG.reshape(n, 3, 3, 3)),
+        kernel = compiled.choose(_kernels.precision_serial if n < 64 else _kernels.precision_kernel, n)
+        kernel(np.ascontiguousarray(np.where(bad[:, None], np.nan, r)),
+               np.ascontiguousarray(np.where(bad[:, None, None], np.eye(3), T)), self.field.kernel_grid,
                float(self.signal_noise), out_r, out_a)
         return out_r, out_a
 
