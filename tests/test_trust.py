@@ -184,3 +184,12 @@ def test_a_track_keeps_its_branch_and_a_stream_that_starts_there_is_flagged(fold
         assert late.update(v[-1][None], rotations.to_matrix(q[-1])[None], sensors=["s"]).flags[0] & HIGH_RESIDUAL
         assert corrector.track(v[-1:, None], q[-1:, None]).flags[0, 0] & HIGH_RESIDUAL
     assert kept >= 3
+
+
+def test_a_signal_noise_no_tracker_has_is_refused(exact_table):
+    from ivc.errors import InputError
+
+    with pytest.raises(InputError, match="normalised dipole units"):
+        Corrector(exact_table, signal_noise=1e9)
+    with pytest.raises(InputError, match="normalised dipole units"):
+        PoseCorrector(exact_table, signal_noise=2.0)

@@ -26,6 +26,9 @@ from ivc.table.lookup import LookupTable
 
 #: the default limit (m) of a trusted pose's predicted RMS position error
 MAX_PRECISION = 1e-3
+#: a signal noise per entry at or above this (normalised dipole units: the signal's own size 1 m from the
+#: source) is no tracker's
+MAX_SIGNAL_NOISE = 1.0
 #: ``max_precision`` of a corrector that uses :data:`MAX_PRECISION` where the noise is known (no gate elsewhere)
 DEFAULT = "default"
 
@@ -62,6 +65,10 @@ class PrecisionGate:
         explicit = max_precision is not None and not (isinstance(max_precision, str) and max_precision == DEFAULT)
         limit = _positive("max_precision", max_precision) if explicit else None
         sigma = None if signal_noise is None else _positive("signal_noise", signal_noise)
+        if sigma is not None and sigma >= MAX_SIGNAL_NOISE:
+            raise InputError(f"signal_noise={sigma:g} is not a tracker's noise: signals are in normalised dipole "
+                             f"units (the field 1 m from the source is about 1), where trackers' noise per entry is "
+                             f"1e-5 to 1e-2; give the noise in those units (the table's fit measures it)")
         if not (precision or explicit or sigma is not None):
             return cls(None, None, "precision not predicted (precision=False)")
         if sigma is None:
