@@ -173,3 +173,30 @@ def test_a_flipped_coil_in_a_simulated_recording_is_detected(rng):
     assert len(found) == 1 and found[0].group == 2
     np.testing.assert_array_equal(found[0].signs, [1, -1, 1])
     assert found[0].flipped < found[0].joint / 10
+
+
+def test_a_frame_failing_by_a_room_s_field_keeps_its_pose_without_the_retry(offset_rig):
+    """Next to metal every frame fails the gate by what the room adds, not by a wrong minimum: where its first
+    pass is the search's best start and the coils are far enough, no other start is tried (the iterations are
+    the first pass's), the pose is the one every start finds; a wrong minimum nearer the source is retried."""
+    _, _, result, (S, J_so, J_st) = offset_rig
+    model = replace(result.tracker, position_correction=np.zeros((3, 4)), rotation_correction=np.zeros((3, 4)))
+    P = chain(result.fixtures, J_so, J_st)
+    r, T = 2.0 * P[:, :3, 3], P[:, :3, :3]  # twice as far: coils 45 mm off-centre at 0.35-0.6 m
+    clean = model.signal(r, T)
+    rng = np.random.default_rng(8)
+    room = 0.02 * np.linalg.norm(clean, ord=2, axis=(1, 2))[:, None, None] * rng.standard_normal(clean.shape)
+    first = tracker_pose(clean + room, model, correct=False, retry=False)
+    solved = tracker_pose(clean + room, model, correct=False)
+    assert np.mean(first.converged) < 0.01  # 2 % of the signal: (nearly) every frame fails the gate
+    assert np.array_equal(solved.iterations, first.iterations)  # and none was retried
+    np.testing.assert_array_equal(solved.position, first.position)
+    truth = P.copy()
+    truth[:, :3, 3] = r
+    floor_r, floor_T = _truth_started(clean + room, model, truth)  # the minimum the true pose leads to
+    assert np.abs(solved.position - floor_r).max() < 1e-6
+    assert rotations.angle_between_matrices(solved.rotation, floor_T).max() < 1e-5
+    # at the calibration's range the wrong minima of the first pass are still retried, and found
+    plain = tracker_pose(S, model, correct=False, retry=False)
+    retried = tracker_pose(S, model, correct=False)
+    assert np.any(retried.iterations > plain.iterations) and retried.converged.all()
