@@ -46,7 +46,7 @@ from ivc.errors import InputError
 from ivc.pose.solver import PoseSolution, levenberg_marquardt, procrustes, procrustes_cost
 
 __all__ = ["GRID_DIRECTIONS", "GRID_RANGES", "GRID_SEPARATION_DEG", "GRID_STARTS", "IdealSignals", "ideal_signals",
-           "to_ideal", "tracker_pose"]
+           "noise_gain", "to_ideal", "tracker_pose"]
 
 #: the start search of a frame that fails the gate: directions on its half sphere, ranges (fractions of
 #: the dipole range of its signal), and how far apart (degrees) the starts it keeps must be
@@ -314,6 +314,32 @@ class IdealSignals:
     signal: np.ndarray
     residual: np.ndarray
     passed: np.ndarray
+    #: per sample, how much more signal noise reaches the converted signal than the gains alone carry (1 for
+    #: concentric coils; NaN where non-finite): :func:`noise_gain`
+    noise_gain: np.ndarray
+
+
+def noise_gain(tracker: Tracker, r: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """How much the conversion to ideal units amplifies signal noise at poses (r (F, 3) m, T (F, 3, 3)).
+
+    The coil offsets' share ``D`` is taken at the pose the noisy signal gives, so to first order a
+    noise ``n`` (3, 3) reaches the converted signal as ``C (n − ∂D δ)`` with ``δ = J⁺ n`` the pose
+    error it causes (``J`` the model's pose Jacobian, ``∂D`` the share's) and ``C: n ↦ B⁻ᵀ n A⁻¹``
+    the gains' map. Returns ``‖C (I − ∂D J⁺)‖_F / ‖C‖_F`` per pose: the rms error of the converted
+    signal over the rms of the noise the gains alone carry, for independent equal noise on the nine
+    entries. No estimate does better to first order: the pose (and so ``D``) is the least-squares
+    one. It grows where the pose is weakly determined and ``D`` strong (near off-centre coils).
+    """
+    gains = Tracker(tracker.source_moments, tracker.sensor_moments, bias=tracker.bias)
+    F = len(r)
+    _, dS = tracker.pose_jacobian(r, T)
+    _, dG = gains.pose_jacobian(r, T)
+    J, dD = dS.reshape(F, 9, 6), (dS - dG).reshape(F, 9, 6)
+    with np.errstate(all="ignore"):
+        pinv = np.linalg.solve(np.swapaxes(J, 1, 2) @ J, np.swapaxes(J, 1, 2))  # (F, 6, 9)
+    C = np.kron(np.linalg.inv(tracker.sensor_moments).T, np.linalg.inv(tracker.source_moments).T)  # row-major vec
+    L = C @ (np.eye(9) - dD @ pinv)
+    return np.linalg.norm(L, axis=(1, 2)) / np.linalg.norm(C)
 
 
 def ideal_signals(S: ArrayLike, tracker: Tracker, hemisphere: str | ArrayLike | None = None, *,
@@ -337,7 +363,8 @@ def ideal_signals(S: ArrayLike, tracker: Tracker, hemisphere: str | ArrayLike | 
     finite = np.all(np.isfinite(flat.reshape(len(flat), 9)), axis=1)
     if tracker.is_ideal or tracker.is_concentric:
         out = flat.copy() if tracker.is_ideal else tracker.corrected(flat)
-        return IdealSignals(out.reshape(S.shape), np.where(finite, 0.0, np.nan).reshape(lead), finite.reshape(lead))
+        return IdealSignals(out.reshape(S.shape), np.where(finite, 0.0, np.nan).reshape(lead), finite.reshape(lead),
+                            np.where(finite, 1.0, np.nan).reshape(lead))
     h = hemisphere if hemisphere is None or isinstance(hemisphere, str) else np.broadcast_to(
         np.asarray(hemisphere, float), S.shape[:-1]).reshape(-1, 3)
     solution = tracker_pose(flat, tracker, h, correct=False, noise_relative=noise_relative)
@@ -348,8 +375,10 @@ def ideal_signals(S: ArrayLike, tracker: Tracker, hemisphere: str | ArrayLike | 
     D = tracker.signal(r, T) - gains.signal(r, T)
     out[ok] = np.linalg.inv(tracker.sensor_moments).T @ (flat[ok] - tracker.bias - D) @ np.linalg.inv(
         tracker.source_moments)
+    gain = np.full(len(flat), np.nan)
+    gain[ok] = noise_gain(tracker, r, T)
     return IdealSignals(out.reshape(S.shape), solution.residual.reshape(lead),
-                        (solution.converged & finite).reshape(lead))
+                        (solution.converged & finite).reshape(lead), gain.reshape(lead))
 
 
 def to_ideal(S: ArrayLike, tracker: Tracker, hemisphere: str | ArrayLike | None = None) -> np.ndarray:
