@@ -40,7 +40,6 @@ from numpy.typing import ArrayLike
 
 from ivc import rotations
 from ivc.dipole import closed_form_pose, hemisphere_vector
-from ivc.dipole.field import field as dipole_field
 from ivc.dipole.tracker import Tracker
 from ivc.errors import InputError
 from ivc.pose.solver import PoseSolution, levenberg_marquardt, procrustes, procrustes_cost
@@ -149,8 +148,12 @@ def _grid_starts(S: np.ndarray, tracker: Tracker, h: np.ndarray, count: int) -> 
     best_scale = np.zeros((F, K))
     p, A = tracker.source_offsets, tracker.source_moments
 
-    def coil_fields(r):  # (..., 3) -> M (..., 3, 3), column i = source coil i's field at r
-        return np.einsum("...iab,bi->...ai", dipole_field(r[..., None, :] - p), A)
+    def coil_fields(r):  # (..., 3) -> M (..., 3, 3), column i = f_D(r − p_i) a_i (eq. 72 times the moment)
+        x = r[..., None, :] - p  # (..., i, 3)
+        d2 = np.sum(x * x, axis=-1, keepdims=True)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            columns = (3.0 * x * (np.sum(x * A.T, axis=-1, keepdims=True) / d2) - A.T) / (d2 * np.sqrt(d2))
+        return np.swapaxes(columns, -1, -2)
 
     for lo in range(0, F, _GRID_CHUNK):
         rows = slice(lo, lo + _GRID_CHUNK)
