@@ -77,3 +77,16 @@ def test_residual_measures_model_mismatch(rng):
 def test_unknown_method():
     with pytest.raises(ValueError, match="method"):
         solve_pose(np.eye(3)[None], dipole_plus(None), np.ones((1, 3)), method="newton")
+
+
+def test_procrustes_cost_is_the_cost_at_the_procrustes_rotation(rng):
+    from ivc.pose.solver import procrustes, procrustes_cost
+
+    M, S = rng.standard_normal((500, 3, 3)), rng.standard_normal((500, 3, 3))
+    M[:3], S[:3] = np.eye(3), R.to_matrix(R.random(3, rng))  # equal singular values; a turned identity
+    M[3] = np.diag([1.0, 1.0, 0.0])  # rank two
+    T = procrustes(M, S)
+    reference = np.sum((S - np.swapaxes(T, -1, -2) @ M) ** 2, axis=(1, 2))
+    assert np.any(np.linalg.det(M @ np.swapaxes(S, -1, -2)) < 0)  # the reflection case is among them
+    np.testing.assert_allclose(procrustes_cost(M, S), reference, atol=1e-7 * np.max(reference))
+    np.testing.assert_allclose(procrustes_cost(M[:3], S[:3]), 0.0, atol=1e-12)
