@@ -257,7 +257,7 @@ class PoseCorrector:
             self._seeds = SeedMap(self.field, "closed-form", self.hemisphere)
         return self._seeds
 
-    def _invert(self, v, start, H, serial):
+    def _invert(self, v, start, H, serial, restarts: int = 0):
         n = len(v)
         if self.solver == "closed-form":
             f = self.field
@@ -266,7 +266,7 @@ class PoseCorrector:
             iterations, mapped = np.empty(n, dtype=np.int64), np.empty(n, dtype=bool)
             kernel = compiled.choose(_pose_kernels.invert_serial if serial else _pose_kernels.invert_kernel, n)
             kernel(v, start, H.copy(), self._h, f.kernel_grid, self.max_iterations, self.tolerance, r, C, miss,
-                   converged, iterations, mapped)
+                   converged, iterations, mapped, restarts)
             return r, C, miss, converged, iterations, mapped
         inv = invert_distortion(v, self._secondary, self.solver, self.hemisphere, start, self.tolerance,
                                 self.max_iterations)
@@ -350,7 +350,7 @@ class PoseCorrector:
         start = np.concatenate([p_start, q_start[has], r_start])
         H = np.concatenate([p_H, q_H[has], r_H])
         r2, _, miss2, _, it2, mapped2 = self._invert(np.ascontiguousarray(v[idx]), np.ascontiguousarray(start),
-                                                     np.ascontiguousarray(H), serial)
+                                                     np.ascontiguousarray(H), serial, _pose_kernels.RESTARTS)
         other = mapped2 & (miss2 <= tolerance[idx]) & (np.linalg.norm(r2 - r[idx], axis=1) > AMBIGUITY)
         ambiguous = np.zeros(n, dtype=bool)
         ambiguous[idx[other]] = True

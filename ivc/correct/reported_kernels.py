@@ -33,7 +33,9 @@ from ivc.table.kernels import grid_value
 _OPTS = dict(parallel=True, cache=True, nogil=True)
 #: step halvings tried before the inverse Jacobian is recomputed
 BACKTRACKS = 12
-#: recomputations of the inverse Jacobian (central differences) before a sample is given up
+#: recomputations of the inverse Jacobian (central differences) before a search for another solution gives up
+#: (the correction's own inversion makes none: where Broyden's estimate stalls, the sample is flagged, not pushed
+#: into a fold's neighbourhood)
 RESTARTS = 2
 #: the step (m) of the central differences of φ and C
 DIFFERENCE_STEP = 1e-5
@@ -105,7 +107,7 @@ def _jacobian_inverse(r, h, grid, H):
 
 @numba.njit(cache=True, error_model="numpy")
 def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, converged_out, iterations_out,
-               mapped_out, n):
+               mapped_out, n, max_restarts=0):
     """Invert one sample from ``start`` (3,) with the inverse-Jacobian estimate H (3, 3, updated in place) into
     r (3,) and C (3, 3); writes miss, converged, iterations and mapped at index n."""
     nc = grid[0].shape[3]
@@ -160,7 +162,7 @@ def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, 
                 step[a] *= 0.5
         if not accepted:
             # Broyden's estimate has gone stale (near a fold of the map it does): restart from the Jacobian itself
-            if restarts >= RESTARTS or not _jacobian_inverse(r, h, grid, H):
+            if restarts >= max_restarts or not _jacobian_inverse(r, h, grid, H):
                 break
             restarts += 1
             continue
@@ -190,20 +192,20 @@ def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, 
 
 @numba.njit(**_OPTS)
 def invert_kernel(v, start, H, h, grid, max_iterations, tolerance, r, C, miss, converged, iterations,
-                  mapped):  # pragma: no cover - compiled
+                  mapped, max_restarts=0):  # pragma: no cover - compiled
     """Invert every sample n from ``start[n]`` with the inverse-Jacobian estimates ``H[n]`` (updated in place)."""
     for n in numba.prange(v.shape[0]):
         invert_one(v[n], start[n], H[n], h, grid, max_iterations, tolerance, r[n], C[n], miss, converged, iterations,
-                   mapped, np.int64(n))
+                   mapped, np.int64(n), max_restarts)
 
 
 @numba.njit(cache=True, nogil=True)
 def invert_serial(v, start, H, h, grid, max_iterations, tolerance, r, C, miss, converged, iterations,
-                  mapped):  # pragma: no cover - compiled
+                  mapped, max_restarts=0):  # pragma: no cover - compiled
     """:func:`invert_kernel` without threads: for a few samples at a time (a live frame)."""
     for n in range(v.shape[0]):
         invert_one(v[n], start[n], H[n], h, grid, max_iterations, tolerance, r[n], C[n], miss, converged, iterations,
-                   mapped, np.int64(n))
+                   mapped, np.int64(n), max_restarts)
 
 
 _OUTSIDE, _NOT_CONVERGED, _HIGH_RESIDUAL, _INVALID_INPUT = OUTSIDE, NOT_CONVERGED, HIGH_RESIDUAL, INVALID_INPUT
