@@ -6,7 +6,7 @@ position (m, source frame) and the rotation increment ``T ← T exp([ω]×)`` (r
 ``J`` as :func:`ivc.pose.solver.signal_residual` (up to its sign). :func:`precision_kernel` applies it to
 corrected poses with the table's secondary field; the pose-only correction (``ivc.correct.reported_kernels``)
 applies it at the reported pose in free space and carries the covariance through the inverse map.
-The NumPy form is :func:`ivc.pose.precision.pose_covariance` (tests/test_precision_kernels.py compares them).
+The NumPy form is :func:`ivc.pose.precision.pose_covariance` (tests/test_trust.py compares them).
 """
 
 from __future__ import annotations
