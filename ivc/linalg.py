@@ -169,6 +169,16 @@ def frobenius3(A):
     return np.sqrt(s)
 
 
+@numba.njit(inline="always")
+def finite3(v, A):
+    """Whether every entry of v (3,) and A (3, 3) is finite (a sample a kernel can solve)."""
+    finite = np.isfinite(v[0]) and np.isfinite(v[1]) and np.isfinite(v[2])
+    for i in range(3):
+        for j in range(3):
+            finite = finite and np.isfinite(A[i, j])
+    return finite
+
+
 @numba.njit(cache=True, error_model="numpy")  # not inlined: compiled once; inf/NaN as in a parallel kernel
 def principal_eigenvector(B, work_a, work_b, v):
     """Unit eigenvector of the largest eigenvalue of a symmetric PSD 3x3 matrix.

@@ -15,10 +15,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.dipole.kernels import closed_form_one, closed_form_position, dipole_jacobian, field_matrix
+from ivc.dipole.kernels import closed_form_one, closed_form_position
 from ivc.linalg import quaternion_of, rotate_increment, rotation_polar_factor, solve_spd6
 from ivc.pose.kernels import accept_step, damped_matrix, gauss_newton_matrix, pose_residual, residual_cost
-from ivc.table.kernels import grid_contains, grid_point_separable, grid_value
+from ivc.table.kernels import grid_contains, grid_point_separable, grid_value, with_dipole
 
 FIXED_POINT_STEPS = 2
 
@@ -36,14 +36,8 @@ def _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K):
 @numba.njit(cache=True)
 def pose_model_separable(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch):
     """:func:`pose_model` with the separable look-up (its partial sums in ``scratch`` (3, C))."""
-    field_matrix(r[0], r[1], r[2], M)
-    dipole_jacobian(r, dM)
     mapped = grid_point_separable(grid, r, g, dg, wx, wy, wz, dx, dy, dz, scratch)
-    for i in range(3):
-        for j in range(3):
-            M[i, j] += g[3 * i + j]
-            for k in range(3):
-                dM[i, j, k] += dg[3 * i + j, k]
+    with_dipole(r, g, dg, M, dM)
     return mapped
 
 
