@@ -169,6 +169,19 @@ def frobenius3(A):
     return np.sqrt(s)
 
 
+@numba.njit(cache=True)
+def relative_residual(S, M, T):
+    """rms(M − T S) / rms(S) of a pose (T (3, 3)) against the model M (3, 3) of the signal S (3, 3)."""
+    lam = 0.0
+    s2 = 0.0
+    for i in range(3):
+        for j in range(3):
+            p = T[i, 0] * S[0, j] + T[i, 1] * S[1, j] + T[i, 2] * S[2, j]
+            lam += (M[i, j] - p) ** 2
+            s2 += S[i, j] ** 2
+    return np.sqrt(lam / s2)
+
+
 @numba.njit(inline="always")
 def finite3(v, A):
     """Whether every entry of v (3,) and A (3, 3) is finite (a sample a kernel can solve)."""
