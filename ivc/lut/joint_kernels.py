@@ -26,7 +26,7 @@ def wand_kernel(S, use, scale, b, R, grid, max_iterations, tolerance, active, r,
     no_cube = np.zeros(3), np.zeros((15, 3))  # every sensor through the table: no sensor tied to the cube
     for f in numba.prange(S.shape[0]):
         work, lm = workspace()
-        field = (grid, no_cube[0], 1.0, no_cube[1], False)
+        field = (grid, no_cube[0], 1.0, no_cube[1], np.bool_(False))
         converged[f] = False
         if not active[f]:
             cost_out[f] = 0.0

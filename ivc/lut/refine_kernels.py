@@ -23,7 +23,7 @@ def rigid_kernel(S, valid, scale, b, R, centre, cube_scale, coefficients, grid, 
     """Solve every frame of S (F, W, 3, 3) in place from (r, T), sensor 0's pose; converged (F,)."""
     for f in numba.prange(S.shape[0]):
         work, lm = workspace()
-        field = (grid, centre, cube_scale, coefficients, True)  # sensor 0 in the cube's field
+        field = (grid, centre, cube_scale, coefficients, np.bool_(True))  # sensor 0 in the cube's field
         converged[f] = False
         if not (valid[f, 0] and np.isfinite(r[f, 0]) and np.isfinite(r[f, 1]) and np.isfinite(r[f, 2])):
             for i in range(3):
