@@ -68,80 +68,37 @@ def axis_weights(t, cubic, w, dw):
         dw[3] = 0.0
 
 
-@numba.njit(inline="always")
-def _active(w, dw, lo, hi):
-    """The nodes lo..hi − 1 less those at either end whose weight and derivative are both zero.
-
-    Only an end node can have both zero (node i − 1 at t = 1, node i + 2 at t = 0, and under rounding next to
-    them; no inner node of either stencil does for t in [0, 1]), so looping over these nodes is skipping the
-    nodes that carry nothing: their values (NaN beyond a mapped volume's edge) are never read."""
-    while lo < hi and w[lo] == 0.0 and dw[lo] == 0.0:
-        lo += 1
-    while hi > lo and w[hi - 1] == 0.0 and dw[hi - 1] == 0.0:
-        hi -= 1
-    return lo, hi
-
-
-@numba.njit(inline="always")
-def _active3(wx, dx, wy, dy, wz, dz, lo, hi):
-    """:func:`_active` along x, y and z."""
-    x_lo, x_hi = _active(wx, dx, lo, hi)
-    y_lo, y_hi = _active(wy, dy, lo, hi)
-    z_lo, z_hi = _active(wz, dz, lo, hi)
-    return x_lo, x_hi, y_lo, y_hi, z_lo, z_hi
-
-
 @numba.njit(cache=True)
-def stencil(grid, p, wx, wy, wz, dx, dy, dz):
-    """The cell (i, j, k) of p (3,) in the table ``grid`` (:data:`GRID`), its stencil's weights and their
-    derivatives along each axis into wx, wy, wz, dx, dy, dz (4,), the stencil's node range (lo, hi), and whether
-    p is in a valid cell."""
-    _, valid_cells, origin, spacing, shape, cubic = grid
+def grid_point(grid, p, value, gradient, wx, wy, wz, dx, dy, dz):
+    """Value (C,) and gradient (C, 3) of the table ``grid`` (:data:`GRID`) at one point p; returns whether p
+    is in a valid cell."""
+    padded, valid_cells, origin, spacing, shape, cubic = grid
     i, tx, in_x = cell_of(p[0], origin[0], spacing, shape[0])
     j, ty, in_y = cell_of(p[1], origin[1], spacing, shape[1])
     k, tz, in_z = cell_of(p[2], origin[2], spacing, shape[2])
     axis_weights(tx, cubic, wx, dx)
     axis_weights(ty, cubic, wy, dy)
     axis_weights(tz, cubic, wz, dz)
-    # the linear stencil's outer nodes carry zero weight and zero derivative: only nodes 1..2 are read
-    lo, hi = (0, 4) if cubic else (1, 3)
-    return i, j, k, lo, hi, in_x and in_y and in_z and valid_cells[i, j, k]
-
-
-@numba.njit(inline="always")
-def _clear(value, gradient, C):
-    """value[:C] = 0, gradient[:C] = 0."""
+    C = padded.shape[3]
     for c in range(C):
         value[c] = 0.0
         gradient[c, 0] = 0.0
         gradient[c, 1] = 0.0
         gradient[c, 2] = 0.0
-
-
-@numba.njit(inline="always")
-def _per_metre(gradient, spacing, C):
-    """gradient[:C] per node spacing → per metre."""
-    for c in range(C):
-        gradient[c, 0] /= spacing
-        gradient[c, 1] /= spacing
-        gradient[c, 2] /= spacing
-
-
-@numba.njit(cache=True)
-def grid_point(grid, p, value, gradient, wx, wy, wz, dx, dy, dz):
-    """Value (C,) and gradient (C, 3) of the table ``grid`` (:data:`GRID`) at one point p; returns whether p
-    is in a valid cell."""
-    padded, spacing = grid[0], grid[3]
-    i, j, k, lo, hi, inside = stencil(grid, p, wx, wy, wz, dx, dy, dz)
-    C = padded.shape[3]
-    _clear(value, gradient, C)
-    x_lo, x_hi, y_lo, y_hi, z_lo, z_hi = _active3(wx, dx, wy, dy, wz, dz, lo, hi)
-    for a in range(x_lo, x_hi):
-        for b in range(y_lo, y_hi):
+    # the linear stencil's outer nodes carry zero weight and zero derivative: only nodes 1..2 are read
+    lo, hi = (0, 4) if cubic else (1, 3)
+    for a in range(lo, hi):
+        if wx[a] == 0.0 and dx[a] == 0.0:
+            continue
+        for b in range(lo, hi):
+            if wy[b] == 0.0 and dy[b] == 0.0:
+                continue
             wab = wx[a] * wy[b]
             gxab = dx[a] * wy[b]
             gyab = wx[a] * dy[b]
-            for d in range(z_lo, z_hi):
+            for d in range(lo, hi):
+                if wz[d] == 0.0 and dz[d] == 0.0:
+                    continue
                 w = wab * wz[d]
                 gx = gxab * wz[d]
                 gy = gyab * wz[d]
@@ -152,8 +109,11 @@ def grid_point(grid, p, value, gradient, wx, wy, wz, dx, dy, dz):
                     gradient[c, 0] += gx * v
                     gradient[c, 1] += gy * v
                     gradient[c, 2] += gz * v
-    _per_metre(gradient, spacing, C)
-    return inside
+    for c in range(C):
+        gradient[c, 0] /= spacing
+        gradient[c, 1] /= spacing
+        gradient[c, 2] /= spacing
+    return in_x and in_y and in_z and valid_cells[i, j, k]
 
 
 @numba.njit(cache=True)
@@ -162,10 +122,20 @@ def grid_point_separable(grid, p, value, gradient, wx, wy, wz, dx, dy, dz, scrat
     ``scratch`` (3, C): 1,728 multiply-adds for the cubic stencil of 9 channels instead of 2,304, and
     the innermost sums held in registers rather than re-stored at every node. Equal to
     :func:`grid_point` up to rounding (the summation order differs)."""
-    padded, spacing = grid[0], grid[3]
-    i, j, k, lo, hi, inside = stencil(grid, p, wx, wy, wz, dx, dy, dz)
+    padded, valid_cells, origin, spacing, shape, cubic = grid
+    i, tx, in_x = cell_of(p[0], origin[0], spacing, shape[0])
+    j, ty, in_y = cell_of(p[1], origin[1], spacing, shape[1])
+    k, tz, in_z = cell_of(p[2], origin[2], spacing, shape[2])
+    axis_weights(tx, cubic, wx, dx)
+    axis_weights(ty, cubic, wy, dy)
+    axis_weights(tz, cubic, wz, dz)
     C = padded.shape[3]
-    _clear(value, gradient, C)
+    for c in range(C):
+        value[c] = 0.0
+        gradient[c, 0] = 0.0
+        gradient[c, 1] = 0.0
+        gradient[c, 2] = 0.0
+    lo, hi = (0, 4) if cubic else (1, 3)
     for a in range(lo, hi):
         for c in range(C):
             scratch[0, c] = 0.0
@@ -191,8 +161,11 @@ def grid_point_separable(grid, p, value, gradient, wx, wy, wz, dx, dy, dz, scrat
             gradient[c, 0] += dxa * scratch[0, c]
             gradient[c, 1] += wxa * scratch[1, c]
             gradient[c, 2] += wxa * scratch[2, c]
-    _per_metre(gradient, spacing, C)
-    return inside
+    for c in range(C):
+        gradient[c, 0] /= spacing
+        gradient[c, 1] /= spacing
+        gradient[c, 2] /= spacing
+    return in_x and in_y and in_z and valid_cells[i, j, k]
 
 
 @numba.njit(cache=True)
@@ -209,20 +182,31 @@ def grid_contains(grid, p):
 def grid_value(grid, p, value, wx, wy, wz, dx, dy, dz):
     """:func:`grid_point` without the gradient (a quarter of its arithmetic): value (C,) at p, and
     whether p is in a valid cell. The same weights and summation order, so the same value."""
-    padded = grid[0]
-    i, j, k, lo, hi, inside = stencil(grid, p, wx, wy, wz, dx, dy, dz)
+    padded, valid_cells, origin, spacing, shape, cubic = grid
+    i, tx, in_x = cell_of(p[0], origin[0], spacing, shape[0])
+    j, ty, in_y = cell_of(p[1], origin[1], spacing, shape[1])
+    k, tz, in_z = cell_of(p[2], origin[2], spacing, shape[2])
+    axis_weights(tx, cubic, wx, dx)
+    axis_weights(ty, cubic, wy, dy)
+    axis_weights(tz, cubic, wz, dz)
     C = padded.shape[3]
     for c in range(C):
         value[c] = 0.0
-    x_lo, x_hi, y_lo, y_hi, z_lo, z_hi = _active3(wx, dx, wy, dy, wz, dz, lo, hi)
-    for a in range(x_lo, x_hi):
-        for b in range(y_lo, y_hi):
+    lo, hi = (0, 4) if cubic else (1, 3)
+    for a in range(lo, hi):
+        if wx[a] == 0.0 and dx[a] == 0.0:
+            continue
+        for b in range(lo, hi):
+            if wy[b] == 0.0 and dy[b] == 0.0:
+                continue
             wab = wx[a] * wy[b]
-            for d in range(z_lo, z_hi):
+            for d in range(lo, hi):
+                if wz[d] == 0.0 and dz[d] == 0.0:
+                    continue
                 w = wab * wz[d]
                 for c in range(C):
                     value[c] += w * padded[i + a, j + b, k + d, c]
-    return inside
+    return in_x and in_y and in_z and valid_cells[i, j, k]
 
 
 @numba.njit(inline="always")
