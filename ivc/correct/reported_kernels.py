@@ -22,7 +22,7 @@ import numpy as np
 
 from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
 from ivc.dipole.kernels import closed_form_one, closed_form_position, field_matrix
-from ivc.linalg import finite3, quaternion_of
+from ivc.linalg import quaternion_of
 from ivc.table.kernels import grid_value
 
 # The helpers below are plain compiled functions, not numba-inlined: inlined three and four times over into
@@ -51,17 +51,6 @@ def _field_at(r, grid, g, wx, wy, wz, dx, dy, dz, F):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _miss(F, h, v, phi, wa, wb, ev, B, e):
-    """φ = the closed-form position of F into phi (3,), e = v − φ (3,); returns |e|."""
-    closed_form_position(F, h, phi, wa, wb, ev, B)
-    miss = 0.0
-    for a in range(3):
-        e[a] = v[a] - phi[a]
-        miss += e[a] * e[a]
-    return np.sqrt(miss)
-
-
-@numba.njit(cache=True, error_model="numpy")
 def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, converged_out, iterations_out,
                mapped_out, n):
     """Invert one sample from ``start`` (3,) with the inverse-Jacobian estimate H (3, 3, updated in place) into
@@ -83,7 +72,12 @@ def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, 
                 C[a, b] = np.nan
         miss_out[n], converged_out[n], iterations_out[n], mapped_out[n] = np.nan, False, 0, False
         return
-    miss = _miss(F, h, v, phi, wa, wb, ev, B, e)
+    closed_form_position(F, h, phi, wa, wb, ev, B)
+    miss = 0.0
+    for a in range(3):
+        e[a] = v[a] - phi[a]
+        miss += e[a] * e[a]
+    miss = np.sqrt(miss)
     iterations = 0
     converged = miss <= tolerance
     while not converged and iterations < max_iterations:
@@ -99,7 +93,12 @@ def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, 
                 trial[a] = r[a] + step[a]
             usable, mapped_t = _field_at(trial, grid, g, wx, wy, wz, dx, dy, dz, F)
             if usable:
-                miss_t = _miss(F, h, v, phi, wa, wb, ev, B, e_t)
+                closed_form_position(F, h, phi, wa, wb, ev, B)
+                miss_t = 0.0
+                for a in range(3):
+                    e_t[a] = v[a] - phi[a]
+                    miss_t += e_t[a] * e_t[a]
+                miss_t = np.sqrt(miss_t)
                 if miss_t < miss:
                     accepted = True
                     break
@@ -198,7 +197,12 @@ def stream_kernel(v, Q, slots, offset, tracked, h, grid, max_iterations, toleran
     mp = np.empty(1, dtype=np.bool_)
     for n in range(v.shape[0]):
         slot = slots[n]
-        if not finite3(v[n], Q[n]):
+        finite = True
+        for a in range(3):
+            finite = finite and np.isfinite(v[n, a])
+            for b in range(3):
+                finite = finite and np.isfinite(Q[n, a, b])
+        if not finite:
             for a in range(3):
                 r[n, a] = np.nan
             for a in range(4):
