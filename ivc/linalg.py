@@ -169,6 +169,30 @@ def frobenius3(A):
     return np.sqrt(s)
 
 
+@numba.njit(cache=True)
+def relative_residual(S, M, T):
+    """rms(M − T S) / rms(S) of a pose (T (3, 3)) against the model M (3, 3) of the signal S (3, 3); NaN for a
+    signal of zeros or denormals (no pose)."""
+    lam = 0.0
+    s2 = 0.0
+    for i in range(3):
+        for j in range(3):
+            p = T[i, 0] * S[0, j] + T[i, 1] * S[1, j] + T[i, 2] * S[2, j]
+            lam += (M[i, j] - p) ** 2
+            s2 += S[i, j] ** 2
+    return np.sqrt(lam / s2) if s2 > 0.0 else np.nan
+
+
+@numba.njit(inline="always")
+def finite3(v, A):
+    """Whether every entry of v (3,) and A (3, 3) is finite (a sample a kernel can solve)."""
+    finite = np.isfinite(v[0]) and np.isfinite(v[1]) and np.isfinite(v[2])
+    for i in range(3):
+        for j in range(3):
+            finite = finite and np.isfinite(A[i, j])
+    return finite
+
+
 @numba.njit(cache=True, error_model="numpy")  # not inlined: compiled once; inf/NaN as in a parallel kernel
 def principal_eigenvector(B, work_a, work_b, v):
     """Unit eigenvector of the largest eigenvalue of a symmetric PSD 3x3 matrix.

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ivc import rotations
-from ivc.collect.stream import Sample, SourceEvent, StaleWatch
+from ivc.collect.stream import OpenedByWith, Sample, SourceEvent, StaleWatch
 from ivc.errors import LiveError
 from ivc.igtl import (
     Framer,
@@ -92,7 +92,7 @@ def _meta(raw: bytes) -> _Meta:
 _NO_META = _Meta(None, True, None)
 
 
-class IgtlSource:
+class IgtlSource(OpenedByWith):
     """An OpenIGTLink client as a :class:`~ivc.collect.stream.LiveSource` (see the module docstring).
 
     ``sensors``: device names in the step's order (sensor 0 first), else the rule of the module docstring.
@@ -258,13 +258,6 @@ class IgtlSource:
     def close(self) -> None:
         self._close_socket()
         self._opened = False
-
-    def __enter__(self) -> IgtlSource:
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     # ---- reading --------------------------------------------------------------------------------------------
     def _receive(self, timeout_s: float) -> list[SourceEvent]:

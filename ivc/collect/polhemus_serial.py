@@ -31,7 +31,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from ivc.collect.stream import Sample, SourceEvent
+from ivc.collect.stream import OpenedByWith, Sample, SourceEvent
 from ivc.dipole import HEMISPHERES, hemisphere_vector
 from ivc.errors import LiveError
 
@@ -148,7 +148,7 @@ def parse_stations(sensors: Sequence[str] | None, max_station: int = 16) -> list
     return stations
 
 
-class PolhemusSource:
+class PolhemusSource(OpenedByWith):
     """A Polhemus Liberty or Patriot on ``port``, configured and streamed (see the module docstring).
 
     ``sensors``: station numbers as strings in the step's order (sensor 0 first), or None for every station the
@@ -565,10 +565,3 @@ class PolhemusSource:
             except Exception:  # noqa: BLE001
                 pass
         self._serial = None
-
-    def __enter__(self) -> PolhemusSource:
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

@@ -17,7 +17,7 @@ from __future__ import annotations
 import time as _time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Literal, Protocol, runtime_checkable
+from typing import Literal, Protocol, Self, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -105,6 +105,18 @@ class LiveSource(Protocol):
     def __enter__(self) -> LiveSource: ...
 
     def __exit__(self, *exc) -> None: ...
+
+
+class OpenedByWith:
+    """A source's ``with`` form: :meth:`open` on entering, :meth:`close` on leaving (what :class:`LiveSource`
+    asks); the live sources inherit it."""
+
+    def __enter__(self) -> Self:
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 @dataclass
@@ -228,7 +240,7 @@ class StaleWatch:
         return np.zeros(self.n_sensors, dtype=bool) if self._stale is None else self._stale.copy()
 
 
-class SessionSource:
+class SessionSource(OpenedByWith):
     """A live source that streams a session's steps as a tracker would: the rehearsal and test source.
 
     Streams ``steps`` (default: all of the session's steps in recording order) frame by frame, each
@@ -343,9 +355,3 @@ class SessionSource:
 
         return cls(read(argument), **options)
 
-    def __enter__(self) -> SessionSource:
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

@@ -15,11 +15,11 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ivc.dipole.kernels import closed_form_one, closed_form_position, dipole_jacobian, field_matrix
-from ivc.linalg import quaternion_of, rotate_increment, rotation_polar_factor, solve_spd6
-from ivc.pose.kernels import accept_step, damped_matrix, gauss_newton_matrix, pose_residual, residual_cost
+from ivc.dipole.kernels import closed_form_one, closed_form_position
+from ivc.linalg import quaternion_of, relative_residual, rotation_polar_factor
+from ivc.pose.kernels import accept_step, gauss_newton_matrix, lm_step, lm_verdict, pose_residual, residual_cost
 from ivc.pose.precision_kernels import crb_covariance_one, traces
-from ivc.table.kernels import grid_contains, grid_point_separable, grid_value, pose_model
+from ivc.table.kernels import grid_contains, grid_point_separable, grid_value, pose_model, with_dipole
 
 FIXED_POINT_STEPS = 2
 
@@ -37,14 +37,8 @@ def _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K):
 @numba.njit(cache=True)
 def pose_model_separable(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch):
     """:func:`pose_model` with the separable look-up (its partial sums in ``scratch`` (3, C))."""
-    field_matrix(r[0], r[1], r[2], M)
-    dipole_jacobian(r, dM)
     mapped = grid_point_separable(grid, r, g, dg, wx, wy, wz, dx, dy, dz, scratch)
-    for i in range(3):
-        for j in range(3):
-            M[i, j] += g[3 * i + j]
-            for k in range(3):
-                dM[i, j, k] += dg[3 * i + j, k]
+    with_dipole(r, g, dg, M, dM)
     return mapped
 
 
@@ -119,15 +113,11 @@ def correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations,
     while iterations < max_iterations:
         iterations += 1
         gauss_newton_matrix(J, e, H, grad)
-        damped_matrix(H, damping, H)
-        if not solve_spd6(H, grad, step):
-            damping *= 10.0
+        solved, damping = lm_step(H, grad, damping, H, step, r, T, rt, Tt)
+        if not solved:
             if damping > 1e8:
                 break
             continue
-        for a in range(3):
-            rt[a] = r[a] + step[a]
-        rotate_increment(T, step[3:], Tt)
         if np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance:
             # a step below the tolerance (0.1 µm) is taken without the look-up that would confirm it:
             # the model there is the current one moved along its Jacobian (an error of |step|², far
@@ -148,32 +138,17 @@ def correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations,
         trial_mapped = pose_model_separable(rt, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch)
         pose_residual(S, M, dM, Tt, et, Jt)
         trial = residual_cost(et)
-        small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance
-        if trial <= cost:
+        accept, damping, converged = lm_verdict(trial, cost, damping, step, tolerance)
+        if accept:
             mapped = trial_mapped
             for i in range(3):
                 for j in range(3):
                     Ma[i, j] = M[i, j]
             accept_step(r, rt, T, Tt, e, et, J, Jt)
             cost = trial
-            damping = max(damping * 0.3, 1e-12)
-            if small:
-                converged = True
-                break
-        else:
-            damping *= 10.0
-            if damping > 1e8:  # no step lowers the cost: at the numerical minimum
-                converged = True
-                break
-    lam = 0.0
-    s2 = 0.0
-    for i in range(3):
-        for j in range(3):
-            p = T[i, 0] * S[0, j] + T[i, 1] * S[1, j] + T[i, 2] * S[2, j]
-            lam += (Ma[i, j] - p) ** 2
-            s2 += S[i, j] ** 2
-    relative = np.sqrt(lam / s2) if s2 > 0.0 else np.nan  # s2 = 0: a signal of zeros or denormals, no pose
-    return converged, iterations, relative, mapped
+        if converged:
+            break
+    return converged, iterations, relative_residual(S, Ma, T), mapped
 
 
 @numba.njit(cache=True)

@@ -27,6 +27,18 @@ def flat_batch(a: ArrayLike, tail: tuple[int, ...], name: str) -> tuple[FloatArr
     return np.ascontiguousarray(a.reshape((-1, *tail))), lead
 
 
+def flat_poses(r: ArrayLike, T: ArrayLike) -> tuple[FloatArray, FloatArray, tuple[int, ...]]:
+    """Positions r (..., 3) and orientations T (..., 3, 3) broadcast against each other and flattened
+    (:func:`flat_batch`) to (M, 3) and (M, 3, 3), and their common leading shape."""
+    r_flat, lead = flat_batch(r, (3,), "r")
+    T_flat, lead_T = flat_batch(T, (3, 3), "T")
+    if lead != lead_T:
+        r_b, T_b = np.broadcast_arrays(np.asarray(r, float)[..., None, :], np.asarray(T, float))
+        r_flat, lead = flat_batch(r_b[..., 0, :], (3,), "r")
+        T_flat, _ = flat_batch(T_b, (3, 3), "T")
+    return r_flat, T_flat, lead
+
+
 def field(r: ArrayLike) -> FloatArray:
     """Dipole coupling matrix ``f_D(r) = (3 r rᵀ / |r|² − I) / |r|³`` (eq. 72).
 
@@ -94,12 +106,7 @@ def signal(r: ArrayLike, T: ArrayLike, G: ArrayLike | None = None) -> FloatArray
     -------
     array, shape (..., 3, 3)
     """
-    r_flat, lead = flat_batch(r, (3,), "r")
-    T_flat, lead_T = flat_batch(T, (3, 3), "T")
-    if lead != lead_T:
-        r_b, T_b = np.broadcast_arrays(np.asarray(r, float)[..., None, :], np.asarray(T, float))
-        r_flat, lead = flat_batch(r_b[..., 0, :], (3,), "r")
-        T_flat, _ = flat_batch(T_b, (3, 3), "T")
+    r_flat, T_flat, lead = flat_poses(r, T)
     out = np.empty((r_flat.shape[0], 3, 3))
     compiled.choose(_kernels.signal_kernel, len(r_flat), compiled.VECTORISED, numpy_kernels.signal_kernel)(
         r_flat, T_flat, out)

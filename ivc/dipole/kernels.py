@@ -99,23 +99,9 @@ def closed_form_one(s, hemisphere, r_out, T_out, work_a, work_b, v, B, F, K):
 
     ``work_a``, ``work_b``, ``B``, ``F``, ``K`` are (3, 3) and ``v`` (3,) scratch arrays.
     """
-    for i in range(3):
-        for j in range(3):
-            B[i, j] = s[0, i] * s[0, j] + s[1, i] * s[1, j] + s[2, i] * s[2, j]
-    tr = B[0, 0] + B[1, 1] + B[2, 2]
-    principal_eigenvector(B, work_a, work_b, v)
-    sign = 1.0
-    if v[0] * hemisphere[0] + v[1] * hemisphere[1] + v[2] * hemisphere[2] < 0.0:
-        sign = -1.0
-    rng = sign * (6.0 / tr) ** (1.0 / 6.0)  # eq. 75
-    x = rng * v[0]
-    y = rng * v[1]
-    z = rng * v[2]
-    r_out[0] = x
-    r_out[1] = y
-    r_out[2] = z
+    closed_form_position(s, hemisphere, r_out, work_a, work_b, v, B)  # eq. 75
     # K = f_D(r) Sᵀ; the rotation maximising tr(Tᵀ K) minimises ‖S − Tᵀ f_D‖
-    field_matrix(x, y, z, F)
+    field_matrix(r_out[0], r_out[1], r_out[2], F)
     for i in range(3):
         for j in range(3):
             K[i, j] = F[i, 0] * s[j, 0] + F[i, 1] * s[j, 1] + F[i, 2] * s[j, 2]

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ivc.dipole.field import field as dipole_field
-from ivc.dipole.field import field_jacobian, flat_batch, signal
+from ivc.dipole.field import field_jacobian, flat_poses, signal
 from ivc.errors import TrackerError
 
 __all__ = ["DEFAULT_RESIDUAL_GATE", "GATE_FACTOR", "MIN_RESIDUAL_GATE", "TRACKER_FORMAT", "TRACKER_VERSION", "Tracker",
@@ -157,12 +157,7 @@ class Tracker:
         """
         if self.is_ideal:
             return signal(r, T)
-        r_flat, lead = flat_batch(r, (3,), "r")
-        T_flat, lead_T = flat_batch(T, (3, 3), "T")
-        if lead != lead_T:
-            r_b, T_b = np.broadcast_arrays(np.asarray(r, float)[..., None, :], np.asarray(T, float))
-            r_flat, lead = flat_batch(r_b[..., 0, :], (3,), "r")
-            T_flat, _ = flat_batch(T_b, (3, 3), "T")
+        r_flat, T_flat, lead = flat_poses(r, T)
         if self.is_concentric:
             S = np.swapaxes(self.sensor_moments, 0, 1) @ signal(r_flat, T_flat) @ self.source_moments + self.bias
         else:

@@ -357,10 +357,6 @@ class AdaptiveFit(Fitter):
 
         self._sources, self._depths = sources, cKDTree(subset.positions).query(sources)[0]
 
-    def predict(self, positions: np.ndarray) -> np.ndarray:
-        self._check_fitted("model_")
-        return self.model_(positions)
-
     def tabulate(self, grid: Grid) -> np.ndarray:
         """Node values; nodes nearer the dipole layer than half its depth below the data are NaN (never
         mapped): there the layer's own near field is no map of the room."""

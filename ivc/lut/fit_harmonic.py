@@ -223,10 +223,6 @@ class HarmonicFit(Fitter):
         self._fitted_to = samples
         return self
 
-    def predict(self, positions: np.ndarray) -> np.ndarray:
-        self._check_fitted("model_")
-        return self.model_(positions)
-
     def cross_validate(self, samples: FieldSamples, grid: Grid | None = None) -> float:
         """``cv_score_`` for the samples of the fit; other samples are scored by refitting per fold."""
         if getattr(self, "_fitted_to", None) is samples:

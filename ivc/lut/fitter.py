@@ -33,7 +33,8 @@ __all__ = ["FITTERS", "Fitter", "fit_table", "make_fitter", "register"]
 
 
 class Fitter(ABC):
-    """Base class of the LUT fitters. Subclasses set ``name`` and implement ``__init__``, ``fit`` and ``predict``."""
+    """Base class of the LUT fitters. Subclasses set ``name`` and implement ``__init__`` and ``fit``, and ``predict``
+    unless their fit leaves a callable model in ``model_``."""
 
     #: the method's name (``ivc fit --method NAME``)
     name: str = ""
@@ -69,9 +70,11 @@ class Fitter(ABC):
         """Learn ``G`` from ``samples`` for a table on ``grid``; ``progress(n)`` is told of the work done
         (in :meth:`progress_units`). Returns ``self``."""
 
-    @abstractmethod
     def predict(self, positions: np.ndarray) -> np.ndarray:
-        """``G`` (..., 3, 3) at ``positions`` (..., 3) m, NaN where the fit says nothing."""
+        """``G`` (..., 3, 3) at ``positions`` (..., 3) m, NaN where the fit says nothing: by default the fitted
+        model ``model_`` (a callable of positions) there."""
+        self._check_fitted("model_")
+        return self.model_(positions)
 
     def tabulate(self, grid: Grid) -> np.ndarray:
         """Node values (nx, ny, nz, 3, 3) of a table on ``grid``: by default the prediction at its nodes."""

@@ -8,11 +8,20 @@ increments is ``∂r_n/∂r_0 = I``, ``∂r_n/∂ω = −T_0 [b_n]×`` and ``ω_
 weighted by ``w = 1 / rms(S_n)``. :func:`add_sensor` adds them to ``H = JᵀJ`` (lower triangle) and
 ``grad = −Jᵀe``; :func:`symmetrise` fills the upper triangle once all sensors are in;
 :func:`accept_trial` makes an accepted Levenberg-Marquardt trial the current pose and equations.
+
+:func:`normal_equations` sums them over the wand for either problem (``field``'s ``tied``: sensor 0 in the cube's
+field, the sensors the table does not map left out), and :func:`solve_frame` is the Levenberg-Marquardt loop of one
+frame (the rules of :func:`ivc.pose.kernels.lm_step` and :func:`ivc.pose.kernels.lm_verdict`) both kernels run.
 """
 
 from __future__ import annotations
 
 import numba
+import numpy as np
+
+from ivc.fixtures.kernels import cube_model
+from ivc.pose.kernels import accept_pose, lm_step, lm_verdict, pose_residual
+from ivc.table.kernels import pose_model
 
 
 @numba.njit(inline="always")
@@ -69,11 +78,75 @@ def symmetrise(H):
 def accept_trial(r, rt, T, Tt, H, Ht, grad, gradt):
     """The trial pose (rt (3,), Tt (3, 3)) and its normal equations (Ht (6, 6), gradt (6,)) become the
     current ones (r, T, H, grad; copied in place)."""
-    for a in range(3):
-        r[a] = rt[a]
-        for c in range(3):
-            T[a, c] = Tt[a, c]
+    accept_pose(r, rt, T, Tt)
     for a in range(6):
         grad[a] = gradt[a]
         for c in range(6):
             H[a, c] = Ht[a, c]
+
+
+@numba.njit(cache=True)
+def workspace():
+    """One frame's scratch arrays: (work, lm). ``work``, those of :func:`normal_equations` (the model M (3, 3) and
+    ∂M/∂r, the cube basis and its gradient, the table's g, ∂g/∂r and stencil weights, a sensor's position,
+    rotation, residual, Jacobian, chained Jacobian and lever); ``lm``, the loop's (H and grad, their trial values,
+    the damped matrix, the step, the trial pose)."""
+    work = (np.empty((3, 3)), np.empty((3, 3, 3)), np.empty((15, 3)), np.empty((15, 3, 3)), np.empty(9),
+            np.empty((9, 3)), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4),
+            np.empty(3), np.empty((3, 3)), np.empty(9), np.empty((9, 6)), np.empty((9, 6)), np.empty((3, 3)))
+    lm = (np.empty((6, 6)), np.empty((6, 6)), np.empty(6), np.empty(6), np.empty((6, 6)), np.empty(6), np.empty(3),
+          np.empty((3, 3)))
+    return work, lm
+
+
+@numba.njit(cache=True)  # not inlined: solve_frame calls it twice, and two copies of its IR doubled the compile
+def normal_equations(S, use, scale, wand, field, r0, T0, H, grad, work):
+    """Cost Σ|e|², H = JᵀJ (6, 6) and grad = −Jᵀe (6,) of the rigid wand at sensor 0's pose (r0, T0), for the
+    sensors ``use`` marks. ``wand``: (b (W, 3), R (W, 3, 3)); ``field``: (grid, centre, cube_scale, coefficients,
+    tied): the table (:data:`ivc.table.kernels.GRID`) for every sensor, or, ``tied``, the cube's harmonic field
+    (:func:`ivc.fixtures.kernels.cube_model`) for sensor 0 and the table for the others it maps."""
+    b, R = wand
+    grid, centre, cube_scale, coefficients, tied = field
+    M, dM, G, H3, g, dg, wx, wy, wz, dx, dy, dz, p, Tn, e, J, Jc, lever = work
+    clear(H, grad)
+    cost = 0.0
+    for n in range(S.shape[0]):
+        if not use[n]:
+            continue
+        for i in range(3):
+            p[i] = r0[i] + T0[i, 0] * b[n, 0] + T0[i, 1] * b[n, 1] + T0[i, 2] * b[n, 2]
+            for j in range(3):
+                Tn[i, j] = T0[i, 0] * R[n, 0, j] + T0[i, 1] * R[n, 1, j] + T0[i, 2] * R[n, 2, j]
+        if tied and n == 0:
+            cube_model(p, centre, cube_scale, coefficients, M, dM, G, H3)
+        elif not pose_model(p, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz) and tied:
+            continue  # a sensor where the map says nothing does not pull the wand tied to the cube
+        pose_residual(S[n], M, dM, Tn, e, J)
+        cost += add_sensor(e, J, 1.0 / scale[n], b[n], R[n], T0, H, grad, Jc, lever)
+    symmetrise(H)
+    return cost
+
+
+@numba.njit(cache=True)
+def solve_frame(S, use, scale, wand, field, limits, r, T, work, lm):
+    """Levenberg-Marquardt for one frame's sensor 0 pose (r (3,), T (3, 3), updated in place from the start they
+    hold) on :func:`normal_equations`; ``limits``: (max_iterations, position step tolerance m); ``work``, ``lm``:
+    :func:`workspace`. Returns (converged, cost); JᵀJ at the solution is left in ``lm[0]``."""
+    max_iterations, tolerance = limits
+    H, Ht, grad, gradt, A, step, rt, Tt = lm
+    cost = normal_equations(S, use, scale, wand, field, r, T, H, grad, work)
+    damping = 1e-3
+    for _ in range(max_iterations):
+        solved, damping = lm_step(H, grad, damping, A, step, r, T, rt, Tt)
+        if not solved:
+            if damping > 1e8:
+                break
+            continue
+        trial = normal_equations(S, use, scale, wand, field, rt, Tt, Ht, gradt, work)
+        accept, damping, converged = lm_verdict(trial, cost, damping, step, tolerance)
+        if accept:
+            accept_trial(r, rt, T, Tt, H, Ht, grad, gradt)
+            cost = trial
+        if converged:
+            return True, cost
+    return False, cost

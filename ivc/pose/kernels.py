@@ -11,6 +11,9 @@ The batched NumPy form of the same solve is :func:`ivc.pose.solve_pose`.
 from __future__ import annotations
 
 import numba
+import numpy as np
+
+from ivc.linalg import rotate_increment, solve_spd6
 
 
 @numba.njit(cache=True)
@@ -83,13 +86,46 @@ def damped_matrix(H, damping, A):
 
 
 @numba.njit(cache=True)
-def accept_step(r, rt, T, Tt, e, et, J, Jt):
-    """The trial pose (rt, Tt), its residual et and Jacobian Jt become the current ones (copied in place)."""
+def lm_step(H, grad, damping, A, step, r, T, rt, Tt):
+    """A Levenberg-Marquardt trial: solve ``(H + damping·D) step = grad`` (:func:`damped_matrix` into A, which
+    may be H) and move the pose (r (3,), T (3, 3)) by it into the trial (rt = r + step[:3], Tt = T exp([step[3:]]×)).
+    Returns (solved, damping): where the damped matrix is not positive definite, not solved and the damping ×10."""
+    damped_matrix(H, damping, A)
+    if not solve_spd6(A, grad, step):
+        return False, damping * 10.0
+    for a in range(3):
+        rt[a] = r[a] + step[a]
+    rotate_increment(T, step[3:], Tt)
+    return True, damping
+
+
+@numba.njit(inline="always")
+def lm_verdict(trial, cost, damping, step, tolerance):
+    """Levenberg-Marquardt's rule for a trial of cost ``trial`` against the current ``cost``: (accept, damping,
+    converged). Accepted when it does not raise the cost, the damping then ×0.3 (at least 1e-12), converged when
+    its position step was below ``tolerance`` m; rejected otherwise, the damping ×10, converged above 1e8 (no step
+    lowers the cost: at the numerical minimum)."""
+    if trial <= cost:
+        small = np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance
+        return True, max(damping * 0.3, 1e-12), small
+    damping *= 10.0
+    return False, damping, damping > 1e8
+
+
+@numba.njit(inline="always")
+def accept_pose(r, rt, T, Tt):
+    """The trial pose (rt (3,), Tt (3, 3)) becomes the current one (r, T; copied in place)."""
     for a in range(3):
         r[a] = rt[a]
     for i in range(3):
         for j in range(3):
             T[i, j] = Tt[i, j]
+
+
+@numba.njit(cache=True)
+def accept_step(r, rt, T, Tt, e, et, J, Jt):
+    """The trial pose (rt, Tt), its residual et and Jacobian Jt become the current ones (copied in place)."""
+    accept_pose(r, rt, T, Tt)
     for k in range(9):
         e[k] = et[k]
         for a in range(6):

@@ -38,7 +38,6 @@ from ivc.predict.base import (
     as_given,
     check_horizons,
     check_rate,
-    check_stream,
 )
 from ivc.predict.combine import MEMORY_S as COMBINATION_MEMORY_S
 from ivc.predict.combine import accumulate, combine, decay, ridge_for, solve_weights
@@ -48,7 +47,7 @@ from ivc.predict.hold import NoPrediction
 from ivc.predict.linear import polynomial
 from ivc.predict.quat import delta_q, qmul, qmul_conj, rate_of, slerp
 from ivc.predict.recording import REFERENCE_MAX_STEP_S, future_reference
-from ivc.predict.timing import check_time, repeats
+from ivc.predict.timing import check_stream, check_time, repeats
 
 
 def _cv_brisk(rate_hz: float) -> Predictor:
@@ -253,99 +252,6 @@ def blend(shown: FloatArray, weights: FloatArray, q: FloatArray) -> FloatArray:
     return rotations.multiply(rotations.from_rotvec(mean), np.broadcast_to(q, shown.shape[1:]))
 
 
-@dataclass
-class AutoPredictor(Predictor):
-    """The bank of :data:`CANDIDATES`, each sensor and horizon shown its best recent candidate (module docstring)."""
-
-    rate_hz: float = 120.0
-    candidates: tuple[str, ...] = tuple(CANDIDATES)
-    memory_s: float = MEMORY_S
-    power: float = POWER
-    horizon_s: float = 0.05  # the live form's scoring horizon
-    max_step_s: float = REFERENCE_MAX_STEP_S
-    combination: bool = True  # the ``combine`` member (module docstring)
-    combination_memory_s: float = COMBINATION_MEMORY_S
-    name: str = "auto"
-    bank: list = field(init=False, repr=False)
-
-    def __post_init__(self):
-        self.rate_hz = check_rate(self.rate_hz)
-        unknown = [c for c in self.candidates if c not in CANDIDATES]
-        if unknown or not self.candidates:
-            raise PredictorError(f"auto's candidates are among {', '.join(CANDIDATES)}; got {self.candidates}")
-        if not (self.memory_s > 0 and self.max_step_s > 0 and self.power >= 0 and self.combination_memory_s > 0):
-            raise PredictorError("memory_s, combination_memory_s and max_step_s must be positive numbers of seconds, "
-                                 "power >= 0")
-        check_horizons(self.horizon_s)
-        self.bank = [CANDIDATES[c](self.rate_hz) for c in self.candidates]
-        for p in self.bank:  # a member that learns from its errors (direct) learns at the horizon auto scores at
-            if hasattr(p, "horizon_s") and self.horizon_s > 0:
-                p.horizon_s = float(self.horizon_s)
-
-    @property
-    def members(self) -> tuple[str, ...]:
-        """The names of what is blended, in the order of the weights: the candidates, then ``combine`` if on."""
-        return tuple(self.candidates) + (("combine",) if self.combination else ())
-
-    def _combined(self, shown, qs, ok, t, horizon, references) -> FloatArray:
-        """The ``combine`` member (F, S, 4) at one horizon from the candidates' predictions shown (C, F, S, 4)."""
-        out = np.array(qs)
-        if horizon == 0.0:  # nothing to learn: the measurement
-            return out
-        turns = rotations.to_rotvec(rotations.multiply(rotations.conjugate(qs)[None], shown))  # (C, F, S, 3), body
-        turns[:, ~ok] = 0.0
-        for s, (ref, scored, known) in enumerate(references):
-            goal = np.full((len(t), 3), np.nan)
-            goal[scored] = rotations.to_rotvec(rotations.multiply(rotations.conjugate(qs[scored, s]), ref[scored]))
-            mean, _ = combine(turns[:, :, s], goal, known, t, horizon, self.combination_memory_s)
-            out[ok[:, s], s] = rotations.multiply(qs[ok[:, s], s], rotations.from_rotvec(mean[ok[:, s]]))
-        return out
-
-    def selections(self, q, horizons, valid=None, time=None) -> tuple[FloatArray, np.ndarray]:
-        """(predictions (H, F, S, 4) as :meth:`predict`, the members' weights (H, F, S, M), in :attr:`members`'
-        order)."""
-        h = check_horizons(horizons)
-        qs, ok, _ = check_stream(q, valid)
-        F, S = ok.shape
-        t = check_time(time, F, self.rate_hz)
-        dt = np.diff(t, prepend=t[:1])
-        usable = ok & ~repeats(qs, ok)
-        shown = []
-        for p in self.bank:
-            P = p.predict(qs, h, ok, time=t)
-            shown.append(np.where(np.all(np.isfinite(P), axis=-1, keepdims=True), P, qs[None]))
-        shown = np.stack(shown)  # (C, H, F, S, 4)
-        references = []  # per horizon, per sensor: (reference, scored, the frame it is known at or -1)
-        for d in h:
-            references.append([])
-            for s in range(S):
-                ref, inside, known = future_reference(t, qs[:, s], usable[:, s], d, self.max_step_s, known_at=True)
-                scored = inside & ok[:, s]
-                references[-1].append((ref, scored, np.where(scored, known, -1)))
-        if self.combination:
-            mixed = [self._combined(shown[:, i], qs, ok, t, float(d), references[i]) for i, d in enumerate(h)]
-            shown = np.concatenate([shown, np.stack(mixed)[None]])
-        M = shown.shape[0]
-        weights = np.zeros((len(h), F, S, M))
-        for i in range(len(h)):
-            for s, (ref, scored, known) in enumerate(references[i]):
-                err = np.full((M, F), np.nan)
-                err[:, scored] = 1e3 * rotations.angle_between(shown[:, i, scored, s], ref[scored][None])
-                chosen = np.empty((F, M))  # contiguous, whatever S: one specialisation of _select
-                _select(err, known, dt, self.memory_s, self.power, chosen)
-                weights[i, :, s] = chosen
-        out = blend(shown, np.moveaxis(weights, -1, 0), qs[None])
-        out[:, ~ok] = np.nan
-        return out, weights
-
-    def predict(self, q, horizons, valid=None, time=None):
-        out, _ = self.selections(q, horizons, valid, time)
-        return as_given(out, np.ndim(q) == 2)
-
-    def stream(self, n_sensors: int = 1) -> AutoStream:
-        return AutoStream(self, n_sensors)
-
-
 class AutoStream(Stream):
     """The live ``auto``: every candidate's stream, the pending predictions of each sensor, the error sums."""
 
@@ -438,3 +344,96 @@ class AutoStream(Stream):
         out = np.empty((self.n_sensors, 4))
         _blend_frame(ahead, self.weights, self.last, self.ok, out)
         return out
+
+
+@dataclass
+class AutoPredictor(Predictor):
+    """The bank of :data:`CANDIDATES`, each sensor and horizon shown its best recent candidate (module docstring)."""
+
+    rate_hz: float = 120.0
+    candidates: tuple[str, ...] = tuple(CANDIDATES)
+    memory_s: float = MEMORY_S
+    power: float = POWER
+    horizon_s: float = 0.05  # the live form's scoring horizon
+    max_step_s: float = REFERENCE_MAX_STEP_S
+    combination: bool = True  # the ``combine`` member (module docstring)
+    combination_memory_s: float = COMBINATION_MEMORY_S
+    name: str = "auto"
+    bank: list = field(init=False, repr=False)
+
+    def __post_init__(self):
+        self.rate_hz = check_rate(self.rate_hz)
+        unknown = [c for c in self.candidates if c not in CANDIDATES]
+        if unknown or not self.candidates:
+            raise PredictorError(f"auto's candidates are among {', '.join(CANDIDATES)}; got {self.candidates}")
+        if not (self.memory_s > 0 and self.max_step_s > 0 and self.power >= 0 and self.combination_memory_s > 0):
+            raise PredictorError("memory_s, combination_memory_s and max_step_s must be positive numbers of seconds, "
+                                 "power >= 0")
+        check_horizons(self.horizon_s)
+        self.bank = [CANDIDATES[c](self.rate_hz) for c in self.candidates]
+        for p in self.bank:  # a member that learns from its errors (direct) learns at the horizon auto scores at
+            if hasattr(p, "horizon_s") and self.horizon_s > 0:
+                p.horizon_s = float(self.horizon_s)
+
+    @property
+    def members(self) -> tuple[str, ...]:
+        """The names of what is blended, in the order of the weights: the candidates, then ``combine`` if on."""
+        return tuple(self.candidates) + (("combine",) if self.combination else ())
+
+    def _combined(self, shown, qs, ok, t, horizon, references) -> FloatArray:
+        """The ``combine`` member (F, S, 4) at one horizon from the candidates' predictions shown (C, F, S, 4)."""
+        out = np.array(qs)
+        if horizon == 0.0:  # nothing to learn: the measurement
+            return out
+        turns = rotations.to_rotvec(rotations.multiply(rotations.conjugate(qs)[None], shown))  # (C, F, S, 3), body
+        turns[:, ~ok] = 0.0
+        for s, (ref, scored, known) in enumerate(references):
+            goal = np.full((len(t), 3), np.nan)
+            goal[scored] = rotations.to_rotvec(rotations.multiply(rotations.conjugate(qs[scored, s]), ref[scored]))
+            mean, _ = combine(turns[:, :, s], goal, known, t, horizon, self.combination_memory_s)
+            out[ok[:, s], s] = rotations.multiply(qs[ok[:, s], s], rotations.from_rotvec(mean[ok[:, s]]))
+        return out
+
+    def selections(self, q, horizons, valid=None, time=None) -> tuple[FloatArray, np.ndarray]:
+        """(predictions (H, F, S, 4) as :meth:`predict`, the members' weights (H, F, S, M), in :attr:`members`'
+        order)."""
+        h = check_horizons(horizons)
+        qs, ok, _ = check_stream(q, valid)
+        F, S = ok.shape
+        t = check_time(time, F, self.rate_hz)
+        dt = np.diff(t, prepend=t[:1])
+        usable = ok & ~repeats(qs, ok)
+        shown = []
+        for p in self.bank:
+            P = p.predict(qs, h, ok, time=t)
+            shown.append(np.where(np.all(np.isfinite(P), axis=-1, keepdims=True), P, qs[None]))
+        shown = np.stack(shown)  # (C, H, F, S, 4)
+        references = []  # per horizon, per sensor: (reference, scored, the frame it is known at or -1)
+        for d in h:
+            references.append([])
+            for s in range(S):
+                ref, inside, known = future_reference(t, qs[:, s], usable[:, s], d, self.max_step_s, known_at=True)
+                scored = inside & ok[:, s]
+                references[-1].append((ref, scored, np.where(scored, known, -1)))
+        if self.combination:
+            mixed = [self._combined(shown[:, i], qs, ok, t, float(d), references[i]) for i, d in enumerate(h)]
+            shown = np.concatenate([shown, np.stack(mixed)[None]])
+        M = shown.shape[0]
+        weights = np.zeros((len(h), F, S, M))
+        for i in range(len(h)):
+            for s, (ref, scored, known) in enumerate(references[i]):
+                err = np.full((M, F), np.nan)
+                err[:, scored] = 1e3 * rotations.angle_between(shown[:, i, scored, s], ref[scored][None])
+                chosen = np.empty((F, M))  # contiguous, whatever S: one specialisation of _select
+                _select(err, known, dt, self.memory_s, self.power, chosen)
+                weights[i, :, s] = chosen
+        out = blend(shown, np.moveaxis(weights, -1, 0), qs[None])
+        out[:, ~ok] = np.nan
+        return out, weights
+
+    def predict(self, q, horizons, valid=None, time=None):
+        out, _ = self.selections(q, horizons, valid, time)
+        return as_given(out, np.ndim(q) == 2)
+
+    #: the live form, made by :meth:`stream`
+    stream_type = AutoStream

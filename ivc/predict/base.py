@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -90,9 +91,12 @@ class Predictor(ABC):
         from frames 0..k only. NaN where the filter has no estimate yet or the frame is invalid. ``time`` (F,) s:
         the frames' time stamps (None: 1 / rate_hz apart)."""
 
-    @abstractmethod
+    #: the live form's class, which :meth:`stream` makes (a subclass sets it or overrides :meth:`stream`)
+    stream_type: ClassVar[type[Stream]]
+
     def stream(self, n_sensors: int = 1) -> Stream:
         """A fresh streaming instance for ``n_sensors`` sensors."""
+        return self.stream_type(self, n_sensors)
 
     def rates(self, q: ArrayLike, valid: ArrayLike | None = None) -> FloatArray | None:
         """Estimated angular velocity (F, [S,] 3) rad/s per frame, or None if the predictor has none."""
@@ -132,6 +136,30 @@ class StreamClock:
         return gap
 
 
+class FixedRateStream(Stream):
+    """The live form of a :class:`FixedRatePredictor`: drops repeats, restarts after a gap (every sensor)."""
+
+    def __init__(self, predictor: FixedRatePredictor, n_sensors: int):
+        super().__init__(predictor, n_sensors)
+        self.inner = predictor._stream_uniform(n_sensors)
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
+        self.previous = np.full((self.n_sensors, 4), np.nan)  # each sensor's last valid sample
+        self.restarts = 0
+
+    def update(self, q, valid=None, time=None):
+        qs, ok = self._check_frame(q, valid)
+        if np.any(self.clock.advance(time, ok, self.predictor.max_gap_s)):
+            self.inner = self.predictor._stream_uniform(self.n_sensors)
+            self.restarts += 1
+        same = ok & np.all(qs == self.previous, axis=1)
+        self.previous = np.where(ok[:, None], qs, self.previous)
+        self.inner.update(qs, ok & ~same)
+        self.last = self.inner.last
+
+    def predict(self, horizon):
+        return self.inner.predict(horizon)
+
+
 class FixedRatePredictor(Predictor):
     """A predictor designed for one sample rate (its gains or transition matrices are fixed at ``rate_hz``).
 
@@ -162,29 +190,54 @@ class FixedRatePredictor(Predictor):
                                                                                      strict=True) if b > a]
         return as_given(np.concatenate(parts, axis=1), single)
 
-    def stream(self, n_sensors: int = 1) -> Stream:
-        return FixedRateStream(self, n_sensors)
+    #: the live form: repeats dropped, a restart after a gap
+    stream_type = FixedRateStream
 
 
-class FixedRateStream(Stream):
-    """The live form of a :class:`FixedRatePredictor`: drops repeats, restarts after a gap (every sensor)."""
+class TimedStepStream(Stream):
+    """The live form of a :class:`FixedRatePredictor` that can also step over the actual time between frames: fed
+    time stamps, :meth:`_step` per frame over them; fed none (decided at the first frame), the fixed-rate stream
+    (:class:`FixedRateStream`, in ``inner``), as the batch without times. Subclasses set up their state in
+    ``__init__`` and implement :meth:`_step` and :meth:`_show`."""
 
     def __init__(self, predictor: FixedRatePredictor, n_sensors: int):
         super().__init__(predictor, n_sensors)
-        self.inner = predictor._stream_uniform(n_sensors)
+        self.inner: Stream | None = None
         self.clock = StreamClock(predictor.rate_hz, n_sensors)
         self.previous = np.full((self.n_sensors, 4), np.nan)  # each sensor's last valid sample
-        self.restarts = 0
+        self.ok = np.zeros(self.n_sensors, bool)
+        self._restarts = 0
+
+    @property
+    def restarts(self) -> int:
+        return self.inner.restarts if self.inner is not None else self._restarts
+
+    @abstractmethod
+    def _step(self, qs: FloatArray, ok: NDArray[np.bool_], new: NDArray[np.bool_], gap: NDArray[np.bool_],
+              now: float) -> None:
+        """Take the frame qs (S, 4) at time ``now`` s: ``ok`` its valid samples, ``new`` those that are not a
+        repeat of the sensor's last, ``gap`` the sensors that restart after a gap."""
+
+    @abstractmethod
+    def _show(self, horizon: float) -> FloatArray:
+        """Predicted orientations (S, 4) ``horizon`` s after the last frame (checked), NaN where not ``ok``."""
 
     def update(self, q, valid=None, time=None):
+        if self.inner is None and time is None and self.clock.now is None:
+            self.inner = FixedRateStream(self.predictor, self.n_sensors)
+        if self.inner is not None:
+            self.inner.update(q, valid, time)
+            self.last = self.inner.last
+            return
         qs, ok = self._check_frame(q, valid)
-        if np.any(self.clock.advance(time, ok, self.predictor.max_gap_s)):
-            self.inner = self.predictor._stream_uniform(self.n_sensors)
-            self.restarts += 1
-        same = ok & np.all(qs == self.previous, axis=1)
+        gap = self.clock.advance(time, ok, self.predictor.max_gap_s)
+        self._restarts += int(gap.sum())
+        new = ok & ~np.all(qs == self.previous, axis=1)
         self.previous = np.where(ok[:, None], qs, self.previous)
-        self.inner.update(qs, ok & ~same)
-        self.last = self.inner.last
+        self._step(qs, ok, new, gap, self.clock.now)
+        self.ok, self.last = ok, qs
 
     def predict(self, horizon):
-        return self.inner.predict(horizon)
+        if self.inner is not None:
+            return self.inner.predict(horizon)
+        return self._show(float(check_horizons(horizon)[0]))

@@ -33,18 +33,10 @@ import numba
 import numpy as np
 
 from ivc.linalg import cholesky, cholesky_solve
-from ivc.predict.base import (
-    Predictor,
-    PredictorError,
-    Stream,
-    as_given,
-    check_horizons,
-    check_rate,
-    check_stream,
-)
+from ivc.predict.base import Predictor, PredictorError, Stream, as_given, check_horizons, check_rate
 from ivc.predict.quat import delta_q, qmul, qmul_conj, rate_of, slerp
 from ivc.predict.recording import REFERENCE_MAX_STEP_S
-from ivc.predict.timing import MAX_GAP_S, check_time
+from ivc.predict.timing import MAX_GAP_S, check_stream, check_time
 
 #: interval velocities in the features
 LAGS = 4
@@ -247,6 +239,47 @@ def _state(n_sensors: int, lags: int) -> tuple:
             np.zeros((S, PENDING, 4)), np.zeros((S, PENDING)), np.full((S, 4), np.nan))
 
 
+class DirectStream(Stream):
+    """The live ``direct``: learns at the predictor's ``horizon_s``; one compiled step per frame."""
+
+    def __init__(self, predictor: DirectPredictor, n_sensors: int):
+        super().__init__(predictor, n_sensors)
+        self.state = _state(self.n_sensors, int(predictor.lags))
+        self.args = predictor._args(predictor.horizon_s)
+        self.now: float | None = None
+        self.ok = np.zeros(self.n_sensors, bool)
+        self._frames = 0
+
+    @property
+    def restarts(self) -> int:
+        return int(self.state[0][:, _RESTARTS].sum())
+
+    def update(self, q, valid=None, time=None):
+        qs, ok = self._check_frame(q, valid)
+        if time is None:
+            t = self._frames / self.predictor.rate_hz
+        else:
+            t = float(time)
+            if not np.isfinite(t) or (self.now is not None and not t > self.now):
+                raise PredictorError(f"frame time {t!r} s does not come after the previous frame's ({self.now!r} s): "
+                                     "feed frames in time order, without repeated time stamps")
+        dt = 0.0 if self.now is None else t - self.now
+        self._frames += 1
+        self.now = t
+        _frame(qs, ok, t, dt, *self.args, *self.state)
+        self.ok, self.last = ok, qs
+
+    def predict(self, horizon):
+        d = float(check_horizons(horizon)[0])
+        out = np.empty((self.n_sensors, 4))
+        if self.now is None:
+            out[:] = np.nan
+            return out
+        scal, vel, base_q = self.state[0], self.state[5], self.state[6]
+        _show(self.ok, self.now, d, scal, vel, base_q, out)
+        return out
+
+
 @dataclass
 class DirectPredictor(Predictor):
     """The h-step-ahead least-squares predictor learned online (module docstring)."""
@@ -288,49 +321,8 @@ class DirectPredictor(Predictor):
             _run(qs, ok, t, *self._args(float(d)), *_state(S, int(self.lags)), out[i])
         return as_given(out, single)
 
-    def stream(self, n_sensors: int = 1) -> DirectStream:
-        return DirectStream(self, n_sensors)
-
-
-class DirectStream(Stream):
-    """The live ``direct``: learns at the predictor's ``horizon_s``; one compiled step per frame."""
-
-    def __init__(self, predictor: DirectPredictor, n_sensors: int):
-        super().__init__(predictor, n_sensors)
-        self.state = _state(self.n_sensors, int(predictor.lags))
-        self.args = predictor._args(predictor.horizon_s)
-        self.now: float | None = None
-        self.ok = np.zeros(self.n_sensors, bool)
-        self._frames = 0
-
-    @property
-    def restarts(self) -> int:
-        return int(self.state[0][:, _RESTARTS].sum())
-
-    def update(self, q, valid=None, time=None):
-        qs, ok = self._check_frame(q, valid)
-        if time is None:
-            t = self._frames / self.predictor.rate_hz
-        else:
-            t = float(time)
-            if not np.isfinite(t) or (self.now is not None and not t > self.now):
-                raise PredictorError(f"frame time {t!r} s does not come after the previous frame's ({self.now!r} s): "
-                                     "feed frames in time order, without repeated time stamps")
-        dt = 0.0 if self.now is None else t - self.now
-        self._frames += 1
-        self.now = t
-        _frame(qs, ok, t, dt, *self.args, *self.state)
-        self.ok, self.last = ok, qs
-
-    def predict(self, horizon):
-        d = float(check_horizons(horizon)[0])
-        out = np.empty((self.n_sensors, 4))
-        if self.now is None:
-            out[:] = np.nan
-            return out
-        scal, vel, base_q = self.state[0], self.state[5], self.state[6]
-        _show(self.ok, self.now, d, scal, vel, base_q, out)
-        return out
+    #: the live form, made by :meth:`stream`
+    stream_type = DirectStream
 
 
 def direct(rate_hz: float = 120.0, **kwargs) -> DirectPredictor:

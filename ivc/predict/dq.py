@@ -31,10 +31,9 @@ from ivc.predict.base import (
     as_given,
     check_horizons,
     check_rate,
-    check_stream,
 )
 from ivc.predict.delta import extrapolate_each
-from ivc.predict.timing import MAX_GAP_S, check_time, steps
+from ivc.predict.timing import MAX_GAP_S, check_stream, check_time, steps
 
 #: Table 10 process-noise standard deviations: CV in rad/s², CA in rad/s³
 SIGMA_CV1 = (1.48, 0.63, 0.72)
@@ -76,6 +75,59 @@ def stationary(Pi: ArrayLike) -> FloatArray:
     w, v = np.linalg.eig(Pi.T)
     p = np.real(v[:, np.argmin(np.abs(w - 1.0))])
     return p / p.sum()
+
+
+class DQStream(Stream):
+    """Streaming DQ predictor: one compiled step per sensor per frame."""
+
+    def __init__(self, predictor: DQPredictor, n_sensors: int):
+        super().__init__(predictor, n_sensors)
+        self.state = predictor._state(self.n_sensors)
+        self.ready = np.zeros(self.n_sensors, bool)
+        self._all = np.ones(self.n_sensors, bool)
+        self.now: float | None = None  # the last frame's time (s), when frames come with time stamps
+        self._step = 0.0  # dt of the next frame fed without a time stamp (0 for the first)
+
+    def update(self, q, valid=None, time=None):
+        q = np.array(q, dtype=float, order="C")  # a copy: normalised in place by the kernel
+        if q.shape != (self.n_sensors, 4):
+            raise PredictorError(f"a frame has shape ({self.n_sensors}, 4), got {q.shape}")
+        ok = self._all if valid is None else np.asarray(valid, dtype=bool).reshape(self.n_sensors)
+        if time is None:  # the live path's default: one nominal period, no clock kept
+            dt = self._step
+            self._step = self.predictor.tau
+        else:
+            t = float(time)
+            if self.now is not None and not t > self.now:
+                raise PredictorError(f"frame time {t!r} s does not come after the previous frame's ({self.now!r} s): "
+                                     "feed frames in time order, without repeated time stamps")
+            dt = 0.0 if self.now is None else t - self.now
+            self.now = t
+            self._step = self.predictor.tau
+        kinds, qvar, R, cfg, _, _ = self.predictor._config
+        bad = K.update_frame(q, ok, dt, *self.state, kinds, qvar, R, cfg, self.ready)
+        if bad >= 0:
+            raise PredictorError(f"sensor {bad}: not a unit quaternion (norm {np.linalg.norm(q[bad]):.6g}); "
+                                 "pass unit quaternions [w, x, y, z]")
+        self.last = q
+
+    def predict(self, horizon):
+        d = float(horizon)
+        if not 0.0 <= d <= MAX_HORIZON:
+            check_horizons(horizon)
+        out = np.empty((self.n_sensors, 4))
+        K.predict_frame(self.last, self.state[6], self.state[7], self.ready, d, self.predictor.tau, out)
+        return out
+
+    @property
+    def restarts(self) -> int:
+        """Restarts at gaps so far, summed over the sensors."""
+        return int(self.state[7][:, K.CLOCK_RESTARTS].sum())
+
+    @property
+    def omega(self) -> FloatArray:
+        """Current angular-velocity estimates (sensors, 3) rad/s."""
+        return self.state[6][:, :3].copy()
 
 
 @dataclass
@@ -163,61 +215,8 @@ class DQPredictor(Predictor):
         out[:, ~usable] = np.nan
         return as_given(out, np.ndim(q) == 2)
 
-    def stream(self, n_sensors: int = 1) -> DQStream:
-        return DQStream(self, n_sensors)
-
-
-class DQStream(Stream):
-    """Streaming DQ predictor: one compiled step per sensor per frame."""
-
-    def __init__(self, predictor: DQPredictor, n_sensors: int):
-        super().__init__(predictor, n_sensors)
-        self.state = predictor._state(self.n_sensors)
-        self.ready = np.zeros(self.n_sensors, bool)
-        self._all = np.ones(self.n_sensors, bool)
-        self.now: float | None = None  # the last frame's time (s), when frames come with time stamps
-        self._step = 0.0  # dt of the next frame fed without a time stamp (0 for the first)
-
-    def update(self, q, valid=None, time=None):
-        q = np.array(q, dtype=float, order="C")  # a copy: normalised in place by the kernel
-        if q.shape != (self.n_sensors, 4):
-            raise PredictorError(f"a frame has shape ({self.n_sensors}, 4), got {q.shape}")
-        ok = self._all if valid is None else np.asarray(valid, dtype=bool).reshape(self.n_sensors)
-        if time is None:  # the live path's default: one nominal period, no clock kept
-            dt = self._step
-            self._step = self.predictor.tau
-        else:
-            t = float(time)
-            if self.now is not None and not t > self.now:
-                raise PredictorError(f"frame time {t!r} s does not come after the previous frame's ({self.now!r} s): "
-                                     "feed frames in time order, without repeated time stamps")
-            dt = 0.0 if self.now is None else t - self.now
-            self.now = t
-            self._step = self.predictor.tau
-        kinds, qvar, R, cfg, _, _ = self.predictor._config
-        bad = K.update_frame(q, ok, dt, *self.state, kinds, qvar, R, cfg, self.ready)
-        if bad >= 0:
-            raise PredictorError(f"sensor {bad}: not a unit quaternion (norm {np.linalg.norm(q[bad]):.6g}); "
-                                 "pass unit quaternions [w, x, y, z]")
-        self.last = q
-
-    def predict(self, horizon):
-        d = float(horizon)
-        if not 0.0 <= d <= MAX_HORIZON:
-            check_horizons(horizon)
-        out = np.empty((self.n_sensors, 4))
-        K.predict_frame(self.last, self.state[6], self.state[7], self.ready, d, self.predictor.tau, out)
-        return out
-
-    @property
-    def restarts(self) -> int:
-        """Restarts at gaps so far, summed over the sensors."""
-        return int(self.state[7][:, K.CLOCK_RESTARTS].sum())
-
-    @property
-    def omega(self) -> FloatArray:
-        """Current angular-velocity estimates (sensors, 3) rad/s."""
-        return self.state[6][:, :3].copy()
+    #: the live form, made by :meth:`stream`
+    stream_type = DQStream
 
 
 #: process noise per axis of a model of ``kind`` tuned at ``λ``: Table 10, or a Tuning's ``sigma_w``

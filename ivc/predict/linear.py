@@ -30,10 +30,10 @@ from ivc.predict.base import (
     PredictorError,
     Stream,
     StreamClock,
+    TimedStepStream,
     as_given,
     check_horizons,
     check_rate,
-    check_stream,
 )
 from ivc.predict.delta import deltas
 from ivc.predict.gains import kinematic_gain
@@ -43,7 +43,7 @@ from ivc.predict.linear_steps import show_frame as _steps_show
 from ivc.predict.linear_steps import state as steps_state
 from ivc.predict.linear_steps import step_frame as _steps_frame
 from ivc.predict.quat import delta_q, qmul, qmul_conj, rate_of
-from ivc.predict.timing import check_time, repeats, restarts
+from ivc.predict.timing import check_stream, check_time, repeats, restarts
 
 
 @dataclass
@@ -331,49 +331,23 @@ class LinearStream(Stream):
         return out
 
 
-class StepLinearStream(Stream):
+class StepLinearStream(TimedStepStream):
     """The live α-β or kinematic filter: fed time stamps, on the actual steps (:mod:`ivc.predict.linear_steps`);
     fed none (decided at the first frame), the steady-state filter at the nominal rate, as the batch without times."""
 
     def __init__(self, predictor: LinearPredictor, n_sensors: int):
         super().__init__(predictor, n_sensors)
-        self.inner: Stream | None = None
         self.cfg = predictor._steps_config()
         self.state = steps_state(self.n_sensors, self.cfg[0])
-        self.clock = StreamClock(predictor.rate_hz, n_sensors)
-        self.previous = np.full((self.n_sensors, 4), np.nan)
-        self.ok = np.zeros(self.n_sensors, bool)
 
-    @property
-    def restarts(self) -> int:
-        return self.inner.restarts if self.inner is not None else self._restarts
-
-    _restarts = 0
-
-    def update(self, q, valid=None, time=None):
-        if self.inner is None and time is None and self.clock.now is None:
-            self.inner = FixedRatePredictor.stream(self.predictor, self.n_sensors)
-        if self.inner is not None:
-            self.inner.update(q, valid, time)
-            self.last = self.inner.last
-            return
-        qs, ok = self._check_frame(q, valid)
-        gap = self.clock.advance(time, ok, self.predictor.max_gap_s)
-        now = self.clock.now
-        self._restarts += int(gap.sum())
-        new = ok & ~np.all(qs == self.previous, axis=1)
-        self.previous = np.where(ok[:, None], qs, self.previous)
+    def _step(self, qs, ok, new, gap, now):
         _steps_frame(qs, ok, new, gap, now, *self.cfg, *self.state)
-        self.ok, self.last = ok, qs
 
-    def predict(self, horizon):
-        if self.inner is not None:
-            return self.inner.predict(horizon)
-        d = float(check_horizons(horizon)[0])
+    def _show(self, horizon):
         out = np.empty((self.n_sensors, 4))
         x, _, theta, base, scal = self.state
-        _steps_show(self.ok, self.clock.now if self.clock.now is not None else 0.0, d, self.cfg[0], x, theta, base,
-                    scal, out)
+        _steps_show(self.ok, self.clock.now if self.clock.now is not None else 0.0, horizon, self.cfg[0], x, theta,
+                    base, scal, out)
         return out
 
 

@@ -33,17 +33,15 @@ from scipy.linalg import expm
 from ivc import rotations
 from ivc.predict.base import (
     FixedRatePredictor,
-    FixedRateStream,
     FloatArray,
     PredictorError,
     Stream,
-    StreamClock,
+    TimedStepStream,
     as_given,
     check_horizons,
     check_rate,
-    check_stream,
 )
-from ivc.predict.timing import check_time, repeats, restarts
+from ivc.predict.timing import check_stream, check_time, repeats, restarts
 
 KINDS = ("cp", "fogmv", "fogma", "phi2")
 LOG_2PI = np.log(2.0 * np.pi)
@@ -220,6 +218,34 @@ DEFAULT_BANK = (Elemental("cp", 0.1, threshold=8.0), Elemental("fogmv", 1.0, tau
                 Elemental("phi2", 5.0, tau=1.0))
 
 
+class MMAEStepStream(TimedStepStream):
+    """The live MMAE: fed time stamps, each cycle over the actual step (as the batch with times); fed none (decided
+    at the first frame), the bank at the nominal step (:class:`FixedRateStream`), as the batch without times."""
+
+    def __init__(self, predictor: MMAE, n_sensors: int):
+        super().__init__(predictor, n_sensors)
+        self.state = predictor._state(self.n_sensors)
+        self.latest = np.zeros(self.n_sensors)
+
+    def _step(self, qs, ok, new, gap, now):
+        T = rotations.to_matrix(np.where(ok[:, None], qs, rotations.IDENTITY))
+        vectors = np.ascontiguousarray(np.stack([T[:, :, 0], T[:, :, 2]], axis=1))
+        p = self.predictor
+        _frame_steps(vectors, ok, new, gap, now, *self.state, self.latest, *p._models, p.r, p._config[3],
+                     np.log(p.p_min), p._config[2], p.tau)
+
+    def _show(self, horizon):
+        x, w, init = self.state[0], self.state[4], self.state[3]
+        pos = np.full((self.n_sensors, 2, 3), np.nan)
+        now = self.clock.now if self.clock.now is not None else 0.0
+        for s in np.flatnonzero(self.ok & (init[:, 0, 0] == 1)):
+            _show_steps(self.predictor._models[0], self.predictor._models[2], x[s], w[s],
+                        horizon + now - self.latest[s], pos[s])
+        out = frame_from_axes(pos[:, 0], pos[:, 1])
+        out[~self.ok] = np.nan
+        return out
+
+
 @dataclass
 class MMAE(FixedRatePredictor):
     """Kyger's MMAE bank on the sensor's x and z axes; ``r`` the measurement variance per component."""
@@ -299,8 +325,8 @@ class MMAE(FixedRatePredictor):
         pred[~ok] = np.nan
         return as_given(np.moveaxis(pred, 2, 0), single)
 
-    def stream(self, n_sensors: int = 1) -> Stream:
-        return MMAEStepStream(self, n_sensors)
+    #: the live form, made by :meth:`stream`
+    stream_type = MMAEStepStream
 
 
 class MMAEStream(Stream):
@@ -440,56 +466,3 @@ def _run_steps(vectors, ok, use, restart, t, horizons, x, P, logp, init, w, last
                     _show_steps(F, kappa, x[s], w[s], horizons[i] + t[k] - last[s], out[k, s, i])
             else:
                 out[k, s, :, :, :] = np.nan
-
-
-class MMAEStepStream(Stream):
-    """The live MMAE: fed time stamps, each cycle over the actual step (as the batch with times); fed none (decided
-    at the first frame), the bank at the nominal step (:class:`FixedRateStream`), as the batch without times."""
-
-    def __init__(self, predictor: MMAE, n_sensors: int):
-        super().__init__(predictor, n_sensors)
-        self.inner: Stream | None = None
-        self.state = predictor._state(self.n_sensors)
-        self.latest = np.zeros(self.n_sensors)
-        self.clock = StreamClock(predictor.rate_hz, n_sensors)
-        self.previous = np.full((self.n_sensors, 4), np.nan)
-        self.ok = np.zeros(self.n_sensors, bool)
-        self._restarts = 0
-
-    @property
-    def restarts(self) -> int:
-        return self.inner.restarts if self.inner is not None else self._restarts
-
-    def update(self, q, valid=None, time=None):
-        if self.inner is None and time is None and self.clock.now is None:
-            self.inner = FixedRateStream(self.predictor, self.n_sensors)
-        if self.inner is not None:
-            self.inner.update(q, valid, time)
-            self.last = self.inner.last
-            return
-        qs, ok = self._check_frame(q, valid)
-        gap = self.clock.advance(time, ok, self.predictor.max_gap_s)
-        now = self.clock.now
-        self._restarts += int(gap.sum())
-        new = ok & ~np.all(qs == self.previous, axis=1)
-        self.previous = np.where(ok[:, None], qs, self.previous)
-        T = rotations.to_matrix(np.where(ok[:, None], qs, rotations.IDENTITY))
-        vectors = np.ascontiguousarray(np.stack([T[:, :, 0], T[:, :, 2]], axis=1))
-        p = self.predictor
-        _frame_steps(vectors, ok, new, gap, now, *self.state, self.latest, *p._models, p.r, p._config[3],
-                     np.log(p.p_min), p._config[2], p.tau)
-        self.ok, self.last = ok, qs
-
-    def predict(self, horizon):
-        if self.inner is not None:
-            return self.inner.predict(horizon)
-        d = float(check_horizons(horizon)[0])
-        x, w, init = self.state[0], self.state[4], self.state[3]
-        pos = np.full((self.n_sensors, 2, 3), np.nan)
-        now = self.clock.now if self.clock.now is not None else 0.0
-        for s in np.flatnonzero(self.ok & (init[:, 0, 0] == 1)):
-            _show_steps(self.predictor._models[0], self.predictor._models[2], x[s], w[s], d + now - self.latest[s],
-                        pos[s])
-        out = frame_from_axes(pos[:, 0], pos[:, 1])
-        out[~self.ok] = np.nan
-        return out

@@ -31,18 +31,9 @@ import numpy as np
 
 from ivc.linalg import congruence, omega_matrix, q_matrix, qmul
 from ivc.linalg import quaternion_normalise as normalise
-from ivc.predict.base import (
-    Predictor,
-    PredictorError,
-    Stream,
-    StreamClock,
-    as_given,
-    check_horizons,
-    check_rate,
-    check_stream,
-)
+from ivc.predict.base import Predictor, PredictorError, Stream, StreamClock, as_given, check_horizons, check_rate
 from ivc.predict.qekf import quaternion_update
-from ivc.predict.timing import MAX_GAP_S, check_time, repeats, restarts
+from ivc.predict.timing import MAX_GAP_S, check_stream, check_time, repeats, restarts
 
 #: V_r of the paper: variance of each measured quaternion component
 V_QUATERNION = 1e-4
@@ -195,6 +186,45 @@ def extrapolate(x: np.ndarray, usable: np.ndarray, t) -> np.ndarray:
     return out.reshape(*x.shape[:-1], 4)
 
 
+class NasaStream(Stream):
+    """The live NASA EKF: a cycle per usable sample over its actual step; repeats dropped, gaps restart."""
+
+    def __init__(self, predictor: NasaEKF, n_sensors: int):
+        super().__init__(predictor, n_sensors)
+        self.x, self.P = np.zeros((n_sensors, N)), np.zeros((n_sensors, N, N))
+        self.status = np.zeros((n_sensors, 2), np.int64)
+        self.work = _work()
+        self.ready = np.zeros(n_sensors, bool)
+        self.ok = np.zeros(n_sensors, bool)
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
+        self.base_t = np.zeros(n_sensors)  # each sensor's latest usable sample's time
+        self.previous = np.full((n_sensors, 4), np.nan)
+        self.restarts = 0
+
+    def update(self, q, valid=None, time=None):
+        qs, ok = self._check_frame(q, valid)
+        gap = self.clock.advance(time, ok, self.predictor.max_gap_s)
+        now = self.clock.now
+        W, V, tau, p0 = self.predictor._config
+        for s in np.flatnonzero(ok):
+            if gap[s]:
+                self.status[s, 0] = 0
+                self.ready[s] = False
+                self.restarts += 1
+            if np.all(qs[s] == self.previous[s]):
+                continue  # a repeat: predicted from the sample it repeats
+            h = now - self.base_t[s] if self.status[s, 0] == 1 else tau
+            self.ready[s] = _step(qs[s], True, self.x[s], self.P[s], self.status[s], W, V, h, p0, self.work, tau)
+            self.base_t[s] = now
+        self.previous = np.where(ok[:, None], qs, self.previous)
+        self.ok = ok
+        self.last = qs
+
+    def predict(self, horizon):
+        d = float(check_horizons(horizon)[0])
+        return extrapolate(self.x, self.ready & self.ok, d + (self.clock.now or 0.0) - self.base_t)
+
+
 @dataclass
 class NasaEKF(Predictor):
     """NASA's 10-state quaternion EKF; ``W`` (10,) its diagonal process noise per nominal step 1 / rate_hz, ``V``
@@ -242,44 +272,5 @@ class NasaEKF(Predictor):
         out = np.stack([extrapolate(x, usable, d + age) for d in h])
         return as_given(out, np.ndim(q) == 2)
 
-    def stream(self, n_sensors: int = 1) -> NasaStream:
-        return NasaStream(self, n_sensors)
-
-
-class NasaStream(Stream):
-    """The live NASA EKF: a cycle per usable sample over its actual step; repeats dropped, gaps restart."""
-
-    def __init__(self, predictor: NasaEKF, n_sensors: int):
-        super().__init__(predictor, n_sensors)
-        self.x, self.P = np.zeros((n_sensors, N)), np.zeros((n_sensors, N, N))
-        self.status = np.zeros((n_sensors, 2), np.int64)
-        self.work = _work()
-        self.ready = np.zeros(n_sensors, bool)
-        self.ok = np.zeros(n_sensors, bool)
-        self.clock = StreamClock(predictor.rate_hz, n_sensors)
-        self.base_t = np.zeros(n_sensors)  # each sensor's latest usable sample's time
-        self.previous = np.full((n_sensors, 4), np.nan)
-        self.restarts = 0
-
-    def update(self, q, valid=None, time=None):
-        qs, ok = self._check_frame(q, valid)
-        gap = self.clock.advance(time, ok, self.predictor.max_gap_s)
-        now = self.clock.now
-        W, V, tau, p0 = self.predictor._config
-        for s in np.flatnonzero(ok):
-            if gap[s]:
-                self.status[s, 0] = 0
-                self.ready[s] = False
-                self.restarts += 1
-            if np.all(qs[s] == self.previous[s]):
-                continue  # a repeat: predicted from the sample it repeats
-            h = now - self.base_t[s] if self.status[s, 0] == 1 else tau
-            self.ready[s] = _step(qs[s], True, self.x[s], self.P[s], self.status[s], W, V, h, p0, self.work, tau)
-            self.base_t[s] = now
-        self.previous = np.where(ok[:, None], qs, self.previous)
-        self.ok = ok
-        self.last = qs
-
-    def predict(self, horizon):
-        d = float(check_horizons(horizon)[0])
-        return extrapolate(self.x, self.ready & self.ok, d + (self.clock.now or 0.0) - self.base_t)
+    #: the live form, made by :meth:`stream`
+    stream_type = NasaStream

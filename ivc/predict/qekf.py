@@ -15,20 +15,11 @@ import numba
 import numpy as np
 
 from ivc.linalg import cholesky, congruence, factored_update
-from ivc.predict.base import (
-    Predictor,
-    PredictorError,
-    Stream,
-    StreamClock,
-    as_given,
-    check_horizons,
-    check_rate,
-    check_stream,
-)
+from ivc.predict.base import Predictor, PredictorError, Stream, StreamClock, as_given, check_horizons, check_rate
 from ivc.predict.delta import extrapolate_each
 from ivc.predict.dq import SIGMA_CV1
 from ivc.predict.quat import delta_q_jacobian, normalise, qmul, qmul_conj, rate_of
-from ivc.predict.timing import MAX_GAP_S, check_time, steps
+from ivc.predict.timing import MAX_GAP_S, check_stream, check_time, steps
 
 #: Table 3, Q column: measurement variances of the 4 quaternion components
 R_QUATERNION = (2.55e-07, 4.67e-07, 4.10e-07, 3.28e-07)
@@ -170,6 +161,43 @@ def _run(qs, ok, dt, x, P, status, clock, qvar, R, max_gap, p0w, out_x, out_ok, 
             out_age[k, s] = clock[s, 0]
 
 
+class QStream(Stream):
+    def __init__(self, predictor: QEKF, n_sensors: int):
+        super().__init__(predictor, n_sensors)
+        self.x, self.P = np.zeros((n_sensors, 7)), np.zeros((n_sensors, 7, 7))
+        self.status = np.zeros((n_sensors, 2), np.int64)
+        self.clock_state = np.zeros((n_sensors, 8))
+        self.clock = StreamClock(predictor.rate_hz, n_sensors)
+        self.work = _work()
+        self.ready = np.zeros(n_sensors, bool)
+
+    @property
+    def restarts(self) -> int:
+        return int(self.clock_state[:, 2].sum())
+
+    def update(self, q, valid=None, time=None):
+        qs, ok = self._check_frame(q, valid)
+        dt = self.clock.tick(time)
+        if time is None and self.clock.frames > 1:
+            dt = self.predictor.tau  # exactly the nominal period, as the batch without time stamps
+        qvar, R = self.predictor._config
+        p = self.predictor
+        for s in range(self.n_sensors):
+            self.ready[s] = _step(qs[s], ok[s], dt, self.x[s], self.P[s], self.status[s], self.clock_state[s], qvar,
+                                  R, p.max_gap_s, p.p0_omega, self.work) and ok[s]
+        self.last = qs
+
+    def predict(self, horizon):
+        d = float(check_horizons(horizon)[0])
+        if self.predictor.base == "state":
+            base, age = self.x[:, :4], self.clock_state[:, 0]
+        else:
+            base, age = self.last, np.zeros(self.n_sensors)
+        out = extrapolate_each(base, self.x[:, 4:], None, d + age, self.predictor.tau)
+        out[~self.ready] = np.nan
+        return out
+
+
 @dataclass
 class QEKF(Predictor):
     """7-state quaternion EKF (Himberg 2010 ch. 2 "Q"); ``base`` = "state" (default) or "measurement".
@@ -222,42 +250,5 @@ class QEKF(Predictor):
         out[:, ~usable] = np.nan
         return as_given(out, np.ndim(q) == 2)
 
-    def stream(self, n_sensors: int = 1) -> QStream:
-        return QStream(self, n_sensors)
-
-
-class QStream(Stream):
-    def __init__(self, predictor: QEKF, n_sensors: int):
-        super().__init__(predictor, n_sensors)
-        self.x, self.P = np.zeros((n_sensors, 7)), np.zeros((n_sensors, 7, 7))
-        self.status = np.zeros((n_sensors, 2), np.int64)
-        self.clock_state = np.zeros((n_sensors, 8))
-        self.clock = StreamClock(predictor.rate_hz, n_sensors)
-        self.work = _work()
-        self.ready = np.zeros(n_sensors, bool)
-
-    @property
-    def restarts(self) -> int:
-        return int(self.clock_state[:, 2].sum())
-
-    def update(self, q, valid=None, time=None):
-        qs, ok = self._check_frame(q, valid)
-        dt = self.clock.tick(time)
-        if time is None and self.clock.frames > 1:
-            dt = self.predictor.tau  # exactly the nominal period, as the batch without time stamps
-        qvar, R = self.predictor._config
-        p = self.predictor
-        for s in range(self.n_sensors):
-            self.ready[s] = _step(qs[s], ok[s], dt, self.x[s], self.P[s], self.status[s], self.clock_state[s], qvar,
-                                  R, p.max_gap_s, p.p0_omega, self.work) and ok[s]
-        self.last = qs
-
-    def predict(self, horizon):
-        d = float(check_horizons(horizon)[0])
-        if self.predictor.base == "state":
-            base, age = self.x[:, :4], self.clock_state[:, 0]
-        else:
-            base, age = self.last, np.zeros(self.n_sensors)
-        out = extrapolate_each(base, self.x[:, 4:], None, d + age, self.predictor.tau)
-        out[~self.ready] = np.nan
-        return out
+    #: the live form, made by :meth:`stream`
+    stream_type = QStream

@@ -212,17 +212,24 @@ def grid_value(grid, p, value, wx, wy, wz, dx, dy, dz):
     return in_x and in_y and in_z and valid_cells[i, j, k]
 
 
-@numba.njit(cache=True)
-def pose_model(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz):
-    """M = f_D(r) + g(r) (3, 3) and ∂M/∂r (3, 3, 3); returns whether r is in the mapped volume."""
+@numba.njit(inline="always")
+def with_dipole(r, g, dg, M, dM):
+    """M = f_D(r) + g (3, 3) and ∂M/∂r = ∂f_D/∂r + dg (3, 3, 3), from the table's value g (9,) and gradient
+    dg (9, 3) at r."""
     field_matrix(r[0], r[1], r[2], M)
     dipole_jacobian(r, dM)
-    mapped = grid_point(grid, r, g, dg, wx, wy, wz, dx, dy, dz)
     for i in range(3):
         for j in range(3):
             M[i, j] += g[3 * i + j]
             for k in range(3):
                 dM[i, j, k] += dg[3 * i + j, k]
+
+
+@numba.njit(cache=True)
+def pose_model(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz):
+    """M = f_D(r) + g(r) (3, 3) and ∂M/∂r (3, 3, 3); returns whether r is in the mapped volume."""
+    mapped = grid_point(grid, r, g, dg, wx, wy, wz, dx, dy, dz)
+    with_dipole(r, g, dg, M, dM)
     return mapped
 
 
@@ -230,13 +237,8 @@ def pose_model(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz):
 def grid_kernel(grid, points, values, gradients, inside):
     """Table value, gradient and validity at every point (N, 3)."""
     for n in numba.prange(points.shape[0]):
-        wx = np.empty(4)
-        wy = np.empty(4)
-        wz = np.empty(4)
-        dx = np.empty(4)
-        dy = np.empty(4)
-        dz = np.empty(4)
-        inside[n] = grid_point(grid, points[n], values[n], gradients[n], wx, wy, wz, dx, dy, dz)
+        w = np.empty((6, 4))  # the stencil's weights along x, y, z, then their derivatives
+        inside[n] = grid_point(grid, points[n], values[n], gradients[n], w[0], w[1], w[2], w[3], w[4], w[5])
 
 
 @numba.njit(inline="always")
