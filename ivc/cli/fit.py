@@ -88,9 +88,10 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
                  f"{int((table.field().valid_cells).sum()) * (1000 * grid.spacing) ** 3 / 1e6:.1f} litres mapped")
     noise = report.signal_noise
     if noise:
-        lines.append(f"Signal noise: {noise['sigma']:.3g} per entry, measured on {', '.join(noise['steps'])} "
-                     f"({noise['pairs']} frame pairs; per-sensor spread {noise['spread']:.2f}x): "
-                     "`ivc correct --precision` predicts each pose's precision from it")
+        source = " from the reported poses" if noise.get("source") == "reported poses" else ""
+        lines.append(f"Signal noise: {noise['sigma']:.3g} per entry, measured{source} on {', '.join(noise['steps'])} "
+                     f"({noise['pairs']} frame pairs; per-sensor spread {noise['spread']:.2f}x): `ivc correct` "
+                     "predicts each pose's precision from it and flags those over 1 mm RMS (docs/trust.md)")
     if seconds is not None:
         lines.append(f"Done in {seconds:.1f} s")
     return "\n".join(lines)
