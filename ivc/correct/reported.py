@@ -412,11 +412,7 @@ class PoseCorrector:
                 Q = rotations.to_matrix(quaternion[f, k])
             again = self._run(v, Q, previous, serial=True)
             keep = (again.flags == 0) & (np.linalg.norm(again.position - v - previous, axis=1) <= TRACK_JUMP)
-            for key in ("position", "quaternion", "flags", "residual", "iterations", "precision",
-                        "orientation_precision"):
-                target = getattr(out, key)
-                if target is not None:
-                    target[f, k[keep]] = getattr(again, key)[keep]
+            out.assign((f, k[keep]), again, keep)
         return out
 
     def update(self, position: np.ndarray, rotation: np.ndarray, sensors: list | tuple | None = None) -> Correction:
@@ -440,11 +436,7 @@ class PoseCorrector:
             jumped = np.linalg.norm(out.position - v - before, axis=1) > TRACK_JUMP
             if jumped.any():
                 again = self._run(v[jumped], Q[jumped], np.full((int(jumped.sum()), 3), np.nan), serial=True)
-                for key in ("position", "quaternion", "flags", "residual", "iterations", "precision",
-                            "orientation_precision"):
-                    target = getattr(out, key)
-                    if target is not None:
-                        target[jumped] = getattr(again, key)
+                out.assign(jumped, again)
                 for n in np.flatnonzero(jumped):
                     slot = slots[n]
                     self._tracked[slot] = out.flags[n] == 0

@@ -64,6 +64,13 @@ class Correction:
     def ok(self) -> np.ndarray:
         return self.flags == 0
 
+    def assign(self, index, other: Correction, rows=slice(None)) -> None:
+        """Write ``other``'s samples ``rows`` into this correction's samples ``index`` (every array this one holds)."""
+        for key in ("position", "quaternion", "flags", "residual", "iterations", "precision", "orientation_precision"):
+            target = getattr(self, key)
+            if target is not None:
+                target[index] = getattr(other, key)[rows]
+
 
 #: the correction-map argument of a kernel run without one (never read: ``use_map`` is False)
 _NO_MAP = (np.zeros((4, 4, 4, 3)), np.zeros((1, 1, 1), dtype=bool), np.zeros(3), 1.0, np.array([2, 2, 2]), True)

@@ -83,67 +83,66 @@ def measure_reported_noise(session: Session, steps: tuple[str, ...] = FREE_SPACE
     """The signal noise, in normalised dipole units, that makes a tracker report the pose scatter of
     ``session``'s free-space static ``steps`` (see the module docstring); None when none has a sensor with
     :data:`MIN_PAIRS` consecutive valid frames that change."""
+    return _measure(session, steps, _reported_sigmas, "reported poses")
+
+
+def _reported_sigmas(step) -> list[tuple[float, int]] | None:
+    """Per sensor of a step of reported poses: (σ, frame pairs used); None when the step has no poses."""
+    if step.position is None or step.quaternion is None:
+        return None
+    position = np.asarray(step.position, float)
+    T = rotations.to_matrix(np.where(np.isfinite(step.quaternion), step.quaternion, rotations.IDENTITY))
+    valid = step.valid_mask & np.all(np.isfinite(position), axis=2) & np.all(np.isfinite(step.quaternion), axis=2)
+    both = valid[1:] & valid[:-1]
+    found = []
+    for k in range(step.n_sensors):
+        use = np.flatnonzero(both[:, k])
+        if len(use) < MIN_PAIRS:
+            continue
+        d = np.empty((len(use), 6))
+        d[:, :3] = position[use + 1, k] - position[use, k]
+        d[:, 3:] = rotations.to_rotvec(rotations.from_matrix(np.swapaxes(T[use, k], -1, -2) @ T[use + 1, k]))
+        at = np.flatnonzero(valid[:, k])
+        P = pose_covariance(np.median(position[at, k], axis=0), rotations.from_matrix(T[at[len(at) // 2], k]),
+                            1.0)[0]
+        if not np.all(np.isfinite(P)):
+            continue
+        m = np.einsum("ni,ij,nj->n", d, np.linalg.inv(2 * P), d)
+        found.append((float(np.sqrt(np.median(m) / CHI2_6_MEDIAN)), len(use)))
+    return found
+
+
+def _signal_sigmas(step) -> list[tuple[float, int]] | None:
+    """Per sensor of a step of signals: (σ, frame pairs used); None when the step has no signals."""
+    if step.signal is None:
+        return None
+    S = np.asarray(step.signal, float).reshape(step.n_frames, step.n_sensors, 9)
+    valid = step.valid_mask & np.all(np.isfinite(S), axis=2)
+    both = valid[1:] & valid[:-1]
+    d = np.diff(S, axis=0)
+    return [(float(np.median(robust_sigma(d[both[:, k], k]))), int(both[:, k].sum()))
+            for k in range(step.n_sensors) if both[:, k].sum() >= MIN_PAIRS]
+
+
+def _from_signals(session: Session, steps: tuple[str, ...]) -> SignalNoise | None:
+    return _measure(session, steps, _signal_sigmas, "signals")
+
+
+def _measure(session: Session, steps: tuple[str, ...], sigmas, source: str) -> SignalNoise | None:
+    """The median over every sensor of ``steps`` of ``sigmas(step)`` (per sensor: σ and frame pairs), with the
+    steps that gave one, the pairs used and the spread; None when no sensor gave a positive σ."""
     per_sensor, used, pairs = [], [], 0
     for name in steps:
         step = session.steps.get(name)
-        if step is None or step.position is None or step.quaternion is None or step.n_frames < 2:
+        if step is None or step.n_frames < 2:
             continue
-        position = np.asarray(step.position, float)
-        T = rotations.to_matrix(np.where(np.isfinite(step.quaternion), step.quaternion, rotations.IDENTITY))
-        valid = step.valid_mask & np.all(np.isfinite(position), axis=2) & np.all(np.isfinite(step.quaternion), axis=2)
-        both = valid[1:] & valid[:-1]
-        measured = False
-        for k in range(step.n_sensors):
-            use = np.flatnonzero(both[:, k])
-            if len(use) < MIN_PAIRS:
-                continue
-            d = np.empty((len(use), 6))
-            d[:, :3] = position[use + 1, k] - position[use, k]
-            d[:, 3:] = rotations.to_rotvec(rotations.from_matrix(np.swapaxes(T[use, k], -1, -2) @ T[use + 1, k]))
-            at = valid[:, k]
-            mean_q = rotations.from_matrix(T[np.flatnonzero(at)[len(np.flatnonzero(at)) // 2], k])
-            P = pose_covariance(np.median(position[at, k], axis=0), mean_q, 1.0)[0]
-            if not np.all(np.isfinite(P)):
-                continue
-            m = np.einsum("ni,ij,nj->n", d, np.linalg.inv(2 * P), d)
-            sigma = float(np.sqrt(np.median(m) / CHI2_6_MEDIAN))
-            if not sigma > 0:
-                continue
-            per_sensor.append(sigma)
-            pairs += len(use)
-            measured = True
-        if measured:
+        found = [(sigma, n) for sigma, n in (sigmas(step) or []) if sigma > 0]
+        if found:
             used.append(name)
+            per_sensor += [sigma for sigma, _ in found]
+            pairs += sum(n for _, n in found)
     if not per_sensor:
         return None
     per_sensor = np.array(per_sensor)
     return SignalNoise(float(np.median(per_sensor)), tuple(used), pairs, float(per_sensor.max() / per_sensor.min()),
-                       "reported poses")
-
-
-def _from_signals(session: Session, steps: tuple[str, ...]) -> SignalNoise | None:
-    per_sensor, used, pairs = [], [], 0
-    for name in steps:
-        step = session.steps.get(name)
-        if step is None or step.signal is None or step.n_frames < 2:
-            continue
-        S = np.asarray(step.signal, float).reshape(step.n_frames, step.n_sensors, 9)
-        valid = step.valid_mask & np.all(np.isfinite(S), axis=2)
-        both = valid[1:] & valid[:-1]
-        d = np.diff(S, axis=0)
-        measured = False
-        for k in range(step.n_sensors):
-            if both[:, k].sum() < MIN_PAIRS:
-                continue
-            sigma = float(np.median(robust_sigma(d[both[:, k], k])))
-            if not sigma > 0:
-                continue
-            per_sensor.append(sigma)
-            pairs += int(both[:, k].sum())
-            measured = True
-        if measured:
-            used.append(name)
-    if not per_sensor:
-        return None
-    per_sensor = np.array(per_sensor)
-    return SignalNoise(float(np.median(per_sensor)), tuple(used), pairs, float(per_sensor.max() / per_sensor.min()))
+                       source)

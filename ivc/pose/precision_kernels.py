@@ -78,49 +78,37 @@ def traces(covariance):
             np.sqrt(covariance[3, 3] + covariance[4, 4] + covariance[5, 5]))
 
 
+@numba.njit(cache=True, error_model="numpy")
+def _precision_one(r, T, G, dG, sigma, M, dM, J, covariance):
+    """(RMS position m, RMS orientation rad) of the pose (r (3,), T (3, 3)) whose signal carries the secondary
+    field G (3, 3), ∂G/∂r (3, 3, 3) and white noise ``sigma``; M, dM, J and covariance are work space."""
+    if not (np.isfinite(r[0]) and np.isfinite(r[1]) and np.isfinite(r[2])):
+        return np.nan, np.nan
+    field_matrix(r[0], r[1], r[2], M)
+    dipole_jacobian(r, dM)
+    for i in range(3):
+        for j in range(3):
+            M[i, j] += G[i, j]
+            for k in range(3):
+                dM[i, j, k] += dG[i, j, k]
+    crb_covariance_one(T, M, dM, J, covariance)
+    p, a = traces(covariance)
+    return sigma * p, sigma * a
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def precision_kernel(r, T, G, dG, sigma, position_out, orientation_out):  # pragma: no cover - compiled
     """RMS position (m) and orientation (rad) precision of poses (r (n, 3), T (n, 3, 3)) whose signals carry the
     secondary field G (n, 3, 3), ∂G/∂r (n, 3, 3, 3) and white noise ``sigma`` per entry; NaN where r is not
     finite, inf where the signal fixes no pose."""
     for n in numba.prange(r.shape[0]):
-        if not (np.isfinite(r[n, 0]) and np.isfinite(r[n, 1]) and np.isfinite(r[n, 2])):
-            position_out[n], orientation_out[n] = np.nan, np.nan
-            continue
-        M = np.empty((3, 3))
-        dM = np.empty((3, 3, 3))
-        field_matrix(r[n, 0], r[n, 1], r[n, 2], M)
-        dipole_jacobian(r[n], dM)
-        for i in range(3):
-            for j in range(3):
-                M[i, j] += G[n, i, j]
-                for k in range(3):
-                    dM[i, j, k] += dG[n, i, j, k]
-        J = np.empty((9, 6))
-        covariance = np.empty((6, 6))
-        crb_covariance_one(T[n], M, dM, J, covariance)
-        p, a = traces(covariance)
-        position_out[n], orientation_out[n] = sigma * p, sigma * a
+        position_out[n], orientation_out[n] = _precision_one(r[n], T[n], G[n], dG[n], sigma, np.empty((3, 3)),
+                                                             np.empty((3, 3, 3)), np.empty((9, 6)), np.empty((6, 6)))
 
 
 @numba.njit(cache=True, nogil=True)
 def precision_serial(r, T, G, dG, sigma, position_out, orientation_out):  # pragma: no cover - compiled
     """:func:`precision_kernel` without threads: a live frame's few poses."""
-    M = np.empty((3, 3))
-    dM = np.empty((3, 3, 3))
-    J = np.empty((9, 6))
-    covariance = np.empty((6, 6))
+    M, dM, J, covariance = np.empty((3, 3)), np.empty((3, 3, 3)), np.empty((9, 6)), np.empty((6, 6))
     for n in range(r.shape[0]):
-        if not (np.isfinite(r[n, 0]) and np.isfinite(r[n, 1]) and np.isfinite(r[n, 2])):
-            position_out[n], orientation_out[n] = np.nan, np.nan
-            continue
-        field_matrix(r[n, 0], r[n, 1], r[n, 2], M)
-        dipole_jacobian(r[n], dM)
-        for i in range(3):
-            for j in range(3):
-                M[i, j] += G[n, i, j]
-                for k in range(3):
-                    dM[i, j, k] += dG[n, i, j, k]
-        crb_covariance_one(T[n], M, dM, J, covariance)
-        p, a = traces(covariance)
-        position_out[n], orientation_out[n] = sigma * p, sigma * a
+        position_out[n], orientation_out[n] = _precision_one(r[n], T[n], G[n], dG[n], sigma, M, dM, J, covariance)
