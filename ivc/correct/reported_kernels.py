@@ -81,28 +81,47 @@ def _inverse3(D, out):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _jacobian_inverse(r, h, grid, H):
-    """H = (∂φ/∂r)⁻¹ at r (3,) by central differences; False where it is singular or not defined."""
+def _map_derivatives(r, h, grid, D, W):
+    """D = ∂φ/∂r and W = ∂ω/∂r (the left increment of C per metre) at r (3,), both (3, 3), by central differences
+    of :data:`DIFFERENCE_STEP`; False where the map is not defined at a step."""
     nc = grid[0].shape[3]
     g = np.empty(nc)
     wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
-    F, wa, wb, B = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    F, wa, wb, B, Fd, K = (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+                           np.empty((3, 3)))
     ev, phi_p, phi_m, x = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-    D = np.empty((3, 3))
+    C_p, C_m = np.empty((3, 3)), np.empty((3, 3))
     for k in range(3):
         for a in range(3):
             x[a] = r[a]
         x[k] = r[k] + DIFFERENCE_STEP
         usable, _ = _field_at(x, grid, g, wx, wy, wz, dx, dy, dz, F)
-        closed_form_position(F, h, phi_p, wa, wb, ev, B)
+        closed_form_one(F, h, phi_p, C_p, wa, wb, ev, B, Fd, K)
         x[k] = r[k] - DIFFERENCE_STEP
         usable_m, _ = _field_at(x, grid, g, wx, wy, wz, dx, dy, dz, F)
-        closed_form_position(F, h, phi_m, wa, wb, ev, B)
+        closed_form_one(F, h, phi_m, C_m, wa, wb, ev, B, Fd, K)
         if not (usable and usable_m):
             return False
         for a in range(3):
             D[a, k] = (phi_p[a] - phi_m[a]) / (2 * DIFFERENCE_STEP)
-    return _inverse3(D, H)
+        # C₊ C₋ᵀ ≈ exp([2 δ w]×): w from its antisymmetric part
+        for i in range(3):
+            for j in range(3):
+                s = 0.0
+                for b in range(3):
+                    s += C_p[i, b] * C_m[j, b]
+                B[i, j] = s
+        W[0, k] = (B[2, 1] - B[1, 2]) / (4 * DIFFERENCE_STEP)
+        W[1, k] = (B[0, 2] - B[2, 0]) / (4 * DIFFERENCE_STEP)
+        W[2, k] = (B[1, 0] - B[0, 1]) / (4 * DIFFERENCE_STEP)
+    return True
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _jacobian_inverse(r, h, grid, H):
+    """H = (∂φ/∂r)⁻¹ at r (3,) by central differences; False where it is singular or not defined."""
+    D, W = np.empty((3, 3)), np.empty((3, 3))
+    return _map_derivatives(r, h, grid, D, W) and _inverse3(D, H)
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -294,39 +313,10 @@ def precision_one(v, Q, r, h, grid, sigma):
     for a in range(3):
         if not (np.isfinite(r[a]) and np.isfinite(v[a])):
             return np.nan, np.nan
-    nc = grid[0].shape[3]
-    g = np.empty(nc)
-    wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
-    F, wa, wb, B, Fd, K = (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
-                           np.empty((3, 3)))
-    ev = np.empty(3)
-    phi_p, phi_m, x = np.empty(3), np.empty(3), np.empty(3)
-    C_p, C_m = np.empty((3, 3)), np.empty((3, 3))
     D = np.empty((3, 3))  # ∂φ/∂r
     W = np.empty((3, 3))  # ∂ω/∂r
-    for k in range(3):
-        for a in range(3):
-            x[a] = r[a]
-        x[k] = r[k] + DIFFERENCE_STEP
-        usable, _ = _field_at(x, grid, g, wx, wy, wz, dx, dy, dz, F)
-        closed_form_one(F, h, phi_p, C_p, wa, wb, ev, B, Fd, K)
-        x[k] = r[k] - DIFFERENCE_STEP
-        usable_m, _ = _field_at(x, grid, g, wx, wy, wz, dx, dy, dz, F)
-        closed_form_one(F, h, phi_m, C_m, wa, wb, ev, B, Fd, K)
-        if not (usable and usable_m):
-            return np.inf, np.inf
-        for a in range(3):
-            D[a, k] = (phi_p[a] - phi_m[a]) / (2 * DIFFERENCE_STEP)
-        # C₊ C₋ᵀ ≈ exp([2 δ w]×): w from its antisymmetric part
-        for i in range(3):
-            for j in range(3):
-                s = 0.0
-                for b in range(3):
-                    s += C_p[i, b] * C_m[j, b]
-                B[i, j] = s
-        W[0, k] = (B[2, 1] - B[1, 2]) / (4 * DIFFERENCE_STEP)
-        W[1, k] = (B[0, 2] - B[2, 0]) / (4 * DIFFERENCE_STEP)
-        W[2, k] = (B[1, 0] - B[0, 1]) / (4 * DIFFERENCE_STEP)
+    if not _map_derivatives(r, h, grid, D, W):
+        return np.inf, np.inf
     for a in range(3):
         for b in range(3):
             if not np.isfinite(D[a, b]):
