@@ -61,7 +61,13 @@ def _figures(label: str, error: np.ndarray, ok: np.ndarray, predicted: np.ndarra
         Figure(f"{label}: trusted > 2 mm off", over2, "%", "no precision gate", base_over2, "<= 0.05 %",
                passed=over2 <= 0.05, higher_is_better=False),
         Figure(f"{label}: median error", float(np.median(error[ok])), "mm", "no precision gate",
-               float(np.median(base_error[base_ok])), higher_is_better=False),
+               float(np.median(base_error[base_ok])), "unchanged (within 2 %)",
+               passed=float(np.median(error[ok])) <= 1.02 * float(np.median(base_error[base_ok])),
+               higher_is_better=False),
+        Figure(f"{label}: trusted share the gate removes", 100 * (base_ok.mean() - ok.mean()), "points",
+               "no precision gate", 100 * base_ok.mean(), "<= 0.5 (default scene)",
+               passed=(100 * (base_ok.mean() - ok.mean()) <= 0.5) if label.startswith("default,") else None,
+               higher_is_better=False),
     ]
     if predicted is not None:
         ratio = error[ok] / predicted[ok]
