@@ -310,22 +310,23 @@ class PoseCorrector:
                           ) -> tuple[np.ndarray, np.ndarray]:
         """Predicted RMS position (n,) m and orientation (n,) rad errors of the poses corrected from reported
         positions v (n, 3) m and rotations Q (n, 3, 3) to positions r (n, 3) m
-        (:func:`ivc.pose.precision.reported_pose_covariance`, compiled for the closed-form solver)."""
+        (:func:`ivc.pose.precision.reported_pose_covariance`, compiled for the closed-form solver). NaN where
+        any of them is not finite."""
         n = len(v)
         usable = np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(v), axis=1) & np.all(
             np.isfinite(Q.reshape(n, 9)), axis=1)
-        v = np.ascontiguousarray(np.where(usable[:, None], v, 1.0))
-        Q = np.ascontiguousarray(np.where(usable[:, None, None], Q, np.eye(3)))
         r_in = np.ascontiguousarray(np.where(usable[:, None], r, np.nan))
         if self.solver == "closed-form":
             out_r, out_a = np.empty(n), np.empty(n)
             kernel = compiled.choose(_pose_kernels.precision_serial if serial else _pose_kernels.precision_kernel, n)
-            kernel(v, Q, r_in, self._h, self.field.kernel_grid, float(self.gate.sigma), out_r, out_a)
+            kernel(r_in, self._h, self.field.kernel_grid, float(self.gate.sigma), out_r, out_a)
             return out_r, out_a
-        g, dg, _ = self.field.evaluate(np.where(usable[:, None], r, 1.0))
-        _, _, d_phi, d_omega, _ = distortion(np.where(usable[:, None], r, 1.0), g.reshape(n, 3, 3),
-                                             dg.reshape(n, 3, 3, 3), self.solver, self.hemisphere, jacobian=True)
-        out_r, out_a = traces(reported_pose_covariance(v, Q, d_phi, d_omega, float(self.gate.sigma)))
+        at = np.where(usable[:, None], r, 1.0)
+        g, dg, _ = self.field.evaluate(at)
+        _, _, d_phi, d_omega, d_field = distortion(at, g.reshape(n, 3, 3), dg.reshape(n, 3, 3, 3), self.solver,
+                                                   self.hemisphere, jacobian=True)
+        Q = np.where(usable[:, None, None], Q, np.eye(3))
+        out_r, out_a = traces(reported_pose_covariance(Q, d_phi, d_omega, d_field, float(self.gate.sigma)))
         out_r[~usable], out_a[~usable] = np.nan, np.nan
         return out_r, out_a
 

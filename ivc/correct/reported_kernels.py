@@ -23,8 +23,7 @@ import numpy as np
 from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, NOT_CONVERGED, OUTSIDE
 from ivc.dipole.kernels import closed_form_one, closed_form_position, dipole_jacobian, field_matrix
 from ivc.linalg import quaternion_of
-from ivc.pose.precision_kernels import crb_covariance_one
-from ivc.table.kernels import grid_value
+from ivc.table.kernels import grid_value, pose_model
 
 # The helpers below are plain compiled functions, not numba-inlined: inlined three and four times over into
 # one function they made its first compile take over a minute. ``error_model="numpy"`` keeps the arithmetic
@@ -303,77 +302,140 @@ def stream_kernel(v, Q, slots, offset, tracked, h, grid, max_iterations, toleran
 
 
 @numba.njit(cache=True, error_model="numpy")
-def precision_one(v, Q, r, h, grid, sigma):
-    """Predicted RMS position (m) and orientation (rad) error of the pose corrected from the reported pose
-    ``(v (3,), Q (3, 3))`` to the position ``r`` (3,), for white signal noise ``sigma``: the reported pose's
-    Cramér-Rao covariance (free space, at the reported pose; the closed form reaches it there) carried through
-    the inverse map, ``δr = (∂φ/∂r)⁻¹ δv`` and ``δt = δq − Qᵀ (∂ω/∂r) δr`` (rotation increments in the sensor
-    frame, ∂ω/∂r the left increment of C per metre), both derivatives by central differences. NaN where r is
-    not finite; inf where the map is singular there (the reported pose does not fix the true one)."""
+def closed_form_jacobian(F, h, J):
+    """J (6, 9) = ∂(φ, ω)/∂F of the closed form at the field matrix F (3, 3): rows the position (m) and the left
+    rotation increment (rad), columns F's entries row by row; analytic, the equations of the NumPy reference
+    (``ivc.pose.tracker_solver._closed_form_jacobian``): the range from ``tr FᵀF``, the principal eigenvector's
+    first-order change ``(λ I − B + v vᵀ)⁻¹ (I − v vᵀ) δB v`` (B = FᵀF, λ = vᵀ B v: the added v vᵀ makes the
+    matrix invertible and keeps the change orthogonal to v), and the polar factor's from
+    ``(tr P I − P) w = vee(Cᵀ δK − δKᵀ C)``, K = f_D(φ) Fᵀ, P = sym(Cᵀ K), ω = C w. False where not finite."""
+    r, v, ev, u, dv, dr, rhs, w = (np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3),
+                                    np.empty(3), np.empty(3))
+    C, wa, wb, B, Fd, K = (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+                           np.empty((3, 3)))
+    closed_form_one(F, h, r, C, wa, wb, ev, B, Fd, K)  # leaves B = FᵀF, Fd = f_D(φ), K = Fd Fᵀ
+    rng = np.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
+    if not (rng > 0.0 and np.isfinite(rng)):
+        return False
     for a in range(3):
-        if not (np.isfinite(r[a]) and np.isfinite(v[a])):
-            return np.nan, np.nan
-    D = np.empty((3, 3))  # ∂φ/∂r
-    W = np.empty((3, 3))  # ∂ω/∂r
-    if not _map_derivatives(r, h, grid, D, W):
-        return np.inf, np.inf
+        v[a] = r[a] / rng
+    tr = B[0, 0] + B[1, 1] + B[2, 2]
+    lam = 0.0
     for a in range(3):
         for b in range(3):
-            if not np.isfinite(D[a, b]):
-                return np.inf, np.inf
+            lam += v[a] * B[a, b] * v[b]
+    for a in range(3):  # wa = λ I − B + v vᵀ
+        for b in range(3):
+            wa[a, b] = -B[a, b] + v[a] * v[b]
+        wa[a, a] += lam
+    Minv, Ainv, X, dK = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    trP = 0.0
+    for a in range(3):  # wb = sym(Cᵀ K)
+        for b in range(3):
+            wb[a, b] = 0.5 * (C[0, a] * K[0, b] + C[1, a] * K[1, b] + C[2, a] * K[2, b]
+                              + C[0, b] * K[0, a] + C[1, b] * K[1, a] + C[2, b] * K[2, a])
+        trP += wb[a, a]
+    for a in range(3):  # wb = tr P I − P
+        for b in range(3):
+            wb[a, b] = -wb[a, b]
+        wb[a, a] += trP
+    if not (_inverse3(wa, Minv) and _inverse3(wb, Ainv)):
+        return False
+    dfd = np.empty((3, 3, 3))
+    dipole_jacobian(r, dfd)
+    for d in range(9):
+        i, j = d // 3, d % 3
+        # δB v, with δB = δFᵀ F + Fᵀ δF and δF = e_i e_jᵀ
+        Fv = F[i, 0] * v[0] + F[i, 1] * v[1] + F[i, 2] * v[2]
+        for a in range(3):
+            u[a] = F[i, a] * v[j]
+        u[j] += Fv
+        vu = v[0] * u[0] + v[1] * u[1] + v[2] * u[2]
+        for a in range(3):
+            u[a] -= vu * v[a]
+        d_rng = -rng / (6.0 * tr) * 2.0 * F[i, j]
+        for a in range(3):
+            dv[a] = Minv[a, 0] * u[0] + Minv[a, 1] * u[1] + Minv[a, 2] * u[2]
+            dr[a] = d_rng * v[a] + rng * dv[a]
+        # δK = (∂f_D/∂r δr) Fᵀ + f_D δFᵀ
+        for a in range(3):
+            for c in range(3):
+                X[a, c] = dfd[a, c, 0] * dr[0] + dfd[a, c, 1] * dr[1] + dfd[a, c, 2] * dr[2]
+        for a in range(3):
+            for b in range(3):
+                dK[a, b] = X[a, 0] * F[b, 0] + X[a, 1] * F[b, 1] + X[a, 2] * F[b, 2]
+            dK[a, i] += Fd[a, j]
+        for a in range(3):  # X = Cᵀ δK
+            for b in range(3):
+                X[a, b] = C[0, a] * dK[0, b] + C[1, a] * dK[1, b] + C[2, a] * dK[2, b]
+        rhs[0], rhs[1], rhs[2] = X[2, 1] - X[1, 2], X[0, 2] - X[2, 0], X[1, 0] - X[0, 1]
+        for a in range(3):
+            w[a] = Ainv[a, 0] * rhs[0] + Ainv[a, 1] * rhs[1] + Ainv[a, 2] * rhs[2]
+        for a in range(3):
+            J[a, d] = dr[a]
+            J[3 + a, d] = C[a, 0] * w[0] + C[a, 1] * w[1] + C[a, 2] * w[2]
+    for a in range(6):
+        for d in range(9):
+            if not np.isfinite(J[a, d]):
+                return False
+    return True
+
+
+@numba.njit(cache=True, error_model="numpy")
+def precision_one(r, h, grid, sigma):
+    """Predicted RMS position (m) and orientation (rad) error of the pose corrected from a reported pose to the
+    position ``r`` (3,), for white signal noise ``sigma``: the closed form's scatter at the field the sensor is
+    in, ``J = ∂(φ, ω)/∂F`` at ``F = f_D(r) + g(r)`` (:func:`closed_form_jacobian`), carried through the inverse
+    map, ``δr = (∂φ/∂r)⁻¹ J_φ δF`` and ``δt ∝ (J_ω − (∂ω/∂r) (∂φ/∂r)⁻¹ J_φ) δF``
+    (:func:`ivc.pose.precision.reported_pose_covariance`; the orientation's trace does not depend on the frame it
+    is written in), with ``∂(φ, ω)/∂r = J ∂F/∂r`` from the table's gradient. NaN where r is not finite; inf where
+    the map is singular there (the reported pose does not fix the true one)."""
+    for a in range(3):
+        if not np.isfinite(r[a]):
+            return np.nan, np.nan
+    rho2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+    if not rho2 > 1e-12:
+        return np.inf, np.inf
+    nc = grid[0].shape[3]
+    F, dF, g, dg = np.empty((3, 3)), np.empty((3, 3, 3)), np.empty(nc), np.empty((nc, 3))
+    wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
+    pose_model(r, grid, F, dF, g, dg, wx, wy, wz, dx, dy, dz)
+    J = np.empty((6, 9))
+    if not closed_form_jacobian(F, h, J):
+        return np.inf, np.inf
+    D = np.empty((3, 3))  # ∂φ/∂r
+    W = np.empty((3, 3))  # ∂ω/∂r
+    for a in range(3):
+        for k in range(3):
+            sd, sw = 0.0, 0.0
+            for d in range(9):
+                sd += J[a, d] * dF[d // 3, d % 3, k]
+                sw += J[3 + a, d] * dF[d // 3, d % 3, k]
+            D[a, k], W[a, k] = sd, sw
     H = np.empty((3, 3))
     if not _inverse3(D, H):
         return np.inf, np.inf
-    # the reported pose's covariance (unit noise), free space at (v, Q)
-    M, dM, J, S_v = np.empty((3, 3)), np.empty((3, 3, 3)), np.empty((9, 6)), np.empty((6, 6))
-    field_matrix(v[0], v[1], v[2], M)
-    dipole_jacobian(v, dM)
-    if not crb_covariance_one(Q, M, dM, J, S_v):
-        return np.inf, np.inf
-    # A = [[H, 0], [−Qᵀ W H, I]]
-    A = np.zeros((6, 6))
-    QtW = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            s = 0.0
-            for b in range(3):
-                s += Q[b, i] * W[b, j]
-            QtW[i, j] = s
-    for i in range(3):
-        for j in range(3):
-            A[i, j] = H[i, j]
-            s = 0.0
-            for b in range(3):
-                s += QtW[i, b] * H[b, j]
-            A[3 + i, j] = -s
-        A[3 + i, 3 + i] = 1.0
-    # only the diagonal of A S_v Aᵀ is needed
     p2, o2 = 0.0, 0.0
-    for i in range(6):
-        d = 0.0
-        for a in range(6):
-            if A[i, a] == 0.0:
-                continue
-            row = 0.0
-            for b in range(6):
-                row += S_v[a, b] * A[i, b]
-            d += A[i, a] * row
-        if i < 3:
-            p2 += d
-        else:
-            o2 += d
+    P = np.empty(3)
+    for d in range(9):
+        for a in range(3):  # column d of (∂φ/∂r)⁻¹ J_φ
+            P[a] = H[a, 0] * J[0, d] + H[a, 1] * J[1, d] + H[a, 2] * J[2, d]
+            p2 += P[a] * P[a]
+        for a in range(3):
+            o = J[3 + a, d] - (W[a, 0] * P[0] + W[a, 1] * P[1] + W[a, 2] * P[2])
+            o2 += o * o
     return sigma * np.sqrt(p2), sigma * np.sqrt(o2)
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def precision_kernel(v, Q, r, h, grid, sigma, position_out, orientation_out):  # pragma: no cover - compiled
-    """:func:`precision_one` for every sample n: reported poses v (n, 3), Q (n, 3, 3), corrected positions r (n, 3)."""
-    for n in numba.prange(v.shape[0]):
-        position_out[n], orientation_out[n] = precision_one(v[n], Q[n], r[n], h, grid, sigma)
+def precision_kernel(r, h, grid, sigma, position_out, orientation_out):  # pragma: no cover - compiled
+    """:func:`precision_one` for every sample n: corrected positions r (n, 3)."""
+    for n in numba.prange(r.shape[0]):
+        position_out[n], orientation_out[n] = precision_one(r[n], h, grid, sigma)
 
 
 @numba.njit(cache=True, nogil=True)
-def precision_serial(v, Q, r, h, grid, sigma, position_out, orientation_out):  # pragma: no cover - compiled
+def precision_serial(r, h, grid, sigma, position_out, orientation_out):  # pragma: no cover - compiled
     """:func:`precision_kernel` without threads: a live frame's few samples."""
-    for n in range(v.shape[0]):
-        position_out[n], orientation_out[n] = precision_one(v[n], Q[n], r[n], h, grid, sigma)
+    for n in range(r.shape[0]):
+        position_out[n], orientation_out[n] = precision_one(r[n], h, grid, sigma)

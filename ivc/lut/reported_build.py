@@ -30,7 +30,7 @@ from ivc.table.grid import Grid
 from ivc.table.lookup import LookupTable
 
 #: the largest harmonic degree tried (cross-validated below it)
-MAX_DEGREE = 8
+MAX_DEGREE = 10
 #: pairs used by the fit at most (every k-th kept pair): the Gauss-Newton passes cost per pair
 MAX_PAIRS = 40_000
 

@@ -26,6 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg.blas import dsyrk
 
 from ivc import dipole
 from ivc.errors import InputError
@@ -41,6 +42,9 @@ TOLERANCE = 1e-9
 INITIAL_DAMPING = 1e-3
 RELATIVE_TOLERANCE = 1e-3
 RIDGE = 1e-12
+#: the warm start's share of the pairs (every COARSE_STRIDE-th), used where it has at least COARSE_ROWS residual rows
+#: per coefficient
+COARSE_STRIDE, COARSE_ROWS = 8, 20
 
 Basis = Callable[[np.ndarray], np.ndarray]  # positions (n, 3) -> gradients (n, K, 3)
 
@@ -102,8 +106,9 @@ def _design(J: np.ndarray, b: np.ndarray) -> np.ndarray:
     """∂(reported pose)/∂c (n, 6, 3K): the solver's Jacobian in G chained with G's basis, coefficients
     ordered by potential then source column (so a lower degree's block is a prefix)."""
     n, K = b.shape[:2]
-    Jg = J.reshape(n, 6, 3, 3)  # [a, i, j]: ∂pose_a / ∂G_ij
-    return np.einsum("naij,nki->nakj", Jg, b).reshape(n, 6, 3 * K)
+    # X[n, a, k, j] = Σ_i b[n, k, i] J[n, a, i, j]: one batched product (K, 3) @ (3, 6·3) per pair
+    Jg = J.reshape(n, 6, 3, 3).transpose(0, 2, 1, 3).reshape(n, 3, 18)
+    return (b @ Jg).reshape(n, K, 6, 3).transpose(0, 2, 1, 3).reshape(n, 6, 3 * K)
 
 
 @dataclass
@@ -117,31 +122,28 @@ class _Normal:
 def _accumulate(pairs: PosePairs, basis: Basis, coefficients: np.ndarray, fold: np.ndarray, folds: int,
                 solver: str, hemisphere: str, progress) -> tuple[_Normal, float]:
     """Normal equations for the coefficients themselves, linearised at ``coefficients``; and the RMS
-    pose residual (m) there."""
+    pose residual (m) there. ``fold``: each pair's fold, in ascending order (so a chunk is one fold's)."""
     P = coefficients.size
     normal = _Normal(np.zeros((folds, P, P)), np.zeros((folds, P)), np.zeros(folds), np.zeros(folds))
     weight = np.array([1, 1, 1, ORIENTATION_LENGTH, ORIENTATION_LENGTH, ORIENTATION_LENGTH])
     sse = 0.0
-    for start in range(0, len(pairs), CHUNK):
-        part = slice(start, start + CHUNK)
-        sub = pairs.subset(part)
-        position, turn, J, b = predicted(sub.position, basis, coefficients, solver, hemisphere)
-        e = pose_residuals(sub, position, turn)  # (n, 6)
-        X = _design(J, b) * weight[None, :, None]
-        y = e + X @ coefficients.reshape(-1)  # the target of the absolute (not incremental) form
-        sse += float(np.sum(e**2))
-        f = fold[part]
-        for k in range(folds):
-            m = f == k
-            if not m.any():
-                continue
-            Xk, yk = X[m].reshape(-1, P), y[m].reshape(-1)
-            normal.gram[k] += Xk.T @ Xk
-            normal.rhs[k] += Xk.T @ yk
-            normal.yy[k] += yk @ yk
-            normal.count[k] += m.sum()
-        if progress is not None:
-            progress(len(sub))
+    for k in range(folds):
+        members = np.flatnonzero(fold == k)
+        for start in range(0, len(members), CHUNK):
+            part = slice(members[start], members[min(start + CHUNK, len(members)) - 1] + 1)
+            sub = pairs.subset(part)
+            position, turn, J, b = predicted(sub.position, basis, coefficients, solver, hemisphere)
+            e = pose_residuals(sub, position, turn)  # (n, 6)
+            X = (_design(J, b) * weight[None, :, None]).reshape(-1, P)
+            y = (e + (X @ coefficients.reshape(-1)).reshape(-1, 6)).reshape(-1)  # the absolute form's target
+            sse += float(np.sum(e**2))
+            upper = dsyrk(1.0, X.T, trans=0)  # the upper triangle of XᵀX: half the work of a general product
+            normal.gram[k] += upper + np.triu(upper, 1).T
+            normal.rhs[k] += X.T @ y
+            normal.yy[k] += y @ y
+            normal.count[k] += len(sub)
+            if progress is not None:
+                progress(len(sub))
     return normal, float(np.sqrt(sse / max(len(pairs), 1)))
 
 
@@ -193,7 +195,15 @@ def fit_through_tracker(pairs: PosePairs, basis: Basis, counts: dict[int, int], 
     top = max(candidates)
     folds = max(1, min(folds, len(np.unique(pairs.folds(folds))))) if len(pairs) >= 50 else 1
     fold = pairs.folds(folds) if folds > 1 else np.zeros(len(pairs), int)
+    order = np.argsort(fold, kind="stable")  # each fold's pairs together, in time order
     coefficients = np.zeros((K_max, 3))
+    coarse = pairs.subset(slice(None, None, COARSE_STRIDE))
+    if 6 * len(coarse) >= COARSE_ROWS * 3 * candidates[top]:
+        # the first steps, from G = 0 to near the solution, on every COARSE_STRIDE-th pair: the full data then
+        # needs two or three steps instead of eight or nine (each step is a pass over all pairs)
+        start, _ = fit_through_tracker(coarse, basis, {top: candidates[top]}, solver, hemisphere, top, 1, iterations)
+        coefficients[: len(start)] = start
+    pairs, fold = pairs.subset(order), fold[order]
     history = []
     chosen = top
     scores: dict[int, float] = {}
