@@ -73,7 +73,7 @@ def _cold_note() -> None:
                    "precision_mm, orientation_precision_mrad), for signals and reported poses, wherever the noise "
                    "is known (the table's fit measures it).")
 @click.option("--max-precision", "max_precision", metavar="MM|none",
-              help="Flag (16) poses predicted less precise than MM millimetres RMS (default: 1 mm wherever the "
+              help="Flag (16) poses predicted less precise than MM millimetres RMS (default: 0.8 mm wherever the "
                    "tracker's noise is known; docs/trust.md says why); 'none' turns the gate off.")
 @click.option("--signal-noise", type=POSITIVE, help="The tracker's white noise per signal entry, in signal units "
               "(default: what the table's fit measured on the session's static steps).")
@@ -92,7 +92,7 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
 
     Every output sample carries flags: 0 = trusted; 1 outside the mapped volume, 2 not
     converged, 4 residual too high, 8 invalid input, 16 predicted precision over --max-precision
-    (default 1 mm RMS, wherever the tracker's noise is known; bits combine). Signals are used when
+    (default 0.8 mm RMS, wherever the tracker's noise is known; bits combine). Signals are used when
     the input has them; otherwise the reported poses are corrected directly, by inverting the
     tracker's pose-domain distortion (docs/lut.md): then 4 means a reported pose the map does
     not produce, or not uniquely. With --predict, the corrected orientations of trusted

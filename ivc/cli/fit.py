@@ -91,7 +91,7 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
         source = " from the reported poses" if noise.get("source") == "reported poses" else ""
         lines.append(f"Signal noise: {noise['sigma']:.3g} per entry, measured{source} on {', '.join(noise['steps'])} "
                      f"({noise['pairs']} frame pairs; per-sensor spread {noise['spread']:.2f}x): `ivc correct` "
-                     "predicts each pose's precision from it and flags those over 1 mm RMS (docs/trust.md)")
+                     "predicts each pose's precision from it and flags those over 0.8 mm RMS (docs/trust.md)")
     if seconds is not None:
         lines.append(f"Done in {seconds:.1f} s")
     return "\n".join(lines)

@@ -6,11 +6,12 @@ knows the noise: the table's fit measures it on the session's static steps (``iv
 from the signals, or from the reported poses of a pose-only session), or the user gives it.
 
 A pose predicted less precise than the limit is flagged LOW_PRECISION. The default limit,
-:data:`MAX_PRECISION` = 1 mm RMS, is what makes the trusted flag a bound: a pose whose single-frame
-error is Gaussian with RMS ``p ≤ 1 mm`` is more than 5 mm off with probability below 1e-10 (the
-3-D RMS is ``√3`` times the per-axis deviation: 5 mm is 8.7 of those), and more than 2 mm off with
-probability below 1 % even at the limit; most trusted poses sit far below it (docs/trust.md measures
-both). ``max_precision=None`` turns the gate off; a number replaces the limit.
+:data:`MAX_PRECISION` = 0.8 mm RMS, is what makes the trusted flag a bound whatever the error's shape:
+a single-frame error that is Gaussian with 3-D RMS ``p ≤ 0.8 mm`` is, even in the worst case where all
+of its variance lies along one direction (far from the source the range is much less certain than the
+bearing), more than 2 mm off with probability 1.2 % (2.5 deviations) and more than 5 mm off with
+4e-10 (6.25 deviations); isotropic, 0.03 % and 3e-25. Most trusted poses sit far below the limit
+(docs/trust.md measures both). ``max_precision=None`` turns the gate off; a number replaces the limit.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from ivc.table.grid import GridField
 from ivc.table.lookup import LookupTable
 
 #: the default limit (m) of a trusted pose's predicted RMS position error
-MAX_PRECISION = 1e-3
+MAX_PRECISION = 0.8e-3
 #: a signal noise per entry at or above this (normalised dipole units: the signal's own size 1 m from the
 #: source) is no tracker's
 MAX_SIGNAL_NOISE = 1.0

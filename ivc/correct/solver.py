@@ -6,7 +6,7 @@ Every result carries per-sample flags; a pose is never returned without them:
 ``NOT_CONVERGED``  the solve did not converge
 ``HIGH_RESIDUAL``  the model explains the signal poorly: rms(M − T S)/rms(S) above the threshold
 ``INVALID_INPUT``  the signal (or reported pose) is not finite or is all zeros, or the sample was marked invalid
-``LOW_PRECISION``  the pose's predicted precision is worse than the limit (default 1 mm RMS where the
+``LOW_PRECISION``  the pose's predicted precision is worse than the limit (default 0.8 mm RMS where the
                    tracker's noise is known: :mod:`ivc.correct.precision`)
 
 Flags combine bitwise; 0 means the pose is trusted.
