@@ -57,19 +57,30 @@ def name_of(kernel: CPUDispatcher) -> str:
     return f"{kernel.py_func.__module__}.{kernel.py_func.__name__}"
 
 
+#: the ids of the kernels found ready (dispatchers live as long as their module: an id is not reused)
+_ready: set[int] = set()
+
+
 def is_ready(kernel: CPUDispatcher) -> bool:
     """Whether calling ``kernel`` needs no compilation: compiled in this process, or an entry for this
     machine in numba's on-disk cache (fresh for the current source). True when numba's cache layout
-    is not the one this reads (then the kernel simply compiles, as it would anyway)."""
-    if kernel.signatures:
+    is not the one this reads (then the kernel simply compiles, as it would anyway). Once ready, a kernel
+    stays ready for the process, and is remembered: asking numba costs tens of microseconds a call, which a
+    live frame's few samples notice."""
+    if id(kernel) in _ready:
         return True
-    cache = getattr(kernel, "_cache", None)
-    try:
-        index = cache._cache_file._load_index()
-        magic = kernel.targetctx.codegen().magic_tuple()
-        return any(key[1] == magic for key in index)
-    except Exception:  # noqa: BLE001 - another numba version's internals: behave as without this module
-        return True
+    ready = bool(kernel.signatures)
+    if not ready:
+        cache = getattr(kernel, "_cache", None)
+        try:
+            index = cache._cache_file._load_index()
+            magic = kernel.targetctx.codegen().magic_tuple()
+            ready = any(key[1] == magic for key in index)
+        except Exception:  # noqa: BLE001 - another numba version's internals: behave as without this module
+            ready = True
+    if ready:
+        _ready.add(id(kernel))
+    return ready
 
 
 def _code_names(code: types.CodeType) -> set[str]:

@@ -51,7 +51,7 @@ def test_live_connects_at_once_on_a_cold_cache_and_switches_to_compiled(exact_ta
 
     def slow_compile(corrector, pose_corrector):  # a compilation that lasts until the test says so
         if threading.current_thread().name == "ivc-compile":
-            go.wait(30)
+            go.wait(120)  # a bound, not a wait: the test sets it once the interpreted frames have arrived
             warm_up(corrector, pose_corrector)
             ready.set()
         else:
