@@ -64,8 +64,8 @@ def render_table(report: dict) -> str:
 @click.option("--interpolation", type=click.Choice(INTERPOLATIONS), default="cubic", show_default=True,
               help="Between grid nodes: Catmull-Rom cubic, or trilinear (Himberg 2010's).")
 @click.option("--max-residual", type=POSITIVE, default=None,
-              help="Flag corrections whose rms(M − T S)/rms(S) exceeds this (default: a limit per pose, 5x the "
-              "residual the table's cross-validated model error and the signal noise explain there; "
+              help="Flag corrections whose rms(M − T S)/rms(S) exceeds this (default: a limit per pose, a multiple "
+              "of the residual the table's cross-validated model error and the signal noise explain there; "
               f"{MAX_RESIDUAL:g} for a table that records neither).")
 @solver_option("Check poses reported only: the tracker's own pose solver (default: the one the table was fitted "
                "for, else closed-form).")
