@@ -38,6 +38,7 @@ from ivc import dipole
 from ivc.correct import Corrector, PoseCorrector
 from ivc.correct.evaluate import check_errors
 from ivc.correct.residual_gate import MAX_RESIDUAL
+from ivc.errors import IvcError
 from ivc.lut import FitOptions, fit_lut
 from ivc.lut.joint import mapped_litres
 from ivc.session import Session
@@ -109,18 +110,28 @@ def measure(name: str) -> dict:
             "choice": fit.get("model_choice", f"harmonic degree {fit.get('degree')}"),
             "gate": Corrector(table, signals.hemisphere).residual_gate.describe()}
         print(f"# {name}, {method}: fitted in {seconds:.0f} s, {out[method]['choice']}", flush=True)
-    table, seconds = _fitted(poses, None)
+    out["poses"] = _pose_only(poses)
+    out["load"] = os.getloadavg()[0]
+    out["total_s"] = time.perf_counter() - start
+    print(f"# {name}, reported poses: {out['poses'].get('error') or 'fitted'}; scene done in {out['total_s']:.0f} s",
+          flush=True)
+    return out
+
+
+def _pose_only(poses: Session) -> dict:
+    """The pose-only table's figures, or the fit's refusal (``error``: nothing trusted)."""
+    try:
+        table, seconds = _fitted(poses, None)
+    except IvcError as error:
+        return {"error": str(error), "trusted": 0.0, "median": float("nan"), "p99": float("nan"), "flags": {},
+                "seconds": float("nan")}
     errors = check_errors(PoseCorrector(table, poses.hemisphere), poses)
     figures = _check(errors, table)
     figures.pop("trusted_mask")
     valid = errors.valid[:, 0]
-    out["poses"] = {**figures, "seconds": seconds, "litres": mapped_litres(table.grid, table.valid),
-                    "uncorrected_median": float(np.median(errors.dipole_position_mm[:, 0][valid])),
-                    "cv_mm": table.fit.get("cv_rms_mm"), "degree": table.fit.get("degree")}
-    out["load"] = os.getloadavg()[0]
-    out["total_s"] = time.perf_counter() - start
-    print(f"# {name}, reported poses: fitted in {seconds:.0f} s; scene done in {out['total_s']:.0f} s", flush=True)
-    return out
+    return {**figures, "seconds": seconds, "litres": mapped_litres(table.grid, table.valid),
+            "uncorrected_median": float(np.median(errors.dipole_position_mm[:, 0][valid])),
+            "cv_mm": table.fit.get("cv_rms_mm"), "degree": table.fit.get("degree")}
 
 
 def figures_of(m: dict, default: dict | None) -> list[Figure]:
@@ -132,6 +143,8 @@ def figures_of(m: dict, default: dict | None) -> list[Figure]:
           f"secondary / primary at the check poses {m['ratio_median']:.2f} median, {m['ratio_max']:.2f} max; "
           f"adaptive chose {a['choice']}; flags in the mapped volume: default fit {h['flags']}, adaptive {a['flags']}, "
           f"reported poses {p['flags']}")
+    if "error" in p:
+        print(f"# {name}, reported poses: the pose-only fit refused the session: {p['error']}")
     for label, f in (("ivc fit", h), ("adaptive", a)):
         other = a if f is h else h
         other_name = "adaptive" if f is h else "ivc fit"
