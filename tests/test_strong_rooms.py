@@ -4,13 +4,14 @@ far off."""
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from ivc import dipole
 from ivc.fixtures.reported_mapping import PoseFixtureModel, map_sweep_poses
 from ivc.pose.reported import invert_distortion
 from ivc.session import Session
 from ivc.sim import Simulator, load_scene
-from ivc.sim.scene import scene_from_dict
+from ivc.sim.scene import SceneError, scene_from_dict
 from tests.helpers import ball
 
 
@@ -46,3 +47,9 @@ def test_a_pose_only_sweep_is_traced_into_the_cube_where_the_reported_poses_lie_
     traced = mapping.sensor0.converged.mean()
     assert from_reported.converged.mean() < 0.1 and traced > 0.5
     assert mapping.kept > 0.5 * mapping.keep.size
+
+
+@pytest.mark.parametrize("value", [0, -4, "four", float("nan")])
+def test_a_scene_refuses_an_induced_scale_that_is_not_a_positive_number(value):
+    with pytest.raises(SceneError, match="induced_scale"):
+        scene_from_dict({"induced_scale": value}, "room")
