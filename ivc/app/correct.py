@@ -30,7 +30,7 @@ from ivc.collect.tracker_units import apply_tracker_file
 from ivc.correct import Correction, Corrector, PoseCorrector, describe
 from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, LOW_PRECISION, NOT_CONVERGED, OUTSIDE
 from ivc.correct.precision import DEFAULT
-from ivc.correct.solver import MAX_RESIDUAL
+from ivc.correct.residual_gate import RESIDUAL_SIGMAS
 from ivc.errors import OptionsError
 from ivc.lut.build import file_digest
 from ivc.predict import TUNABLE
@@ -50,9 +50,10 @@ class CorrectOptions:
 
     ``steps``: a session's steps to correct (default: every step recorded in the distorted volume).
     ``interpolation``: the table's interpolation (``ivc.table.grid.INTERPOLATIONS``). ``max_residual``: flag (4)
-    corrections whose rms(M − T S)/rms(S) exceeds it. ``hemisphere``: of a CSV or PLUS input (default: the
-    table's). ``solver``: the tracker's own pose solver, for inputs of reported poses only (``closed-form`` or
-    ``least-squares``; default: the one the table was fitted for, else closed-form).
+    corrections whose rms(M − T S)/rms(S) exceeds it (default None: a limit per pose scaled to the table's
+    cross-validated model error and the signal noise, ``ivc.correct.residual_gate``). ``hemisphere``: of a CSV
+    or PLUS input (default: the table's). ``solver``: the tracker's own pose solver, for inputs of reported poses
+    only (``closed-form`` or ``least-squares``; default: the one the table was fitted for, else closed-form).
 
     ``precision``: predict each pose's RMS position (m) and orientation (rad) error from the tracker's signal noise
     (on by default wherever the noise is known, for signals and reported poses alike; docs/trust.md).
@@ -70,7 +71,7 @@ class CorrectOptions:
 
     steps: Sequence[str] = ()
     interpolation: str = "cubic"
-    max_residual: float = MAX_RESIDUAL
+    max_residual: float | None = None
     hemisphere: str | None = None
     solver: str | None = None
     precision: bool = True
@@ -244,7 +245,7 @@ def summary(name: str, out: Correction) -> str:
     return text
 
 
-def correction_advice(out: Correction, max_residual: float, pose_only: bool = False) -> str | None:
+def correction_advice(out: Correction, max_residual: float | None, pose_only: bool = False) -> str | None:
     """What to check when most valid samples carry one flag; None when most are trusted."""
     flags = out.flags.reshape(-1)
     valid = (flags & INVALID_INPUT) == 0
@@ -269,9 +270,11 @@ def correction_advice(out: Correction, max_residual: float, pose_only: bool = Fa
                 "table's hemisphere, and with the tracker solver the table assumes (solver=NAME)?")
     if bit == HIGH_RESIDUAL:
         median = float(np.median(out.residual.reshape(-1)[valid]))
-        return (f"{percent} do not fit the table's field (median residual {median:.2g}, gate max_residual="
-                f"{max_residual:g}): was this recorded in the mapped room, with the source where it was when "
-                "the table was fitted, and in the table's hemisphere?")
+        gate = (f"gate max_residual={max_residual:g}" if max_residual is not None else
+                f"gate {RESIDUAL_SIGMAS:g}x what the table's model error and the signal noise explain")
+        return (f"{percent} do not fit the table's field (median residual {median:.2g}, {gate}): was this "
+                "recorded in the mapped room, with the source where it was when the table was fitted, and in the "
+                "table's hemisphere?")
     if bit == LOW_PRECISION:
         return (f"{percent} are predicted less precise than the precision limit (max_precision): the tracker's noise "
                 "allows no better there (far from the source, or where the room's field folds the map); loosen the "
@@ -294,6 +297,8 @@ class _Job:
         o = self.options
         if step.signal is not None:
             corrector = Corrector(self.table, hemisphere, o.interpolation, o.max_residual, **self.precision)
+            if not self._gate_said:
+                self.say(INFO, corrector.residual_gate.describe())
             self._gate(corrector.gate)
             return corrector.batch(step.signal, step.valid_mask)
         poses = PoseCorrector(self.table, hemisphere, o.interpolation, o.solver, **self.precision)

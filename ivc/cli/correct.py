@@ -42,8 +42,10 @@ def _cold_note() -> None:
 @click.option("--step", "steps", multiple=True, help="Session input: step(s) to correct (default: every step "
               "recorded in the distorted volume).")
 @click.option("--interpolation", type=click.Choice(INTERPOLATIONS), default="cubic", show_default=True)
-@click.option("--max-residual", type=POSITIVE, default=MAX_RESIDUAL, show_default=True,
-              help="Flag corrections whose rms(M − T S)/rms(S) exceeds this.")
+@click.option("--max-residual", type=POSITIVE, default=None,
+              help="Flag corrections whose rms(M − T S)/rms(S) exceeds this (default: a limit per pose, a multiple "
+              "of the residual the table's cross-validated model error and the signal noise explain there; "
+              f"{MAX_RESIDUAL:g} for a table that records neither).")
 @click.option("--hemisphere", help="Hemisphere of a CSV input (default: the table's).")
 @solver_option("Input of reported poses only: the tracker's own pose solver (default: the one the table was fitted "
                "for, else closed-form).")

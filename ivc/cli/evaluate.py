@@ -63,8 +63,10 @@ def render_table(report: dict) -> str:
 @click.option("--step", default="check", show_default=True, help="Step of CHECK_FILE holding the check poses.")
 @click.option("--interpolation", type=click.Choice(INTERPOLATIONS), default="cubic", show_default=True,
               help="Between grid nodes: Catmull-Rom cubic, or trilinear (Himberg 2010's).")
-@click.option("--max-residual", type=POSITIVE, default=MAX_RESIDUAL, show_default=True,
-              help="Flag corrections whose rms(M − T S)/rms(S) exceeds this.")
+@click.option("--max-residual", type=POSITIVE, default=None,
+              help="Flag corrections whose rms(M − T S)/rms(S) exceeds this (default: a limit per pose, a multiple "
+              "of the residual the table's cross-validated model error and the signal noise explain there; "
+              f"{MAX_RESIDUAL:g} for a table that records neither).")
 @solver_option("Check poses reported only: the tracker's own pose solver (default: the one the table was fitted "
                "for, else closed-form).")
 @click.option("--json", "as_json", is_flag=True, help="Print the table as JSON.")

@@ -4,7 +4,9 @@ Every result carries per-sample flags; a pose is never returned without them:
 
 ``OUTSIDE``        the corrected position is outside the mapped volume (the table says nothing there)
 ``NOT_CONVERGED``  the solve did not converge
-``HIGH_RESIDUAL``  the model explains the signal poorly: rms(M − T S)/rms(S) above the threshold
+``HIGH_RESIDUAL``  the model explains the signal poorly: rms(M − T S)/rms(S) above the limit, by default a
+                   multiple of what the tracker's noise and the table's cross-validated model error explain
+                   at that pose (:mod:`ivc.correct.residual_gate`)
 ``INVALID_INPUT``  the signal (or reported pose) is not finite or is all zeros, or the sample was marked invalid
 ``LOW_PRECISION``  the pose's predicted precision is worse than the limit (default 0.8 mm RMS where the
                    tracker's noise is known: :mod:`ivc.correct.precision`)
@@ -22,6 +24,7 @@ from ivc import compiled, dipole, rotations
 from ivc.correct import kernels as _kernels
 from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, LOW_PRECISION, NOT_CONVERGED, OUTSIDE
 from ivc.correct.precision import DEFAULT, PrecisionGate
+from ivc.correct.residual_gate import MAX_RESIDUAL, ResidualGate
 from ivc.dipole.pose import hemisphere_vector
 from ivc.errors import InputError
 from ivc.table.grid import GridField
@@ -30,8 +33,6 @@ from ivc.table.lookup import LookupTable
 FLAG_NAMES = {OUTSIDE: "outside the mapped volume", NOT_CONVERGED: "not converged",
               HIGH_RESIDUAL: "residual too high", INVALID_INPUT: "invalid input",
               LOW_PRECISION: "predicted precision over the limit"}
-#: default residual threshold, rms(M − T S)/rms(S)
-MAX_RESIDUAL = 1e-3
 MAX_ITERATIONS = 50
 STEP_TOLERANCE = 1e-7  # m: a tenth of a micrometre
 #: batches of at least this many frames start cold frames from the table's correction map
@@ -80,7 +81,10 @@ class Corrector:
     """Applies a table to measurements: :meth:`batch` for arrays of frames, :meth:`update` for a live stream.
 
     ``interpolation``: ``cubic`` (default) or ``linear``. ``hemisphere``: where the sensors are
-    (default: the table's). ``max_residual``: the HIGH_RESIDUAL threshold. ``seed_map``: whether cold
+    (default: the table's). ``max_residual``: one HIGH_RESIDUAL limit of rms(M − T S)/rms(S) for every pose;
+    default None: each pose's limit is :data:`~ivc.correct.residual_gate.RESIDUAL_SIGMAS` times the residual the
+    signal noise and the table's cross-validated model error explain there (:class:`ResidualGate`; the fixed
+    :data:`MAX_RESIDUAL` for a table that records neither, :attr:`residual_gate` says which). ``seed_map``: whether cold
     frames of batches of at least :data:`SEED_MAP_FRAMES` start from the table's correction map
     (``ivc.correct.seed_map``; False: always from the fixed point, as smaller batches do).
 
@@ -93,14 +97,16 @@ class Corrector:
     """
 
     def __init__(self, table: LookupTable | GridField, hemisphere: str | None = None, interpolation: str = "cubic",
-                 max_residual: float = MAX_RESIDUAL, max_iterations: int = MAX_ITERATIONS, seed_map: bool = True,
+                 max_residual: float | None = None, max_iterations: int = MAX_ITERATIONS, seed_map: bool = True,
                  precision: bool = True, max_precision: float | str | None = DEFAULT,
                  signal_noise: float | None = None):
         self.field = table.field(interpolation) if isinstance(table, LookupTable) else table
         hemisphere = hemisphere or (table.hemisphere if isinstance(table, LookupTable) else "+x")
         self.hemisphere = hemisphere
         self._h = hemisphere_vector(hemisphere)
-        self.max_residual = float(max_residual)
+        self.residual_gate = ResidualGate.resolve(table, max_residual, signal_noise)
+        #: the solver retries other starts above this residual (the fixed limit; today's where the gate scales)
+        self.max_residual = self.residual_gate.fixed or MAX_RESIDUAL
         self.max_iterations = int(max_iterations)
         self._previous: dict = {}
         self._seed_map = None
@@ -164,8 +170,9 @@ class Corrector:
         seed_map = self.seed_map().kernel_grid if use_map else _NO_MAP
         kernel(S, seeds, self._h, self.field.kernel_grid, seed_map, use_map, self.max_iterations, STEP_TOLERANCE,
                self.max_residual, r, T, q, converged, iterations, residual, mapped)
+        limit = self.residual_gate.limits(S, r)
         flags = (np.where(mapped, 0, OUTSIDE) | np.where(converged, 0, NOT_CONVERGED)
-                 | np.where(residual <= self.max_residual, 0, HIGH_RESIDUAL)).astype(np.uint8)
+                 | np.where(residual <= limit, 0, HIGH_RESIDUAL)).astype(np.uint8)
         flags[~(np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(q), axis=1))] |= NOT_CONVERGED  # no pose came out
         flags[~finite] = INVALID_INPUT
         if not finite.all():

@@ -33,15 +33,17 @@ class FerrousSphere:
 
     ``m = 4π a³ (μr − 1)/(μr + 2) H0``, i.e. in normalised units its field at ``x`` is
     ``a³ K f_D(x − c) f_D(c)`` with ``K = (μr − 1)/(μr + 2)``. Interaction with the
-    conductors' eddy currents is neglected.
+    conductors' eddy currents is neglected. ``gain`` multiplies the induced moment (1: the physical sphere; a
+    scene's ``induced_scale`` sets it).
     """
 
     position: np.ndarray  # (3,) metres
     radius: float  # metres
     permeability: float  # relative
+    gain: float = 1.0
 
     def field(self, points: np.ndarray) -> np.ndarray:
-        k = (self.permeability - 1.0) / (self.permeability + 2.0)
+        k = self.gain * (self.permeability - 1.0) / (self.permeability + 2.0)
         return self.radius**3 * k * dipole.field(np.asarray(points) - self.position) @ dipole.field(self.position)
 
 

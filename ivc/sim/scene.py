@@ -9,7 +9,7 @@ docs/simulator.md. Positions are in metres in the source frame, sizes in metres;
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -172,6 +172,9 @@ class Scene:
     tabulate: bool = True
     volume: VolumeSpec | None = None
     extension: ExtensionSpec = field(default_factory=ExtensionSpec)
+    #: every induced moment (the conductors' eddy currents and the ferrous spheres') times this: the same room's
+    #: physics made stronger (scene key ``induced_scale``; the ``strong`` scene is the default room at 4)
+    induced_scale: float = 1.0
 
     @property
     def mapped_radius(self) -> float:
@@ -185,6 +188,7 @@ class Scene:
             parts = [(c.mesh(), c.surface_resistivity(self.frequency_hz)) for c in self.conductors]
             mesh = eddy.ConductorMesh.from_parts(parts)
             dipoles = eddy.FaceDipoles.from_solution(mesh, eddy.solve_stream_function(mesh, self.frequency_hz))
+            dipoles = eddy.FaceDipoles(dipoles.centres, self.induced_scale * dipoles.moments)
         reach = self.mapped_radius + 0.02
         lower, upper = self.cube.center - reach, self.cube.center + reach
         spacing = 0.01
@@ -193,7 +197,8 @@ class Scene:
             upper = np.maximum(upper, self.volume.upper + 0.02)
             spacing = self.volume.tabulate_spacing
         roi = (lower, upper) if self.tabulate else None
-        return SecondaryField(dipoles, list(self.spheres), roi, spacing=spacing)
+        spheres = [replace(s, gain=s.gain * self.induced_scale) for s in self.spheres]
+        return SecondaryField(dipoles, spheres, roi, spacing=spacing)
 
 
 def _conductor(entry: dict, where: str, base: Path | None) -> Conductor:
@@ -308,7 +313,19 @@ def scene_from_dict(data: dict, name: str = "scene", base: Path | None = None) -
         check_radius=float(data.get("check_radius_mm", 160.0)) / 1000,
         volume=volume,
         extension=extension,
+        induced_scale=_induced_scale(data, name),
     )
+
+
+def _induced_scale(data: dict, name: str) -> float:
+    value = data.get("induced_scale", 1.0)
+    try:
+        scale = float(value)
+    except (TypeError, ValueError):
+        scale = float("nan")
+    if not (np.isfinite(scale) and scale > 0):
+        raise SceneError(f"{name}.induced_scale: {value!r}; give a positive number (1: the room as built)")
+    return scale
 
 
 def builtin_scenes() -> list[str]:
