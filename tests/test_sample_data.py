@@ -71,7 +71,8 @@ def test_correcting_a_recording_from_elsewhere_says_what_to_check(tmp_path):
     assert result.exit_code == 0, result.output
     assert "0 corrected" in result.output
     assert "warning: 100% of the valid samples do not fit the table's field" in result.output
-    assert "--max-residual 0.001" in result.output
+    assert "10x what the table's model error and the signal noise explain" in result.output
+    assert "--max-residual LIMIT sets one fixed limit" in result.output  # the library's keyword, said as the flag
 
 
 @pytest.mark.slow

@@ -271,7 +271,8 @@ def correction_advice(out: Correction, max_residual: float | None, pose_only: bo
     if bit == HIGH_RESIDUAL:
         median = float(np.median(out.residual.reshape(-1)[valid]))
         gate = (f"gate max_residual={max_residual:g}" if max_residual is not None else
-                f"gate {RESIDUAL_SIGMAS:g}x what the table's model error and the signal noise explain")
+                f"gate {RESIDUAL_SIGMAS:g}x what the table's model error and the signal noise explain; "
+                "max_residual=LIMIT sets one fixed limit")
         return (f"{percent} do not fit the table's field (median residual {median:.2g}, {gate}): was this "
                 "recorded in the mapped room, with the source where it was when the table was fitted, and in the "
                 "table's hemisphere?")
