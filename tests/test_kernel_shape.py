@@ -19,7 +19,6 @@ NOT_YET_BUNDLED = {
     "correct/reported_kernels.py": {"invert_one", "invert_kernel", "invert_serial", "stream_kernel"},
     "predict/auto.py": {"_score"},
     "predict/direct.py": {"_frame", "_run"},
-    "predict/dq_kernels.py": {"_ekf", "step", "filter_sensor", "run", "update_frame"},
     "predict/linear_steps.py": {"step_frame", "run_steps"},
     "predict/mmae.py": {"_step", "_run", "_frame_steps", "_run_steps"},
     "predict/nasa.py": {"_run"},
