@@ -17,12 +17,6 @@ MAX_ARGUMENTS = 12
 #: compiled functions still taking more than MAX_ARGUMENTS arguments (module path: names), each to be bundled
 NOT_YET_BUNDLED = {
     "correct/reported_kernels.py": {"invert_one", "invert_kernel", "invert_serial", "stream_kernel"},
-    "predict/auto.py": {"_score"},
-    "predict/direct.py": {"_frame", "_run"},
-    "predict/linear_steps.py": {"step_frame", "run_steps"},
-    "predict/mmae.py": {"_step", "_run", "_frame_steps", "_run_steps"},
-    "predict/nasa.py": {"_run"},
-    "predict/qekf.py": {"_run"},
 }
 #: names a scratch bundle goes by in the kernels: read by field name, never by position
 WORKSPACE_NAMES = {"ws", "work", "lm", "workspace"}
