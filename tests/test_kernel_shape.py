@@ -90,7 +90,7 @@ def test_the_threaded_and_serial_correction_agree_to_the_bit(rng, use_map):
     for kernel in (kernels.correct_kernel, kernels.correct_serial):
         out = kernels.Output(np.full((n, 3), -1.0), np.full((n, 3, 3), -1.0), np.full((n, 4), -1.0),
                              np.zeros(n, bool), np.full(n, -1, np.int64), np.full(n, -1.0), np.zeros(n, bool))
-        kernel(S, seeds, h, field.kernel_grid, seed_map, config, out)
+        kernel(S, seeds, h, field.kernel_grid, seed_map, tuple(config), tuple(out))  # as the Corrector passes them
         outputs.append(out)
     threaded, serial = outputs
     assert threaded.converged.mean() > 0.9 and np.all(threaded.iterations >= 0)  # every row written

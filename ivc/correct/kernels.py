@@ -235,37 +235,32 @@ BLOCK = 256
 
 
 @numba.njit(cache=True, nogil=True)
-def correct_frames(S, seeds, hemisphere, grid, seed_map, config, out, start, stop, ws):
-    """:func:`correct_best_in` of frames ``start`` to ``stop`` of S (n, 3, 3) from ``seeds`` (n, 3), with the
-    settings ``config`` (a :data:`Config`), into rows of ``out`` (an :data:`Output`): the loop body of
-    :func:`correct_kernel` (per block of frames) and :func:`correct_serial` (all of them).
-
-    The parallel kernel's loop body writes the outputs only through this call: numba 0.68 loses the writes a
-    ``prange`` body makes through a tuple's arrays, not those of a function it calls."""
+def correct_serial(S, seeds, hemisphere, grid, seed_map, config, out):  # pragma: no cover - compiled
+    """Correct every frame of S (n, 3, 3) from ``seeds`` (n, 3) with the settings ``config`` (a :data:`Config`)
+    into ``out`` (an :data:`Output`), on the calling thread: no thread start-up, for a few frames at a time. The
+    loop body of :func:`correct_kernel` too, which runs it on blocks of frames."""
     use_map, max_iterations, tolerance, retry_residual = config
-    for n in range(start, stop):
-        out.converged[n], out.iterations[n], out.residual[n], out.mapped[n] = correct_best_in(
-            S[n], seeds[n], hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, out.r[n],
-            out.T[n], ws)
-        quaternion_of(out.T[n], out.q[n])
+    r, T, q, converged, iterations, residual, mapped = out
+    ws = workspace(grid[0].shape[3])
+    for n in range(S.shape[0]):
+        converged[n], iterations[n], residual[n], mapped[n] = correct_best_in(
+            S[n], seeds[n], hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r[n],
+            T[n], ws)
+        quaternion_of(T[n], q[n])
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def correct_kernel(S, seeds, hemisphere, grid, seed_map, config, out):  # pragma: no cover - compiled
-    """Correct every frame of S (n, 3, 3) into ``out`` (an :data:`Output`), blocks of :data:`BLOCK` frames on
-    numba's threads, one workspace per block."""
+    """:func:`correct_serial` on blocks of :data:`BLOCK` frames on numba's threads, each block with its own
+    workspace. The loop body writes the outputs only through that call, into views of the block's rows: numba
+    0.68 loses the writes a ``prange`` body makes through a tuple's arrays, not those of a function it calls."""
+    r, T, q, converged, iterations, residual, mapped = out
     blocks = (S.shape[0] + BLOCK - 1) // BLOCK
     for block in numba.prange(blocks):
-        start = np.int64(BLOCK * block)
-        correct_frames(S, seeds, hemisphere, grid, seed_map, config, out, start,
-                       np.int64(min(start + BLOCK, S.shape[0])), workspace(grid[0].shape[3]))
-
-
-@numba.njit(cache=True, nogil=True)
-def correct_serial(S, seeds, hemisphere, grid, seed_map, config, out):  # pragma: no cover - compiled
-    """The same as correct_kernel on the calling thread: no thread start-up, for a few frames at a time."""
-    correct_frames(S, seeds, hemisphere, grid, seed_map, config, out, np.int64(0), np.int64(S.shape[0]),
-                   workspace(grid[0].shape[3]))
+        a = BLOCK * block
+        b = min(a + BLOCK, S.shape[0])
+        correct_serial(S[a:b], seeds[a:b], hemisphere, grid, seed_map, config,
+                       (r[a:b], T[a:b], q[a:b], converged[a:b], iterations[a:b], residual[a:b], mapped[a:b]))
 
 
 @numba.njit(cache=True, error_model="numpy")

@@ -162,9 +162,9 @@ class Corrector:
         use_map = self.use_seed_map and (self._seed_map is not None
                                          or (n >= SEED_MAP_FRAMES and not np.isfinite(seeds).all()))
         seed_map = self.seed_map().kernel_grid if use_map else _NO_MAP
-        kernel(S, seeds, self._h, self.field.kernel_grid, seed_map,
-               _kernels.Config(bool(use_map), int(self.max_iterations), STEP_TOLERANCE, float(self.max_residual)),
-               _kernels.Output(r, T, q, converged, iterations, residual, mapped))
+        config = _kernels.Config(bool(use_map), int(self.max_iterations), STEP_TOLERANCE, float(self.max_residual))
+        out = _kernels.Output(r, T, q, converged, iterations, residual, mapped)
+        kernel(S, seeds, self._h, self.field.kernel_grid, seed_map, tuple(config), tuple(out))  # plain: kernels.py
         flags = (np.where(mapped, 0, OUTSIDE) | np.where(converged, 0, NOT_CONVERGED)
                  | np.where(residual <= self.max_residual, 0, HIGH_RESIDUAL)).astype(np.uint8)
         flags[~(np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(q), axis=1))] |= NOT_CONVERGED  # no pose came out

@@ -237,10 +237,12 @@ def _show(ok, now, horizon, scal, vel, base_q, out):
 def _run(q, ok, t, settings, state, out):
     """The batch: every frame through :func:`_frame`, then :func:`_show` at the settings' horizon into out
     (F, S, 4)."""
+    horizon, memory, prior, floor, max_gap, max_step, lags = settings
+    scal, ht, hq, L, B, vel, base_q, pend_t, pend_phi, pend_q, pend_w, prev_q = state
     for k in range(q.shape[0]):
         dt = t[k] - t[k - 1] if k > 0 else 0.0
         _frame(q[k], ok[k], t[k], dt, settings, state)
-        _show(ok[k], t[k], settings.horizon, state.scal, state.vel, state.base_q, out[k])
+        _show(ok[k], t[k], horizon, scal, vel, base_q, out[k])
 
 
 def _state(n_sensors: int, lags: int) -> State:
@@ -258,7 +260,8 @@ class DirectStream(Stream):
     def __init__(self, predictor: DirectPredictor, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.state = _state(self.n_sensors, int(predictor.lags))
-        self.args = predictor._args(predictor.horizon_s)
+        self._kernel_state = tuple(self.state)  # the same arrays, as the kernels take them (docs/kernels.md)
+        self.args = tuple(predictor._args(predictor.horizon_s))
         self.now: float | None = None
         self.ok = np.zeros(self.n_sensors, bool)
         self._frames = 0
@@ -279,7 +282,7 @@ class DirectStream(Stream):
         dt = 0.0 if self.now is None else t - self.now
         self._frames += 1
         self.now = t
-        _frame(qs, ok, t, dt, self.args, self.state)
+        _frame(qs, ok, t, dt, self.args, self._kernel_state)
         self.ok, self.last = ok, qs
 
     def predict(self, horizon):
@@ -330,7 +333,7 @@ class DirectPredictor(Predictor):
             if d == 0.0:  # nothing to learn: the measurement, as the backward difference shows it at 0 s
                 out[i] = np.where(ok[..., None], qs, np.nan)
                 continue
-            _run(qs, ok, t, self._args(float(d)), _state(S, int(self.lags)), out[i])
+            _run(qs, ok, t, tuple(self._args(float(d))), tuple(_state(S, int(self.lags))), out[i])
         return as_given(out, single)
 
     #: the live form, made by :meth:`stream`

@@ -83,6 +83,8 @@ class DQStream(Stream):
     def __init__(self, predictor: DQPredictor, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.state = predictor._state(self.n_sensors)
+        self._states = tuple(self.state)  # the same arrays, as the kernels take them (dq_kernels)
+        self._model = tuple(K.Model(*predictor._config[:4]))
         self.ready = np.zeros(self.n_sensors, bool)
         self._all = np.ones(self.n_sensors, bool)
         self.now: float | None = None  # the last frame's time (s), when frames come with time stamps
@@ -104,8 +106,7 @@ class DQStream(Stream):
             dt = 0.0 if self.now is None else t - self.now
             self.now = t
             self._step = self.predictor.tau
-        kinds, qvar, R, cfg, _, _ = self.predictor._config
-        bad = K.update_frame(q, ok, dt, self.state, K.Model(kinds, qvar, R, cfg), self.ready)
+        bad = K.update_frame(q, ok, dt, self._states, self._model, self.ready)
         if bad >= 0:
             raise PredictorError(f"sensor {bad}: not a unit quaternion (norm {np.linalg.norm(q[bad]):.6g}); "
                                  "pass unit quaternions [w, x, y, z]")
@@ -198,7 +199,8 @@ class DQPredictor(Predictor):
         usable = np.empty((S, F), bool)
         mu = np.empty((S, F, len(kinds)))
         age = np.empty((S, F))
-        K.run(qs, ok, dt, self._state(S), K.Model(kinds, qvar, R, cfg), K.Output(est, usable, mu, age))
+        K.run(qs, ok, dt, tuple(self._state(S)), tuple(K.Model(kinds, qvar, R, cfg)),
+              tuple(K.Output(est, usable, mu, age)))
         out = (qs, est.transpose(1, 0, 2), usable.T, mu.transpose(1, 0, 2))
         return out + (age.T,) if ages else out
 

@@ -38,7 +38,11 @@ TPM_FLOOR = 1e-50  # docs/math.md §12.5; Himberg 2010, eq. 47
 CFG_TAU, CFG_EPS_MIX, CFG_EPS_MU, CFG_ADAPTIVE, CFG_WEIGHTS, CFG_H, CFG_P0W, CFG_P0A, CFG_MAX_GAP = range(9)
 CLOCK_AGE, CLOCK_MISSING, CLOCK_RESTARTS, CLOCK_REPEATS = range(4)
 
-#: A filter's state (the arrays above, one sensor's or, with a leading sensor axis, every sensor's)
+# The bundles below name their fields once; they reach the kernels as plain tuples (``tuple(State(...))``),
+# unpacked in this order: numba types a plain tuple argument in its C dispatcher, a namedtuple in Python
+# (about 2 µs more per call, a third of the live step's time), docs/kernels.md.
+
+#: A filter's state (the arrays above, with a leading sensor axis)
 State = namedtuple("State", "x P probs tpm q_prev status est clock")
 #: Its configuration: kinds (M,), qvar (M, 3), R (4,), cfg (9,)
 Model = namedtuple("Model", "kinds qvar R cfg")
@@ -207,8 +211,9 @@ def step(q, ok, dt, states, s, model, work):
     Returns True when the filter has an estimate (est holds ω̄, ᾱ; the prediction starts from q_prev,
     clock[CLOCK_AGE] s old).
     """
-    x, P, probs, tpm = states.x[s], states.P[s], states.probs[s], states.tpm[s]
-    q_prev, status, est, clock = states.q_prev[s], states.status[s], states.est[s], states.clock[s]
+    xs, Ps, probss, tpms, q_prevs, statuss, ests, clocks = states
+    x, P, probs, tpm, q_prev, status = xs[s], Ps[s], probss[s], tpms[s], q_prevs[s], statuss[s]
+    est, clock = ests[s], clocks[s]
     kinds, qvar, R, cfg = model
     M = kinds.shape[0]
     x0, P0, mix, ell, cbar, z, vecs, mats = work
@@ -325,8 +330,10 @@ def filter_sensor(s, qs, ok, dt, states, model, work, q, out):
     Compiled without reference counting (nothing here allocates or keeps an array): the
     counting of the views taken in each step otherwise costs more than the filter's arithmetic.
     """
-    M = model.kinds.shape[0]
-    est, clock, probs = states.est[s], states.clock[s], states.probs[s]
+    kinds, qvar, R, cfg = model
+    xs, Ps, probss, tpms, q_prevs, statuss, ests, clocks = states
+    M = kinds.shape[0]
+    est, clock, probs = ests[s], clocks[s], probss[s]
     out_est, out_ok, out_mu, out_age = out
     for k in range(qs.shape[0]):
         for i in range(4):
@@ -350,8 +357,9 @@ def run(qs, ok, dt, states, model, out):
     a parallel loop costs several seconds more to compile on first use (docs/kernels.md). Sensor s's state
     is its row of each state array, updated in place.
     """
+    kinds, qvar, R, cfg = model
     for s in range(qs.shape[1]):
-        filter_sensor(s, qs, ok, dt, states, model, make_work(model.kinds.shape[0]), np.empty(4), out)
+        filter_sensor(s, qs, ok, dt, states, model, make_work(kinds.shape[0]), np.empty(4), out)
 
 
 @numba.njit(cache=True)
@@ -367,7 +375,8 @@ def update_frame(qs, ok, dt, states, model, ready):
         n2 = qs[s, 0] ** 2 + qs[s, 1] ** 2 + qs[s, 2] ** 2 + qs[s, 3] ** 2
         if ok[s] and abs(np.sqrt(n2) - 1.0) > 1e-3:
             return s
-    work = make_work(model.kinds.shape[0])
+    kinds, qvar, R, cfg = model
+    work = make_work(kinds.shape[0])
     for s in range(qs.shape[0]):
         good = ok[s] and np.isfinite(qs[s, 0] + qs[s, 1] + qs[s, 2] + qs[s, 3])
         if good:

@@ -160,7 +160,7 @@ class LinearPredictor(FixedRatePredictor):
         use = ok & ~repeats(qs, ok)
         cfg = self._steps_config()
         out = np.empty((len(h), F, S, 4))
-        _steps_run(qs, ok, use, restarts(t, ok, self.max_gap_s), t, h, cfg, steps_state(S, cfg.n), out)
+        _steps_run(qs, ok, use, restarts(t, ok, self.max_gap_s), t, h, tuple(cfg), tuple(steps_state(S, cfg.n)), out)
         return as_given(out, single)
 
     def stream(self, n_sensors: int = 1) -> Stream:
@@ -340,9 +340,10 @@ class StepLinearStream(TimedStepStream):
         super().__init__(predictor, n_sensors)
         self.cfg = predictor._steps_config()
         self.state = steps_state(self.n_sensors, self.cfg.n)
+        self._kernel_args = tuple(self.cfg), tuple(self.state)  # as the kernels take them (docs/kernels.md)
 
     def _step(self, qs, ok, new, gap, now):
-        _steps_frame(qs, ok, new, gap, now, self.cfg, self.state)
+        _steps_frame(qs, ok, new, gap, now, *self._kernel_args)
 
     def _show(self, horizon):
         out = np.empty((self.n_sensors, 4))

@@ -138,10 +138,12 @@ def show_frame(ok, now, horizon, n, x, theta, base, scal, out):
 def run_steps(q, ok, use, restart, t, horizons, config, state, out):
     """The batch: every frame through :func:`step_frame`, then :func:`show_frame` at each horizon into out
     (H, F, S, 4)."""
+    n, kind, noise, R, T, P0 = config
+    x, P, theta, base, scal = state
     for k in range(q.shape[0]):
         step_frame(q[k], ok[k], use[k], restart[k], t[k], config, state)
         for i in range(horizons.shape[0]):
-            show_frame(ok[k], t[k], horizons[i], config.n, state.x, state.theta, state.base, state.scal, out[i, k])
+            show_frame(ok[k], t[k], horizons[i], n, x, theta, base, scal, out[i, k])
 
 
 def state(n_sensors: int, n: int) -> State:

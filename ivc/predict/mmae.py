@@ -241,13 +241,15 @@ class MMAEStepStream(TimedStepStream):
     def __init__(self, predictor: MMAE, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.state = predictor._state(self.n_sensors)
+        # the same arrays as the kernels take them: plain tuples (docs/kernels.md)
+        self._kernel_args = tuple(self.state), tuple(predictor._steps())
         self.latest = np.zeros(self.n_sensors)
 
     def _step(self, qs, ok, new, gap, now):
         T = rotations.to_matrix(np.where(ok[:, None], qs, rotations.IDENTITY))
         vectors = np.ascontiguousarray(np.stack([T[:, :, 0], T[:, :, 2]], axis=1))
-        p = self.predictor
-        _frame_steps(vectors, ok, new, gap, now, self.state, self.latest, p._steps())
+        state, steps = self._kernel_args
+        _frame_steps(vectors, ok, new, gap, now, state, self.latest, steps)
 
     def _show(self, horizon):
         x, w, init = self.state.x, self.state.w, self.state.init
@@ -302,6 +304,7 @@ class MMAE(FixedRatePredictor):
         """The :data:`Steps` of the bank."""
         return Steps(*self._models, self.r, self._config[3], np.log(self.p_min), self._config[2], self.tau)
 
+
     def _state(self, S: int) -> State:
         J = len(self.bank)
         P = np.broadcast_to(self._config[2], (S, 2, J, 3, 3)).copy()
@@ -316,7 +319,8 @@ class MMAE(FixedRatePredictor):
         vectors = np.ascontiguousarray(np.stack([T[..., :, 0], T[..., :, 2]], axis=2))
         Phi, Qd, _, thr = self._config
         out = np.zeros((F, S, len(h), 2, 3))
-        _run(vectors, ok, self._state(S), Bank(Phi, Qd, self.r, thr, np.log(self.p_min)), self.position_rows(h), out)
+        _run(vectors, ok, tuple(self._state(S)), tuple(Bank(Phi, Qd, self.r, thr, np.log(self.p_min))),
+             self.position_rows(h), out)
         pred = frame_from_axes(out[..., 0, :], out[..., 1, :])
         pred[~ok] = np.nan
         pred = np.moveaxis(pred, 2, 0)
@@ -338,8 +342,8 @@ class MMAE(FixedRatePredictor):
         T = rotations.to_matrix(np.where(ok[..., None], qs, rotations.IDENTITY))
         vectors = np.ascontiguousarray(np.stack([T[..., :, 0], T[..., :, 2]], axis=2))
         out = np.zeros((F, S, len(h), 2, 3))
-        _run_steps(vectors, ok, use, restarts(t, ok, self.max_gap_s), t, h, self._state(S), np.zeros(S), self._steps(),
-                   out)
+        _run_steps(vectors, ok, use, restarts(t, ok, self.max_gap_s), t, h, tuple(self._state(S)), np.zeros(S),
+                   tuple(self._steps()), out)
         pred = frame_from_axes(out[..., 0, :], out[..., 1, :])
         pred[~ok] = np.nan
         return as_given(np.moveaxis(pred, 2, 0), single)
@@ -352,6 +356,9 @@ class MMAEStream(Stream):
     def __init__(self, predictor: MMAE, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.state = predictor._state(self.n_sensors)
+        Phi, Qd, _, thr = predictor._config
+        # the same arrays as the kernels take them: plain tuples (docs/kernels.md)
+        self._kernel_args = tuple(self.state), tuple(Bank(Phi, Qd, predictor.r, thr, np.log(predictor.p_min)))
         self.ok = np.zeros(self.n_sensors, bool)
         self._rows: dict[float, FloatArray] = {}
         self._now = predictor.position_rows(np.zeros(1))  # the kernel's own (unused) output horizon
@@ -360,10 +367,8 @@ class MMAEStream(Stream):
         qs, ok = self._check_frame(q, valid)
         T = rotations.to_matrix(np.where(ok[:, None], qs, rotations.IDENTITY))
         vectors = np.ascontiguousarray(np.stack([T[:, :, 0], T[:, :, 2]], axis=1))[None]
-        Phi, Qd, _, thr = self.predictor._config
         out = np.zeros((1, self.n_sensors, 1, 2, 3))
-        _run(vectors, ok[None], self.state, Bank(Phi, Qd, self.predictor.r, thr, np.log(self.predictor.p_min)),
-             self._now, out)
+        _run(vectors, ok[None], *self._kernel_args, self._now, out)
         self.ok = ok
 
     def predict(self, horizon):
@@ -470,7 +475,7 @@ def _frame_steps(vectors, ok, use, restart, now, state, last, steps):
         _discrete(F, GQG, kappa, dt, Phi, Qd)
         for v in range(2):
             _step(vectors[s, v], np.bool_(True), x[s, v], P[s, v], logp[s, v], init[s, v], w[s, v],
-                  Bank(Phi, Qd, r, thr, log_pmin), none, dummy)
+                  (Phi, Qd, r, thr, log_pmin), none, dummy)  # a Bank, as _run's: a plain tuple
         last[s] = now
 
 
@@ -478,7 +483,8 @@ def _frame_steps(vectors, ok, use, restart, now, state, last, steps):
 def _run_steps(vectors, ok, use, restart, t, horizons, state, last, steps, out):
     """The batch on the stream's steps: out (F, S, H, 2, 3) the blended look vectors, from each frame's latest usable
     sample (horizon + its age); ``state`` a :data:`State`, ``steps`` a :data:`Steps`."""
-    x, w, init, F, kappa = state.x, state.w, state.init, steps.F, steps.kappa
+    x, P, logp, init, w = state
+    F, GQG, kappa, r, thr, log_pmin, P0, tau = steps
     for k in range(vectors.shape[0]):
         _frame_steps(vectors[k], ok[k], use[k], restart[k], t[k], state, last, steps)
         for s in range(vectors.shape[1]):
