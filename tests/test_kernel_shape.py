@@ -15,9 +15,7 @@ import ivc
 PACKAGE = Path(ivc.__file__).parent
 MAX_ARGUMENTS = 12
 #: compiled functions still taking more than MAX_ARGUMENTS arguments (module path: names), each to be bundled
-NOT_YET_BUNDLED = {
-    "correct/reported_kernels.py": {"invert_one", "invert_kernel", "invert_serial", "stream_kernel"},
-}
+NOT_YET_BUNDLED: dict[str, set[str]] = {}
 #: names a scratch bundle goes by in the kernels: read by field name, never by position
 WORKSPACE_NAMES = {"ws", "work", "lm", "workspace"}
 
