@@ -12,6 +12,8 @@ The table is one argument ``grid``, the tuple of ``ivc.table.kernels.GRID``; so 
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numba
 import numpy as np
 
@@ -34,26 +36,47 @@ def _closed_form(S, hemisphere, r, T, work_a, work_b, v, B, F, K):
     closed_form_one(S, hemisphere, r, T, work_a, work_b, v, B, F, K)
 
 
+#: The scratch arrays of one frame's correction (:func:`workspace`), by name: the model ``M`` (3, 3) and
+#: ``dM`` (3, 3, 3); the table's value ``g`` (9,) and gradient ``dg`` (9, 3) with the look-up's weights
+#: ``wx wy wz`` and their derivatives ``dx dy dz`` (4,); the closed form's ``work_a work_b B F K`` (3, 3) and
+#: ``v`` (3,); the signal less the table's field ``Sc`` and the model at the accepted position ``Ma`` (3, 3);
+#: the residuals ``e``/``et`` (9,) and Jacobians ``J``/``Jt`` (9, 6) of the current pose and the trial;
+#: ``H`` (6, 6), ``grad`` and ``step`` (6,), the trial pose ``rt`` (3,), ``Tt`` (3, 3); the retries'
+#: ``best_r``/``trial_r`` (3,), ``best_T``/``trial_T`` (3, 3) and ``candidates`` (4, 3); the separable
+#: look-up's partial sums ``scratch`` (3, C).
+Workspace = namedtuple("Workspace", "M dM g dg wx wy wz dx dy dz work_a work_b B F K v Sc Ma e J et Jt H grad step "
+                       "rt Tt best_r best_T trial_r trial_T candidates scratch")
+#: What one frame's look-up writes and reads (a :class:`Workspace`'s fields of the same names).
+Lookup = namedtuple("Lookup", "g dg wx wy wz dx dy dz scratch")
+#: The settings of a batch: whether cold frames start from the correction map, the iteration limit, the
+#: step tolerance (m) and the residual above which a frame is retried (:func:`correct_best`).
+Config = namedtuple("Config", "use_map max_iterations tolerance retry_residual")
+#: A batch's outputs, row n per frame: position ``r`` (n, 3) m, rotation ``T`` (n, 3, 3), quaternion ``q``
+#: (n, 4), ``converged`` (n,) bool, ``iterations`` (n,) int64, relative ``residual`` (n,), ``mapped`` (n,) bool.
+Output = namedtuple("Output", "r T q converged iterations residual mapped")
+
+
 @numba.njit(cache=True)
-def pose_model_separable(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch):
-    """:func:`pose_model` with the separable look-up (its partial sums in ``scratch`` (3, C))."""
-    mapped = grid_point_separable(grid, r, g, dg, wx, wy, wz, dx, dy, dz, scratch)
-    with_dipole(r, g, dg, M, dM)
+def pose_model_separable(r, grid, M, dM, lookup):
+    """:func:`pose_model` with the separable look-up, its scratch arrays a :data:`Lookup`."""
+    mapped = grid_point_separable(grid, r, lookup.g, lookup.dg, lookup.wx, lookup.wy, lookup.wz, lookup.dx,
+                                  lookup.dy, lookup.dz, lookup.scratch)
+    with_dipole(r, lookup.g, lookup.dg, M, dM)
     return mapped
 
 
 @numba.njit(cache=True)
 def workspace(channels):
-    """The scratch arrays of one frame's correction, allocated once and reused over many frames
-    (per-frame allocation was a measurable share of the batched correction)."""
-    return (np.empty((3, 3)), np.empty((3, 3, 3)), np.empty(9), np.empty((9, 3)),  # M, dM, g, dg
-            np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4),  # wx wy wz dx dy dz
-            np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),  # a b B F K
-            np.empty(3), np.empty((3, 3)), np.empty((3, 3)),  # v, Sc, Ma
-            np.empty(9), np.empty((9, 6)), np.empty(9), np.empty((9, 6)),  # e, J, et, Jt
-            np.empty((6, 6)), np.empty(6), np.empty(6), np.empty(3), np.empty((3, 3)),  # H grad step rt Tt
-            np.empty(3), np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty((4, 3)),  # correct_best's
-            np.empty((3, channels)))  # the look-up's partial sums
+    """The scratch arrays of one frame's correction (a :data:`Workspace`), allocated once and reused over many
+    frames (per-frame allocation was a measurable share of the batched correction)."""
+    return Workspace(np.empty((3, 3)), np.empty((3, 3, 3)), np.empty(9), np.empty((9, 3)),  # M, dM, g, dg
+                     np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4),  # wx .. dz
+                     np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+                     np.empty(3), np.empty((3, 3)), np.empty((3, 3)),  # v, Sc, Ma
+                     np.empty(9), np.empty((9, 6)), np.empty(9), np.empty((9, 6)),  # e, J, et, Jt
+                     np.empty((6, 6)), np.empty(6), np.empty(6), np.empty(3), np.empty((3, 3)),  # H grad step rt Tt
+                     np.empty(3), np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty((4, 3)),  # the retries'
+                     np.empty((3, channels)))  # the look-up's partial sums
 
 
 @numba.njit(cache=True)
@@ -70,10 +93,10 @@ def correct_one(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, to
 @numba.njit(cache=True)
 def correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, r, T, ws):
     """:func:`correct_one` with its scratch arrays from ``ws`` (:func:`workspace`)."""
-    M, dM, g, dg, wx, wy, wz, dx, dy, dz = ws[0], ws[1], ws[2], ws[3], ws[4], ws[5], ws[6], ws[7], ws[8], ws[9]
-    work_a, work_b, B, F, K, v, Sc, Ma = ws[10], ws[11], ws[12], ws[13], ws[14], ws[15], ws[16], ws[17]
-    e, J, et, Jt, H, grad, step, rt, Tt = ws[18], ws[19], ws[20], ws[21], ws[22], ws[23], ws[24], ws[25], ws[26]
-    scratch = ws[32]
+    M, dM, g, dg, wx, wy, wz, dx, dy, dz = ws.M, ws.dM, ws.g, ws.dg, ws.wx, ws.wy, ws.wz, ws.dx, ws.dy, ws.dz
+    work_a, work_b, B, F, K, v, Sc, Ma = ws.work_a, ws.work_b, ws.B, ws.F, ws.K, ws.v, ws.Sc, ws.Ma
+    e, J, et, Jt, H, grad, step, rt, Tt = ws.e, ws.J, ws.et, ws.Jt, ws.H, ws.grad, ws.step, ws.rt, ws.Tt
+    lookup = Lookup(g, dg, wx, wy, wz, dx, dy, dz, ws.scratch)
     seeded = np.isfinite(seed[0]) and np.isfinite(seed[1]) and np.isfinite(seed[2])
     if seeded:
         for a in range(3):
@@ -97,7 +120,7 @@ def correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations,
                 _closed_form(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
             else:  # the last step's orientation would be replaced below: its position is all that is used
                 closed_form_position(Sc, hemisphere, r, work_a, work_b, v, B)
-    mapped = pose_model_separable(r, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch)
+    mapped = pose_model_separable(r, grid, M, dM, lookup)
     for i in range(3):  # the model at the accepted position, and whether it is mapped: no re-evaluation at the end
         for j in range(3):
             Ma[i, j] = M[i, j]
@@ -135,7 +158,7 @@ def correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations,
             mapped = grid_contains(grid, r)
             converged = True
             break
-        trial_mapped = pose_model_separable(rt, grid, M, dM, g, dg, wx, wy, wz, dx, dy, dz, scratch)
+        trial_mapped = pose_model_separable(rt, grid, M, dM, lookup)
         pose_residual(S, M, dM, Tt, et, Jt)
         trial = residual_cost(et)
         accept, damping, converged = lm_verdict(trial, cost, damping, step, tolerance)
@@ -171,7 +194,7 @@ def correct_best_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations
     c, it, res, m = correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, r, T, ws)
     if c and res <= retry_residual:
         return c, it, res, m
-    best_r, best_T, trial_r, trial_T, candidates = ws[27], ws[28], ws[29], ws[30], ws[31]
+    best_r, best_T, trial_r, trial_T, candidates = ws.best_r, ws.best_T, ws.trial_r, ws.trial_T, ws.candidates
     best_r[:] = r
     best_T[:, :] = T
     best = (c, it, res, m)
@@ -211,29 +234,33 @@ def correct_best_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations
 BLOCK = 256
 
 
-@numba.njit(parallel=True, cache=True, nogil=True)
-def correct_kernel(S, seeds, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r_out,
-                   T_out, q_out, converged, iterations, residual, mapped):  # pragma: no cover - compiled
-    blocks = (S.shape[0] + BLOCK - 1) // BLOCK
-    for block in numba.prange(blocks):
-        ws = workspace(grid[0].shape[3])
-        for n in range(BLOCK * block, min(BLOCK * block + BLOCK, S.shape[0])):
-            converged[n], iterations[n], residual[n], mapped[n] = correct_best_in(
-                S[n], seeds[n], hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual,
-                r_out[n], T_out[n], ws)
-            quaternion_of(T_out[n], q_out[n])
-
-
 @numba.njit(cache=True, nogil=True)
-def correct_serial(S, seeds, hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r_out,
-                   T_out, q_out, converged, iterations, residual, mapped):  # pragma: no cover - compiled
-    """The same as correct_kernel on the calling thread: no thread start-up, for a few frames at a time."""
+def correct_serial(S, seeds, hemisphere, grid, seed_map, config, out):  # pragma: no cover - compiled
+    """Correct every frame of S (n, 3, 3) from ``seeds`` (n, 3) with the settings ``config`` (a :data:`Config`)
+    into ``out`` (an :data:`Output`), on the calling thread: no thread start-up, for a few frames at a time. The
+    loop body of :func:`correct_kernel` too, which runs it on blocks of frames."""
+    use_map, max_iterations, tolerance, retry_residual = config
+    r, T, q, converged, iterations, residual, mapped = out
     ws = workspace(grid[0].shape[3])
     for n in range(S.shape[0]):
         converged[n], iterations[n], residual[n], mapped[n] = correct_best_in(
-            S[n], seeds[n], hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r_out[n],
-            T_out[n], ws)
-        quaternion_of(T_out[n], q_out[n])
+            S[n], seeds[n], hemisphere, grid, seed_map, use_map, max_iterations, tolerance, retry_residual, r[n],
+            T[n], ws)
+        quaternion_of(T[n], q[n])
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def correct_kernel(S, seeds, hemisphere, grid, seed_map, config, out):  # pragma: no cover - compiled
+    """:func:`correct_serial` on blocks of :data:`BLOCK` frames on numba's threads, each block with its own
+    workspace. The loop body writes the outputs only through that call, into views of the block's rows: numba
+    0.68 loses the writes a ``prange`` body makes through a tuple's arrays, not those of a function it calls."""
+    r, T, q, converged, iterations, residual, mapped = out
+    blocks = (S.shape[0] + BLOCK - 1) // BLOCK
+    for block in numba.prange(blocks):
+        a = BLOCK * block
+        b = min(a + BLOCK, S.shape[0])
+        correct_serial(S[a:b], seeds[a:b], hemisphere, grid, seed_map, config,
+                       (r[a:b], T[a:b], q[a:b], converged[a:b], iterations[a:b], residual[a:b], mapped[a:b]))
 
 
 @numba.njit(cache=True, error_model="numpy")

@@ -265,8 +265,9 @@ class PoseCorrector:
             miss, converged = np.empty(n), np.empty(n, dtype=bool)
             iterations, mapped = np.empty(n, dtype=np.int64), np.empty(n, dtype=bool)
             kernel = compiled.choose(_pose_kernels.invert_serial if serial else _pose_kernels.invert_kernel, n)
-            kernel(v, start, H.copy(), self._h, f.kernel_grid, self.max_iterations, self.tolerance, r, C, miss,
-                   converged, iterations, mapped, restarts)
+            limits = _pose_kernels.Limits(int(self.max_iterations), float(self.tolerance), int(restarts))
+            out = _pose_kernels.InvertOutput(miss, converged, iterations, mapped)
+            kernel(v, start, H.copy(), self._h, f.kernel_grid, tuple(limits), r, C, tuple(out))
             return r, C, miss, converged, iterations, mapped
         inv = invert_distortion(v, self._secondary, self.solver, self.hemisphere, start, self.tolerance,
                                 self.max_iterations)
@@ -454,8 +455,8 @@ class PoseCorrector:
             miss, iterations = np.empty(n), np.empty(n, dtype=np.int64)
             f = self.field
             stream = compiled.choose(_pose_kernels.stream_kernel, n)
-            stream(v, Q, slots, self._offset, self._tracked, self._h, f.kernel_grid, self.max_iterations,
-                   self.tolerance, self.max_residual, r, q, flags, miss, iterations)
+            stream(v, Q, (slots, self._offset, self._tracked), self._h, f.kernel_grid, self._stream_limits(),
+                   self.max_residual, (r, q, flags, miss, iterations))  # Tracks, StreamOutput (reported_kernels)
             if not self.gate.predicts:
                 return Correction(r, q, flags, miss, iterations)
             precision, orientation_precision = self.predict_precision(v, Q, r, serial=True)
@@ -497,9 +498,13 @@ class PoseCorrector:
         if self.solver == "closed-form":
             out = [np.empty((1, 3)), np.empty((1, 4)), np.empty(1, dtype=np.uint8), np.empty(1),
                    np.empty(1, dtype=np.int64)]
-            _pose_kernels.stream_kernel(np.ascontiguousarray(v), Q, np.zeros(1, dtype=np.int64), np.zeros((1, 3)),
-                                        np.ones(1, dtype=bool), self._h, self.field.kernel_grid,
-                                        self.max_iterations, self.tolerance, self.max_residual, *out)
+            tracks = (np.zeros(1, dtype=np.int64), np.zeros((1, 3)), np.ones(1, dtype=bool))
+            _pose_kernels.stream_kernel(np.ascontiguousarray(v), Q, tracks, self._h, self.field.kernel_grid,
+                                        self._stream_limits(), self.max_residual, tuple(out))
+
+    def _stream_limits(self) -> tuple:
+        """The stream kernel's :data:`~ivc.correct.reported_kernels.Limits` (no Jacobian restarts)."""
+        return tuple(_pose_kernels.Limits(int(self.max_iterations), float(self.tolerance), 0))
 
     def _slots(self, sensors, n: int) -> np.ndarray:
         """Rows of the warm-start arrays (``_offset``, ``_tracked``) of the frame's sensors, added on first use."""

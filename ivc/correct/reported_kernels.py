@@ -17,6 +17,8 @@ differ only by where each inversion started.
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numba
 import numpy as np
 
@@ -32,6 +34,18 @@ from ivc.table.kernels import grid_value, pose_model
 _OPTS = dict(parallel=True, cache=True, nogil=True)
 #: step halvings tried before the inverse Jacobian is recomputed
 BACKTRACKS = 12
+
+# The bundles below name their fields once; they reach the kernels as plain tuples (``tuple(Limits(...))``,
+# unpacked in this order): numba types a plain tuple in its C dispatcher, a namedtuple in Python (docs/kernels.md)
+#: An inversion's limits: ``max_iterations``, the miss ``tolerance`` (m) and the Jacobian ``max_restarts``
+Limits = namedtuple("Limits", "max_iterations tolerance max_restarts")
+#: An inversion's outputs per sample: ``miss`` (m), ``converged``, ``iterations`` (int64), ``mapped``
+InvertOutput = namedtuple("InvertOutput", "miss converged iterations mapped")
+#: A stream's warm starts: each sample's sensor row ``slots`` (n,) int64, every sensor's ``offset`` r − v (K, 3)
+#: and whether it is ``tracked`` (K,)
+Tracks = namedtuple("Tracks", "slots offset tracked")
+#: A live frame's outputs: ``r`` (n, 3), ``q`` (n, 4), ``flags`` (n,) uint8, ``miss`` (n,), ``iterations`` (n,)
+StreamOutput = namedtuple("StreamOutput", "r q flags miss iterations")
 #: recomputations of the inverse Jacobian (central differences) before a search for another solution gives up
 #: (the correction's own inversion makes none: where Broyden's estimate stalls, the sample is flagged, not pushed
 #: into a fold's neighbourhood)
@@ -124,10 +138,11 @@ def _jacobian_inverse(r, h, grid, H):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, converged_out, iterations_out,
-               mapped_out, n, max_restarts=0):
+def invert_one(v, start, H, h, grid, limits, r, C, out, n):
     """Invert one sample from ``start`` (3,) with the inverse-Jacobian estimate H (3, 3, updated in place) into
-    r (3,) and C (3, 3); writes miss, converged, iterations and mapped at index n."""
+    r (3,) and C (3, 3) within ``limits`` (a :data:`Limits`); writes row n of ``out`` (an :data:`InvertOutput`)."""
+    max_iterations, tolerance, max_restarts = limits
+    miss_out, converged_out, iterations_out, mapped_out = out
     nc = grid[0].shape[3]
     g = np.empty(nc)
     wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
@@ -209,21 +224,19 @@ def invert_one(v, start, H, h, grid, max_iterations, tolerance, r, C, miss_out, 
 
 
 @numba.njit(**_OPTS)
-def invert_kernel(v, start, H, h, grid, max_iterations, tolerance, r, C, miss, converged, iterations,
-                  mapped, max_restarts=0):  # pragma: no cover - compiled
-    """Invert every sample n from ``start[n]`` with the inverse-Jacobian estimates ``H[n]`` (updated in place)."""
+def invert_kernel(v, start, H, h, grid, limits, r, C, out):  # pragma: no cover - compiled
+    """Invert every sample n from ``start[n]`` with the inverse-Jacobian estimates ``H[n]`` (updated in place) into
+    r[n], C[n] and row n of ``out`` (an :data:`InvertOutput`, written only through :func:`invert_one`: numba loses
+    the writes a ``prange`` body makes through a tuple's arrays)."""
     for n in numba.prange(v.shape[0]):
-        invert_one(v[n], start[n], H[n], h, grid, max_iterations, tolerance, r[n], C[n], miss, converged, iterations,
-                   mapped, np.int64(n), max_restarts)
+        invert_one(v[n], start[n], H[n], h, grid, limits, r[n], C[n], out, np.int64(n))
 
 
 @numba.njit(cache=True, nogil=True)
-def invert_serial(v, start, H, h, grid, max_iterations, tolerance, r, C, miss, converged, iterations,
-                  mapped, max_restarts=0):  # pragma: no cover - compiled
+def invert_serial(v, start, H, h, grid, limits, r, C, out):  # pragma: no cover - compiled
     """:func:`invert_kernel` without threads: for a few samples at a time (a live frame)."""
     for n in range(v.shape[0]):
-        invert_one(v[n], start[n], H[n], h, grid, max_iterations, tolerance, r[n], C[n], miss, converged, iterations,
-                   mapped, np.int64(n), max_restarts)
+        invert_one(v[n], start[n], H[n], h, grid, limits, r[n], C[n], out, np.int64(n))
 
 
 _OUTSIDE, _NOT_CONVERGED, _HIGH_RESIDUAL, _INVALID_INPUT = OUTSIDE, NOT_CONVERGED, HIGH_RESIDUAL, INVALID_INPUT
@@ -261,11 +274,13 @@ def compose_kernel(C, Q, mapped, converged, miss, max_residual, q, flags):  # pr
 
 
 @numba.njit(cache=True, nogil=True)
-def stream_kernel(v, Q, slots, offset, tracked, h, grid, max_iterations, tolerance, max_residual, r, q, flags, miss,
-                  iterations):  # pragma: no cover - compiled
+def stream_kernel(v, Q, tracks, h, grid, limits, max_residual, out):  # pragma: no cover - compiled
     """One live frame: sample n of sensor ``slots[n]`` starts at ``v[n] + offset[slot]`` where ``tracked[slot]``
     (else at v[n]), is inverted (H = I, as the batch), composed and flagged; a trusted sample sets its sensor's
-    offset ``r − v`` and tracked, any other clears tracked. Non-finite input: NaN, INVALID_INPUT."""
+    offset ``r − v`` and tracked, any other clears tracked. Non-finite input: NaN, INVALID_INPUT. ``tracks``: a
+    :data:`Tracks`; ``limits``: a :data:`Limits`; ``out``: a :data:`StreamOutput`."""
+    slots, offset, tracked = tracks
+    r, q, flags, miss, iterations = out
     start = np.empty(3)
     H = np.empty((3, 3))
     C = np.empty((3, 3))
@@ -292,7 +307,7 @@ def stream_kernel(v, Q, slots, offset, tracked, h, grid, max_iterations, toleran
             start[a] = v[n, a] + offset[slot, a] if tracked[slot] else v[n, a]
             for b in range(3):
                 H[a, b] = 1.0 if a == b else 0.0
-        invert_one(v[n], start, H, h, grid, max_iterations, tolerance, r[n], C, m, c, it, mp, np.int64(0))
+        invert_one(v[n], start, H, h, grid, limits, r[n], C, (m, c, it, mp), np.int64(0))
         flags[n] = _compose_one(C, Q[n], mp[0], c[0], m[0], max_residual, q[n])
         miss[n], iterations[n] = m[0], it[0]
         tracked[slot] = flags[n] == 0

@@ -53,8 +53,9 @@ def correction_seeds(field: GridField, hemisphere: np.ndarray, subdivision: int 
     miss, converged = np.empty(n), np.empty(n, dtype=bool)
     iterations, mapped = np.empty(n, dtype=np.int64), np.empty(n, dtype=bool)
     kernel = compiled.choose(pose_kernels.invert_kernel, n)
-    kernel(v, v.copy(), H, np.ascontiguousarray(hemisphere, dtype=float), field.kernel_grid, MAX_ITERATIONS,
-           TOLERANCE, r, C, miss, converged, iterations, mapped)
+    limits = pose_kernels.Limits(int(MAX_ITERATIONS), float(TOLERANCE), 0)
+    kernel(v, v.copy(), H, np.ascontiguousarray(hemisphere, dtype=float), field.kernel_grid, tuple(limits), r, C,
+           (miss, converged, iterations, mapped))  # an InvertOutput
     good = converged & np.all(np.isfinite(r), axis=1) & (miss <= TOLERANCE)
     delta = np.where(good[:, None], r - v, 0.0)
     return GridField(grid, delta.reshape(*grid.shape, 3), good.reshape(grid.shape), "cubic")

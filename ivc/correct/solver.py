@@ -168,8 +168,9 @@ class Corrector:
         use_map = self.use_seed_map and (self._seed_map is not None
                                          or (n >= SEED_MAP_FRAMES and not np.isfinite(seeds).all()))
         seed_map = self.seed_map().kernel_grid if use_map else _NO_MAP
-        kernel(S, seeds, self._h, self.field.kernel_grid, seed_map, use_map, self.max_iterations, STEP_TOLERANCE,
-               self.max_residual, r, T, q, converged, iterations, residual, mapped)
+        config = _kernels.Config(bool(use_map), int(self.max_iterations), STEP_TOLERANCE, float(self.max_residual))
+        out = _kernels.Output(r, T, q, converged, iterations, residual, mapped)
+        kernel(S, seeds, self._h, self.field.kernel_grid, seed_map, tuple(config), tuple(out))  # plain: kernels.py
         limit = self.residual_gate.limits(S, r)
         flags = (np.where(mapped, 0, OUTSIDE) | np.where(converged, 0, NOT_CONVERGED)
                  | np.where(residual <= limit, 0, HIGH_RESIDUAL)).astype(np.uint8)

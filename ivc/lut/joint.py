@@ -164,6 +164,7 @@ def solve_wand_table(S: np.ndarray, use: np.ndarray, wand: WandCalibration, tabl
     """:func:`solve_wand` compiled (``ivc.lut.joint_kernels``, parallel over frames) for a look-up table's
     field: the same problem, inputs and result, without the NumPy form's per-chunk (F, W, 9, 6) arrays."""
     from ivc.lut.joint_kernels import wand_kernel
+    from ivc.lut.rigid_kernels import Limits, Wand
 
     if not isinstance(table, GridField):
         raise InputError(f"solve_wand_table needs a GridField, got {type(table).__name__}")
@@ -172,9 +173,9 @@ def solve_wand_table(S: np.ndarray, use: np.ndarray, wand: WandCalibration, tabl
     converged = np.zeros(F, dtype=bool)
     cost, H = np.zeros(F), np.zeros((F, 6, 6))
     wand_kernel(np.ascontiguousarray(S), np.ascontiguousarray(use), np.ascontiguousarray(scale),
-                np.ascontiguousarray(wand.positions, dtype=float), np.ascontiguousarray(wand.rotations, dtype=float),
-                table.kernel_grid, int(max_iterations),
-                float(step_tolerance), active, r, T, converged, cost, H)
+                Wand(np.ascontiguousarray(wand.positions, dtype=float),
+                     np.ascontiguousarray(wand.rotations, dtype=float)),
+                table.kernel_grid, Limits(int(max_iterations), float(step_tolerance)), active, r, T, converged, cost, H)
     return _wand_solution(r, T, converged, active, use, cost, H)
 
 

@@ -19,10 +19,10 @@ from ivc.lut.rigid_kernels import solve_frame, workspace
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def wand_kernel(S, use, scale, b, R, grid, max_iterations, tolerance, active, r, T, converged, cost_out,
-                H_out):  # pragma: no cover - compiled
+def wand_kernel(S, use, scale, wand, grid, limits, active, r, T, converged, cost_out, H_out):  # pragma: no cover
     """Solve every active frame of S (F, W, 3, 3) in place from (r, T), sensor 0's pose; converged (F,),
-    the final cost (F,) and JᵀJ (F, 6, 6) at the solution."""
+    the final cost (F,) and JᵀJ (F, 6, 6) at the solution. ``wand``: a :data:`ivc.lut.rigid_kernels.Wand`;
+    ``limits``: a :data:`ivc.lut.rigid_kernels.Limits`."""
     no_cube = np.zeros(3), np.zeros((15, 3))  # every sensor through the table: no sensor tied to the cube
     for f in numba.prange(S.shape[0]):
         work, lm = workspace()
@@ -34,9 +34,8 @@ def wand_kernel(S, use, scale, b, R, grid, max_iterations, tolerance, active, r,
                 for c in range(6):
                     H_out[f, a, c] = 1.0 if a == c else 0.0
             continue
-        converged[f], cost_out[f] = solve_frame(S[f], use[f], scale[f], (b, R), field, (max_iterations, tolerance),
-                                                r[f], T[f], work, lm)
-        H = lm[0]
+        converged[f], cost_out[f] = solve_frame(S[f], use[f], scale[f], wand, field, limits, r[f], T[f], work, lm)
+        H = lm.H
         for a in range(6):
             for c in range(6):
                 H_out[f, a, c] = H[a, c]

@@ -149,15 +149,18 @@ def _residuals(S, scale, valid, wand, cube_field, map_field, r0, T0):
 def _compiled(S, valid, scale, wand, field: HarmonicField, map_field: GridField, r, T, max_iterations,
               step_tolerance) -> np.ndarray:
     """:func:`solve_rigid` in compiled code (``ivc.lut.refine_kernels``); r, T updated in place."""
+    from ivc.fixtures.kernels import Cube
     from ivc.lut.refine_kernels import rigid_kernel
+    from ivc.lut.rigid_kernels import Limits, Wand
 
     converged = np.empty(len(S), dtype=bool)
     m = map_field
     rigid_kernel(np.ascontiguousarray(S), np.ascontiguousarray(valid), np.ascontiguousarray(scale),
-                 np.ascontiguousarray(wand.positions, dtype=float), np.ascontiguousarray(wand.rotations, dtype=float),
-                 np.ascontiguousarray(field.centre, dtype=float), float(field.scale),
-                 np.ascontiguousarray(field.coefficients, dtype=float), m.kernel_grid, int(max_iterations),
-                 float(step_tolerance), r, T, converged)
+                 Wand(np.ascontiguousarray(wand.positions, dtype=float),
+                      np.ascontiguousarray(wand.rotations, dtype=float)),
+                 Cube(np.ascontiguousarray(field.centre, dtype=float), float(field.scale),
+                      np.ascontiguousarray(field.coefficients, dtype=float)),
+                 m.kernel_grid, Limits(int(max_iterations), float(step_tolerance)), r, T, converged)
     return converged
 
 

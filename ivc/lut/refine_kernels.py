@@ -18,12 +18,13 @@ from ivc.lut.rigid_kernels import solve_frame, workspace
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def rigid_kernel(S, valid, scale, b, R, centre, cube_scale, coefficients, grid, max_iterations, tolerance, r, T,
-                 converged):  # pragma: no cover - compiled
-    """Solve every frame of S (F, W, 3, 3) in place from (r, T), sensor 0's pose; converged (F,)."""
+def rigid_kernel(S, valid, scale, wand, cube, grid, limits, r, T, converged):  # pragma: no cover - compiled
+    """Solve every frame of S (F, W, 3, 3) in place from (r, T), sensor 0's pose; converged (F,). ``wand``: a
+    :data:`ivc.lut.rigid_kernels.Wand`; ``cube``: a :data:`ivc.fixtures.kernels.Cube`; ``limits``: a
+    :data:`ivc.lut.rigid_kernels.Limits`."""
     for f in numba.prange(S.shape[0]):
         work, lm = workspace()
-        field = (grid, centre, cube_scale, coefficients, np.bool_(True))  # sensor 0 in the cube's field
+        field = (grid, cube.centre, cube.scale, cube.coefficients, np.bool_(True))  # sensor 0 in the cube's field
         converged[f] = False
         if not (valid[f, 0] and np.isfinite(r[f, 0]) and np.isfinite(r[f, 1]) and np.isfinite(r[f, 2])):
             for i in range(3):
@@ -31,5 +32,4 @@ def rigid_kernel(S, valid, scale, b, R, centre, cube_scale, coefficients, grid, 
                 for j in range(3):
                     T[f, i, j] = np.nan
             continue
-        converged[f], _ = solve_frame(S[f], valid[f], scale[f], (b, R), field, (max_iterations, tolerance), r[f],
-                                      T[f], work, lm)
+        converged[f], _ = solve_frame(S[f], valid[f], scale[f], wand, field, limits, r[f], T[f], work, lm)

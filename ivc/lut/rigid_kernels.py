@@ -16,12 +16,27 @@ frame (the rules of :func:`ivc.pose.kernels.lm_step` and :func:`ivc.pose.kernels
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numba
 import numpy as np
 
 from ivc.fixtures.kernels import cube_model
 from ivc.pose.kernels import accept_pose, lm_step, lm_verdict, pose_residual
 from ivc.table.kernels import pose_model
+
+#: The wand's geometry: each sensor's position ``b`` (W, 3) m and rotation ``R`` (W, 3, 3) in sensor 0's frame.
+Wand = namedtuple("Wand", "b R")
+#: A solve's limits: ``max_iterations`` and the position step ``tolerance`` (m) below which it has converged.
+Limits = namedtuple("Limits", "max_iterations tolerance")
+#: :func:`normal_equations`' scratch arrays: the model ``M`` (3, 3) and ``dM`` (3, 3, 3), the cube's basis ``G``
+#: (15, 3) and its gradient ``H3`` (15, 3, 3), the table's ``g`` (9,), ``dg`` (9, 3) and stencil weights
+#: ``wx wy wz dx dy dz`` (4,), a sensor's position ``p`` (3,), rotation ``Tn`` (3, 3), residual ``e`` (9,),
+#: Jacobian ``J`` and chained Jacobian ``Jc`` (9, 6), and ``lever`` (3, 3).
+Work = namedtuple("Work", "M dM G H3 g dg wx wy wz dx dy dz p Tn e J Jc lever")
+#: :func:`solve_frame`'s: ``H`` (6, 6) and ``grad`` (6,) at the current pose, ``Ht`` and ``gradt`` at the trial,
+#: the damped matrix ``A`` (6, 6), the ``step`` (6,) and the trial pose ``rt`` (3,), ``Tt`` (3, 3).
+LMWork = namedtuple("LMWork", "H Ht grad gradt A step rt Tt")
 
 
 @numba.njit(inline="always")
@@ -87,24 +102,22 @@ def accept_trial(r, rt, T, Tt, H, Ht, grad, gradt):
 
 @numba.njit(cache=True)
 def workspace():
-    """One frame's scratch arrays: (work, lm). ``work``, those of :func:`normal_equations` (the model M (3, 3) and
-    ∂M/∂r, the cube basis and its gradient, the table's g, ∂g/∂r and stencil weights, a sensor's position,
-    rotation, residual, Jacobian, chained Jacobian and lever); ``lm``, the loop's (H and grad, their trial values,
-    the damped matrix, the step, the trial pose)."""
-    work = (np.empty((3, 3)), np.empty((3, 3, 3)), np.empty((15, 3)), np.empty((15, 3, 3)), np.empty(9),
-            np.empty((9, 3)), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4),
-            np.empty(3), np.empty((3, 3)), np.empty(9), np.empty((9, 6)), np.empty((9, 6)), np.empty((3, 3)))
-    lm = (np.empty((6, 6)), np.empty((6, 6)), np.empty(6), np.empty(6), np.empty((6, 6)), np.empty(6), np.empty(3),
-          np.empty((3, 3)))
+    """One frame's scratch arrays: (work, lm), a :data:`Work` and an :data:`LMWork`."""
+    work = Work(np.empty((3, 3)), np.empty((3, 3, 3)), np.empty((15, 3)), np.empty((15, 3, 3)), np.empty(9),
+                np.empty((9, 3)), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4),
+                np.empty(3), np.empty((3, 3)), np.empty(9), np.empty((9, 6)), np.empty((9, 6)), np.empty((3, 3)))
+    lm = LMWork(np.empty((6, 6)), np.empty((6, 6)), np.empty(6), np.empty(6), np.empty((6, 6)), np.empty(6),
+                np.empty(3), np.empty((3, 3)))
     return work, lm
 
 
 @numba.njit(cache=True)  # not inlined: solve_frame calls it twice, and two copies of its IR doubled the compile
 def normal_equations(S, use, scale, wand, field, r0, T0, H, grad, work):
     """Cost Σ|e|², H = JᵀJ (6, 6) and grad = −Jᵀe (6,) of the rigid wand at sensor 0's pose (r0, T0), for the
-    sensors ``use`` marks. ``wand``: (b (W, 3), R (W, 3, 3)); ``field``: (grid, centre, cube_scale, coefficients,
-    tied): the table (:data:`ivc.table.kernels.GRID`) for every sensor, or, ``tied``, the cube's harmonic field
-    (:func:`ivc.fixtures.kernels.cube_model`) for sensor 0 and the table for the others it maps."""
+    sensors ``use`` marks. ``wand``: a :data:`Wand`; ``work``: a :data:`Work`; ``field``: (grid, centre,
+    cube_scale, coefficients, tied): the table (:data:`ivc.table.kernels.GRID`) for every sensor, or, ``tied``,
+    the cube's harmonic field (:func:`ivc.fixtures.kernels.cube_model`) for sensor 0 and the table for the others
+    it maps."""
     b, R = wand
     grid, centre, cube_scale, coefficients, tied = field
     M, dM, G, H3, g, dg, wx, wy, wz, dx, dy, dz, p, Tn, e, J, Jc, lever = work
@@ -130,8 +143,8 @@ def normal_equations(S, use, scale, wand, field, r0, T0, H, grad, work):
 @numba.njit(cache=True)
 def solve_frame(S, use, scale, wand, field, limits, r, T, work, lm):
     """Levenberg-Marquardt for one frame's sensor 0 pose (r (3,), T (3, 3), updated in place from the start they
-    hold) on :func:`normal_equations`; ``limits``: (max_iterations, position step tolerance m); ``work``, ``lm``:
-    :func:`workspace`. Returns (converged, cost); JᵀJ at the solution is left in ``lm[0]``."""
+    hold) on :func:`normal_equations`; ``limits``: a :data:`Limits`; ``work``, ``lm``: :func:`workspace`.
+    Returns (converged, cost); JᵀJ at the solution is left in ``lm.H``."""
     max_iterations, tolerance = limits
     H, Ht, grad, gradt, A, step, rt, Tt = lm
     cost = normal_equations(S, use, scale, wand, field, r, T, H, grad, work)

@@ -143,12 +143,14 @@ def _select(err, known, dt, memory, power, out):
 
 
 @numba.njit(cache=True)
-def _score(shown, base, sensors, q, knot_q, knot_t, now, target, max_step, total, members, A, b):
+def _score(shown, base, sensors, q, knot_q, knot_t, now, target, max_step, total, members, sums):
     """Add the errors (mrad) of one frame's pending predictions shown (S, C, 4) for ``target`` s to total (S, C),
     for the sensors whose sample q (S, 4) at ``now`` just arrived: the reference is slerped between each one's
     previous usable sample (knot_q, knot_t) and q, as :func:`ivc.predict.recording.future_reference` does.
     With ``members`` > 0, the first ``members`` predictions' turns from the frame's measured orientation base
-    (S, 4), in its body frame, and the reference's are added to the combination's sums A (S, 3, m, m), b (S, 3, m)."""
+    (S, 4), in its body frame, and the reference's are added to the combination's ``sums``, (A (S, 3, m, m),
+    b (S, 3, m))."""
+    A, b = sums
     S, C = total.shape
     ref = np.empty(4)
     d = np.empty(4)
@@ -303,7 +305,7 @@ class AutoStream(Stream):
                 if target > now:
                     break
                 _score(shown, base, waiting & usable, qs, self.knot_q, self.knot_t, now, target, p.max_step_s,
-                       self.total, self.learning, self.A, self.b)
+                       self.total, self.learning, (self.A, self.b))
                 waiting &= ~usable
             while self.pending and self.pending[0][0] <= now and not self.pending[0][3].any():
                 self.pending.popleft()

@@ -27,6 +27,7 @@ describes the head rather than the moment, is kept, as an IMM keeps its mode pro
 
 from __future__ import annotations
 
+from collections import namedtuple
 from dataclasses import dataclass
 
 import numba
@@ -95,10 +96,23 @@ def _features(ht, hq, lags, phi):
             phi[3 * (j - 1) + c] = v[c]
 
 
+#: The predictor's settings (:meth:`DirectPredictor._args`): the learning ``horizon`` s, the ``memory`` s of its
+#: sums, the ridge ``prior``, the weight ``floor``, the gap ``max_gap`` s that restarts a sensor, the longest step
+#: ``max_step`` s a reference is interpolated over, and the number of ``lags``.
+Settings = namedtuple("Settings", "horizon memory prior floor max_gap max_step lags")
+#: Every sensor's state (:func:`_state`, leading axis the sensor): scalars ``scal`` (S, _NS), the sample history
+#: ``ht`` (S, lags + 1) s and ``hq`` (S, lags + 1, 4), the sums ``L`` (S, D, D) and ``B`` (S, D, 3), the velocity
+#: ``vel`` (S, 3) and the base ``base_q`` (S, 4) of the prediction, the pending predictions' target times
+#: ``pend_t``, features ``pend_phi``, bases ``pend_q`` and weights ``pend_w``, and the last sample ``prev_q``.
+State = namedtuple("State", "scal ht hq L B vel base_q pend_t pend_phi pend_q pend_w prev_q")
+
+
 @numba.njit(cache=True)
-def _frame(q, ok, now, dt, horizon, memory, prior, floor, max_gap, max_step, lags,
-           scal, ht, hq, L, B, vel, base_q, pend_t, pend_phi, pend_q, pend_w, prev_q):
-    """Feed one frame q (S, 4), ok (S,) at ``now`` s (dt since the previous frame) to every sensor's state."""
+def _frame(q, ok, now, dt, settings, state):
+    """Feed one frame q (S, 4), ok (S,) at ``now`` s (dt since the previous frame) to every sensor's state (a
+    :data:`State`), with the predictor's :data:`Settings`."""
+    horizon, memory, prior, floor, max_gap, max_step, lags = settings
+    scal, ht, hq, L, B, vel, base_q, pend_t, pend_phi, pend_q, pend_w, prev_q = state
     S = q.shape[0]
     D = 3 * lags
     P = pend_t.shape[1]
@@ -220,21 +234,22 @@ def _show(ok, now, horizon, scal, vel, base_q, out):
 
 
 @numba.njit(cache=True)
-def _run(q, ok, t, horizon, memory, prior, floor, max_gap, max_step, lags,
-         scal, ht, hq, L, B, vel, base_q, pend_t, pend_phi, pend_q, pend_w, prev_q, out):
-    """The batch: every frame through :func:`_frame`, then :func:`_show` at ``horizon`` into out (F, S, 4)."""
+def _run(q, ok, t, settings, state, out):
+    """The batch: every frame through :func:`_frame`, then :func:`_show` at the settings' horizon into out
+    (F, S, 4)."""
+    horizon, memory, prior, floor, max_gap, max_step, lags = settings
+    scal, ht, hq, L, B, vel, base_q, pend_t, pend_phi, pend_q, pend_w, prev_q = state
     for k in range(q.shape[0]):
         dt = t[k] - t[k - 1] if k > 0 else 0.0
-        _frame(q[k], ok[k], t[k], dt, horizon, memory, prior, floor, max_gap, max_step, lags,
-               scal, ht, hq, L, B, vel, base_q, pend_t, pend_phi, pend_q, pend_w, prev_q)
+        _frame(q[k], ok[k], t[k], dt, settings, state)
         _show(ok[k], t[k], horizon, scal, vel, base_q, out[k])
 
 
-def _state(n_sensors: int, lags: int) -> tuple:
+def _state(n_sensors: int, lags: int) -> State:
     S, D, M = n_sensors, 3 * lags, lags + 1
     scal = np.zeros((S, _NS))
     scal[:, _LAST_VALID] = np.nan
-    return (scal, np.zeros((S, M)), np.zeros((S, M, 4)), np.zeros((S, D, D)), np.zeros((S, D, 3)),
+    return State(scal, np.zeros((S, M)), np.zeros((S, M, 4)), np.zeros((S, D, D)), np.zeros((S, D, 3)),
             np.zeros((S, 3)), np.zeros((S, 4)), np.zeros((S, PENDING)), np.zeros((S, PENDING, D)),
             np.zeros((S, PENDING, 4)), np.zeros((S, PENDING)), np.full((S, 4), np.nan))
 
@@ -245,14 +260,15 @@ class DirectStream(Stream):
     def __init__(self, predictor: DirectPredictor, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.state = _state(self.n_sensors, int(predictor.lags))
-        self.args = predictor._args(predictor.horizon_s)
+        self._kernel_state = tuple(self.state)  # the same arrays, as the kernels take them (docs/kernels.md)
+        self.args = tuple(predictor._args(predictor.horizon_s))
         self.now: float | None = None
         self.ok = np.zeros(self.n_sensors, bool)
         self._frames = 0
 
     @property
     def restarts(self) -> int:
-        return int(self.state[0][:, _RESTARTS].sum())
+        return int(self.state.scal[:, _RESTARTS].sum())
 
     def update(self, q, valid=None, time=None):
         qs, ok = self._check_frame(q, valid)
@@ -266,7 +282,7 @@ class DirectStream(Stream):
         dt = 0.0 if self.now is None else t - self.now
         self._frames += 1
         self.now = t
-        _frame(qs, ok, t, dt, *self.args, *self.state)
+        _frame(qs, ok, t, dt, self.args, self._kernel_state)
         self.ok, self.last = ok, qs
 
     def predict(self, horizon):
@@ -275,8 +291,7 @@ class DirectStream(Stream):
         if self.now is None:
             out[:] = np.nan
             return out
-        scal, vel, base_q = self.state[0], self.state[5], self.state[6]
-        _show(self.ok, self.now, d, scal, vel, base_q, out)
+        _show(self.ok, self.now, d, self.state.scal, self.state.vel, self.state.base_q, out)
         return out
 
 
@@ -305,8 +320,8 @@ class DirectPredictor(Predictor):
         if self.horizon_s == 0.0:
             raise PredictorError("direct learns a turn over its horizon: horizon_s must be above 0 s")
 
-    def _args(self, horizon: float) -> tuple:
-        return (horizon, self.memory_s, self.prior, self.floor, self.max_gap_s, self.max_step_s, int(self.lags))
+    def _args(self, horizon: float) -> Settings:
+        return Settings(horizon, self.memory_s, self.prior, self.floor, self.max_gap_s, self.max_step_s, int(self.lags))
 
     def predict(self, q, horizons, valid=None, time=None):
         h = check_horizons(horizons)
@@ -318,7 +333,7 @@ class DirectPredictor(Predictor):
             if d == 0.0:  # nothing to learn: the measurement, as the backward difference shows it at 0 s
                 out[i] = np.where(ok[..., None], qs, np.nan)
                 continue
-            _run(qs, ok, t, *self._args(float(d)), *_state(S, int(self.lags)), out[i])
+            _run(qs, ok, t, tuple(self._args(float(d))), tuple(_state(S, int(self.lags))), out[i])
         return as_given(out, single)
 
     #: the live form, made by :meth:`stream`

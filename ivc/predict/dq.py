@@ -83,6 +83,8 @@ class DQStream(Stream):
     def __init__(self, predictor: DQPredictor, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.state = predictor._state(self.n_sensors)
+        self._states = tuple(self.state)  # the same arrays, as the kernels take them (dq_kernels)
+        self._model = tuple(K.Model(*predictor._config[:4]))
         self.ready = np.zeros(self.n_sensors, bool)
         self._all = np.ones(self.n_sensors, bool)
         self.now: float | None = None  # the last frame's time (s), when frames come with time stamps
@@ -104,8 +106,7 @@ class DQStream(Stream):
             dt = 0.0 if self.now is None else t - self.now
             self.now = t
             self._step = self.predictor.tau
-        kinds, qvar, R, cfg, _, _ = self.predictor._config
-        bad = K.update_frame(q, ok, dt, *self.state, kinds, qvar, R, cfg, self.ready)
+        bad = K.update_frame(q, ok, dt, self._states, self._model, self.ready)
         if bad >= 0:
             raise PredictorError(f"sensor {bad}: not a unit quaternion (norm {np.linalg.norm(q[bad]):.6g}); "
                                  "pass unit quaternions [w, x, y, z]")
@@ -116,18 +117,18 @@ class DQStream(Stream):
         if not 0.0 <= d <= MAX_HORIZON:
             check_horizons(horizon)
         out = np.empty((self.n_sensors, 4))
-        K.predict_frame(self.last, self.state[6], self.state[7], self.ready, d, self.predictor.tau, out)
+        K.predict_frame(self.last, self.state.est, self.state.clock, self.ready, d, self.predictor.tau, out)
         return out
 
     @property
     def restarts(self) -> int:
         """Restarts at gaps so far, summed over the sensors."""
-        return int(self.state[7][:, K.CLOCK_RESTARTS].sum())
+        return int(self.state.clock[:, K.CLOCK_RESTARTS].sum())
 
     @property
     def omega(self) -> FloatArray:
         """Current angular-velocity estimates (sensors, 3) rad/s."""
-        return self.state[6][:, :3].copy()
+        return self.state.est[:, :3].copy()
 
 
 @dataclass
@@ -174,12 +175,12 @@ class DQPredictor(Predictor):
                         self.max_gap_s])
         self._config = (kinds, qvar, sigma_v**2, cfg, stationary(Pi), Pi)
 
-    def _state(self, n_sensors: int) -> list[np.ndarray]:
+    def _state(self, n_sensors: int) -> K.State:
         kinds, _, _, _, mu0, Pi0 = self._config
         M = len(kinds)
-        state = [np.zeros((n_sensors, M, 6)), np.zeros((n_sensors, M, 6, 6)), np.zeros((n_sensors, 3, M)),
+        state = K.State(np.zeros((n_sensors, M, 6)), np.zeros((n_sensors, M, 6, 6)), np.zeros((n_sensors, 3, M)),
                  np.zeros((n_sensors, 2, M, M)), np.zeros((n_sensors, 4)), np.zeros((n_sensors, 2), np.int64),
-                 np.zeros((n_sensors, 6)), np.zeros((n_sensors, 4))]
+                 np.zeros((n_sensors, 6)), np.zeros((n_sensors, 4)))
         for s in range(n_sensors):
             K.reset(*(a[s] for a in state), mu0, Pi0)
         return state
@@ -198,7 +199,8 @@ class DQPredictor(Predictor):
         usable = np.empty((S, F), bool)
         mu = np.empty((S, F, len(kinds)))
         age = np.empty((S, F))
-        K.run(qs, ok, dt, *self._state(S), kinds, qvar, R, cfg, est, usable, mu, age)
+        K.run(qs, ok, dt, tuple(self._state(S)), tuple(K.Model(kinds, qvar, R, cfg)),
+              tuple(K.Output(est, usable, mu, age)))
         out = (qs, est.transpose(1, 0, 2), usable.T, mu.transpose(1, 0, 2))
         return out + (age.T,) if ages else out
 

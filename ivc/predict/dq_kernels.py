@@ -24,6 +24,8 @@ mode-weight form (0 c̄_j, 1 μ_j(k−1)), H of CA (0 standard [J, 0], 1 thesis 
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numba
 import numpy as np
 
@@ -35,6 +37,17 @@ TPM_FLOOR = 1e-50  # docs/math.md §12.5; Himberg 2010, eq. 47
 
 CFG_TAU, CFG_EPS_MIX, CFG_EPS_MU, CFG_ADAPTIVE, CFG_WEIGHTS, CFG_H, CFG_P0W, CFG_P0A, CFG_MAX_GAP = range(9)
 CLOCK_AGE, CLOCK_MISSING, CLOCK_RESTARTS, CLOCK_REPEATS = range(4)
+
+# The bundles below name their fields once; they reach the kernels as plain tuples (``tuple(State(...))``),
+# unpacked in this order: numba types a plain tuple argument in its C dispatcher, a namedtuple in Python
+# (about 2 µs more per call, a third of the live step's time), docs/kernels.md.
+
+#: A filter's state (the arrays above, with a leading sensor axis)
+State = namedtuple("State", "x P probs tpm q_prev status est clock")
+#: Its configuration: kinds (M,), qvar (M, 3), R (4,), cfg (9,)
+Model = namedtuple("Model", "kinds qvar R cfg")
+#: A batch's outputs (:func:`run`): est (S, F, 6), ok (S, F), mu (S, F, M), age (S, F)
+Output = namedtuple("Output", "est ok mu age")
 
 
 @numba.njit(cache=True)
@@ -67,7 +80,7 @@ def reset(x, P, probs, tpm, q_prev, status, est, clock, mu0, Pi0):
 
 
 @numba.njit(cache=True)
-def _ekf(n, hcols, qv, z, R, cfg, tau, x0, P0, x, P, vecs, mats):
+def _ekf(n, hcols, qv, z, R, cfg, tau, x0, P0, x, P, scratch):
     """One EKF predict+update over tau s from the mixed (x0, P0) into (x, P); returns the log-likelihood of z.
 
     n = 3 (CV) or 6 (CA) states; H = [J, cJ] has hcols = 6 non-zero columns, or 3 when c = 0
@@ -76,7 +89,9 @@ def _ekf(n, hcols, qv, z, R, cfg, tau, x0, P0, x, P, vecs, mats):
     constant sizes (unrolled loops), it took 19 of the DQ filters' 47 CPU seconds of compilation for
     about 1 % of the live step (4.6 µs of MMDQ2's update and prediction, loaded machine).
     The covariance update is P⁻ − K S Kᵀ through the Cholesky factor of S (:func:`factored_update`).
+    ``scratch``: (vecs (4, 6), mats (7, 6, 6)), the end of :func:`make_work`'s tuple.
     """
+    vecs, mats = scratch
     xp, h, nu, w = vecs[0], vecs[1], vecs[2], vecs[3]
     Pp, J, H, PHt, S, L, U = mats[0], mats[1], mats[2], mats[3], mats[4], mats[5], mats[6]
     ca = n == 6
@@ -149,10 +164,10 @@ def _ekf(n, hcols, qv, z, R, cfg, tau, x0, P0, x, P, vecs, mats):
 def _ekf_model(kind, qv, z, R, cfg, tau, x0, P0, x, P, vecs, mats):
     """:func:`_ekf` for a CV (kind 0) or CA (kind 1) model (np.int64 sizes: one specialisation, not one per literal)."""
     if kind == 0:
-        return _ekf(np.int64(3), np.int64(3), qv, z, R, cfg, tau, x0, P0, x, P, vecs, mats)
+        return _ekf(np.int64(3), np.int64(3), qv, z, R, cfg, tau, x0, P0, x, P, (vecs, mats))
     if cfg[CFG_H] == 0.0:
-        return _ekf(np.int64(6), np.int64(3), qv, z, R, cfg, tau, x0, P0, x, P, vecs, mats)
-    return _ekf(np.int64(6), np.int64(6), qv, z, R, cfg, tau, x0, P0, x, P, vecs, mats)
+        return _ekf(np.int64(6), np.int64(3), qv, z, R, cfg, tau, x0, P0, x, P, (vecs, mats))
+    return _ekf(np.int64(6), np.int64(6), qv, z, R, cfg, tau, x0, P0, x, P, (vecs, mats))
 
 
 @numba.njit(cache=True, inline="always")
@@ -188,12 +203,18 @@ def _update_tpm(probs, tpm, M):
 
 
 @numba.njit(cache=True)
-def step(q, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R, cfg, work):
-    """Feed one measured orientation q (4,) of one sensor, dt s after the previous frame; ok = False skips it.
+def step(q, ok, dt, states, s, model, work):
+    """Feed one measured orientation q (4,) of sensor s, dt s after the previous frame; ok = False skips it.
+    ``states``: every sensor's :data:`State` (sensor s's is row s of each); ``model``: the :data:`Model`;
+    ``work``: :func:`make_work`'s.
 
     Returns True when the filter has an estimate (est holds ω̄, ᾱ; the prediction starts from q_prev,
     clock[CLOCK_AGE] s old).
     """
+    xs, Ps, probss, tpms, q_prevs, statuss, ests, clocks = states
+    x, P, probs, tpm, q_prev, status = xs[s], Ps[s], probss[s], tpms[s], q_prevs[s], statuss[s]
+    est, clock = ests[s], clocks[s]
+    kinds, qvar, R, cfg = model
     M = kinds.shape[0]
     x0, P0, mix, ell, cbar, z, vecs, mats = work
     clock[CLOCK_AGE] += dt
@@ -302,18 +323,22 @@ def step(q, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R
 
 
 @numba.njit(cache=True, _nrt=False)
-def filter_sensor(s, qs, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R, cfg, work, q,
-                  out_est, out_ok, out_mu, out_age):
-    """Every frame of sensor s (see :func:`run`), with its own state and scratch.
+def filter_sensor(s, qs, ok, dt, states, model, work, q, out):
+    """Every frame of sensor s (see :func:`run`), with its own state (row s of ``states``, a :data:`State`) and
+    scratch, into its rows of ``out`` (an :data:`Output`).
 
     Compiled without reference counting (nothing here allocates or keeps an array): the
     counting of the views taken in each step otherwise costs more than the filter's arithmetic.
     """
+    kinds, qvar, R, cfg = model
+    xs, Ps, probss, tpms, q_prevs, statuss, ests, clocks = states
     M = kinds.shape[0]
+    est, clock, probs = ests[s], clocks[s], probss[s]
+    out_est, out_ok, out_mu, out_age = out
     for k in range(qs.shape[0]):
         for i in range(4):
             q[i] = qs[k, s, i]
-        good = step(q, ok[k, s], dt[k], x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R, cfg, work)
+        good = step(q, ok[k, s], dt[k], states, s, model, work)
         out_ok[s, k] = good and ok[k, s]
         out_age[s, k] = clock[CLOCK_AGE]
         for a in range(6):
@@ -323,25 +348,24 @@ def filter_sensor(s, qs, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, k
 
 
 @numba.njit(cache=True)
-def run(qs, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R, cfg, out_est, out_ok, out_mu,
-        out_age):
-    """Filter frames (F, S, 4), dt (F,) s apart, for S sensors, one sensor after the other; writes ω̄, ᾱ per frame
-    to out_est (S, F, 6) and the age of the sample the prediction starts from to out_age (S, F) (out_ok (S, F),
-    out_mu (S, F, M)).
+def run(qs, ok, dt, states, model, out):
+    """Filter frames (F, S, 4), dt (F,) s apart, for S sensors (``states``: a :data:`State` with a leading sensor
+    axis), one sensor after the other; writes ω̄, ᾱ per frame to out.est (S, F, 6) and the age of the sample the
+    prediction starts from to out.age (S, F) (out.ok (S, F), out.mu (S, F, M); ``out`` an :data:`Output`).
 
     Serial: the batch already runs at about a million sensor-frames a second, far beyond any recording, and
     a parallel loop costs several seconds more to compile on first use (docs/kernels.md). Sensor s's state
     is its row of each state array, updated in place.
     """
+    kinds, qvar, R, cfg = model
     for s in range(qs.shape[1]):
-        filter_sensor(s, qs, ok, dt, x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s], clock[s], kinds,
-                      qvar, R, cfg, make_work(kinds.shape[0]), np.empty(4), out_est, out_ok, out_mu, out_age)
+        filter_sensor(s, qs, ok, dt, states, model, make_work(kinds.shape[0]), np.empty(4), out)
 
 
 @numba.njit(cache=True)
-def update_frame(qs, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds, qvar, R, cfg, ready):
-    """One live frame, dt s after the previous one, for every sensor (qs (S, 4), ok (S,)); ready[s] says whether
-    sensor s has an estimate.
+def update_frame(qs, ok, dt, states, model, ready):
+    """One live frame, dt s after the previous one, for every sensor (qs (S, 4), ok (S,); ``states`` a :data:`State`
+    with a leading sensor axis); ready[s] says whether sensor s has an estimate.
 
     The scratch arrays are made here: cheaper than passing a tuple of them in from Python.
     Returns −1, or the first sensor whose valid sample is not a unit quaternion (then nothing is updated).
@@ -351,6 +375,7 @@ def update_frame(qs, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds
         n2 = qs[s, 0] ** 2 + qs[s, 1] ** 2 + qs[s, 2] ** 2 + qs[s, 3] ** 2
         if ok[s] and abs(np.sqrt(n2) - 1.0) > 1e-3:
             return s
+    kinds, qvar, R, cfg = model
     work = make_work(kinds.shape[0])
     for s in range(qs.shape[0]):
         good = ok[s] and np.isfinite(qs[s, 0] + qs[s, 1] + qs[s, 2] + qs[s, 3])
@@ -358,8 +383,7 @@ def update_frame(qs, ok, dt, x, P, probs, tpm, q_prev, status, est, clock, kinds
             n = np.sqrt(qs[s, 0] ** 2 + qs[s, 1] ** 2 + qs[s, 2] ** 2 + qs[s, 3] ** 2)
             for i in range(4):
                 qs[s, i] /= n
-        ready[s] = step(qs[s], good, dt, x[s], P[s], probs[s], tpm[s], q_prev[s], status[s], est[s], clock[s],
-                        kinds, qvar, R, cfg, work) and good
+        ready[s] = step(qs[s], good, dt, states, s, model, work) and good
     return -1
 
 

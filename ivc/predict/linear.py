@@ -38,6 +38,7 @@ from ivc.predict.base import (
 from ivc.predict.delta import deltas
 from ivc.predict.gains import kinematic_gain
 from ivc.predict.linear_steps import ACCELERATION_NOISE, WHITE_ACCELERATION, steady_posterior
+from ivc.predict.linear_steps import Config as StepsConfig
 from ivc.predict.linear_steps import run_steps as _steps_run
 from ivc.predict.linear_steps import show_frame as _steps_show
 from ivc.predict.linear_steps import state as steps_state
@@ -145,10 +146,10 @@ class LinearPredictor(FixedRatePredictor):
         out[:, ~ok] = np.nan
         return out
 
-    def _steps_config(self) -> tuple:
+    def _steps_config(self) -> StepsConfig:
         n, kind, noise, R = self.model
         T = 1.0 / self.rate_hz
-        return int(n), int(kind), float(noise), float(R), T, steady_posterior(n, kind, noise, R, T)
+        return StepsConfig(int(n), int(kind), float(noise), float(R), T, steady_posterior(n, kind, noise, R, T))
 
     def _predict_steps(self, q, horizons, valid, time):
         """The time-varying Kalman filter of the design's model at the stream's own steps (linear_steps)."""
@@ -159,7 +160,7 @@ class LinearPredictor(FixedRatePredictor):
         use = ok & ~repeats(qs, ok)
         cfg = self._steps_config()
         out = np.empty((len(h), F, S, 4))
-        _steps_run(qs, ok, use, restarts(t, ok, self.max_gap_s), t, h, *cfg, *steps_state(S, cfg[0]), out)
+        _steps_run(qs, ok, use, restarts(t, ok, self.max_gap_s), t, h, tuple(cfg), tuple(steps_state(S, cfg.n)), out)
         return as_given(out, single)
 
     def stream(self, n_sensors: int = 1) -> Stream:
@@ -338,15 +339,16 @@ class StepLinearStream(TimedStepStream):
     def __init__(self, predictor: LinearPredictor, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.cfg = predictor._steps_config()
-        self.state = steps_state(self.n_sensors, self.cfg[0])
+        self.state = steps_state(self.n_sensors, self.cfg.n)
+        self._kernel_args = tuple(self.cfg), tuple(self.state)  # as the kernels take them (docs/kernels.md)
 
     def _step(self, qs, ok, new, gap, now):
-        _steps_frame(qs, ok, new, gap, now, *self.cfg, *self.state)
+        _steps_frame(qs, ok, new, gap, now, *self._kernel_args)
 
     def _show(self, horizon):
         out = np.empty((self.n_sensors, 4))
         x, _, theta, base, scal = self.state
-        _steps_show(self.ok, self.clock.now if self.clock.now is not None else 0.0, horizon, self.cfg[0], x, theta,
+        _steps_show(self.ok, self.clock.now if self.clock.now is not None else 0.0, horizon, self.cfg.n, x, theta,
                     base, scal, out)
         return out
 

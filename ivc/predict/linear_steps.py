@@ -14,6 +14,8 @@ old as it is; a gap longer than ``max_gap_s`` restarts the filter (θ from 0 at 
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numba
 import numpy as np
 from scipy.linalg import solve_discrete_are
@@ -22,6 +24,12 @@ from ivc.predict.quat import delta_q, qmul, qmul_conj, rate_of
 
 #: the models: the α-β filter's (white acceleration per step) and the kinematic filter's (noise on α)
 WHITE_ACCELERATION, ACCELERATION_NOISE = 0, 1
+#: A filter's configuration: states ``n`` (2 or 3), the model ``kind``, its ``noise``, the measurement variance
+#: ``R``, the nominal step ``T`` s and the starting covariance ``P0`` (n, n) (:func:`steady_posterior`)
+Config = namedtuple("Config", "n kind noise R T P0")
+#: Every sensor's state (:func:`state`): ``x`` (S, n, 3), ``P`` (S, n, n), ``theta`` (S, 3), ``base`` (S, 4) and
+#: ``scal`` (S, 2) = [started, time of the latest usable sample]
+State = namedtuple("State", "x P theta base scal")
 
 
 def transition(n: int, h: float) -> np.ndarray:
@@ -50,8 +58,10 @@ def steady_posterior(n: int, kind: int, noise: float, R: float, T: float) -> np.
 
 
 @numba.njit(cache=True)
-def step_frame(q, ok, use, restart, now, n, kind, noise, R, T, P0, x, P, theta, base, scal):
-    """One frame for every sensor; scal (S, 2) = [started, time of the latest usable sample]."""
+def step_frame(q, ok, use, restart, now, config, state):
+    """One frame for every sensor (``config`` a :data:`Config`, ``state`` a :data:`State`)."""
+    n, kind, noise, R, T, P0 = config
+    x, P, theta, base, scal = state
     S = q.shape[0]
     A = np.zeros((n, n))
     Q = np.zeros((n, n))
@@ -125,16 +135,18 @@ def show_frame(ok, now, horizon, n, x, theta, base, scal, out):
 
 
 @numba.njit(cache=True)
-def run_steps(q, ok, use, restart, t, horizons, n, kind, noise, R, T, P0, x, P, theta, base, scal, out):
+def run_steps(q, ok, use, restart, t, horizons, config, state, out):
     """The batch: every frame through :func:`step_frame`, then :func:`show_frame` at each horizon into out
     (H, F, S, 4)."""
+    n, kind, noise, R, T, P0 = config
+    x, P, theta, base, scal = state
     for k in range(q.shape[0]):
-        step_frame(q[k], ok[k], use[k], restart[k], t[k], n, kind, noise, R, T, P0, x, P, theta, base, scal)
+        step_frame(q[k], ok[k], use[k], restart[k], t[k], config, state)
         for i in range(horizons.shape[0]):
             show_frame(ok[k], t[k], horizons[i], n, x, theta, base, scal, out[i, k])
 
 
-def state(n_sensors: int, n: int) -> tuple:
-    """(x, P, θ, base, scal) for ``n_sensors``."""
-    return (np.zeros((n_sensors, n, 3)), np.zeros((n_sensors, n, n)), np.zeros((n_sensors, 3)),
+def state(n_sensors: int, n: int) -> State:
+    """The :data:`State` of ``n_sensors``."""
+    return State(np.zeros((n_sensors, n, 3)), np.zeros((n_sensors, n, n)), np.zeros((n_sensors, 3)),
             np.zeros((n_sensors, 4)), np.zeros((n_sensors, 2)))

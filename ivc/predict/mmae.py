@@ -23,6 +23,7 @@ look direction only; this extends it to a full orientation.
 
 from __future__ import annotations
 
+from collections import namedtuple
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -45,6 +46,17 @@ from ivc.predict.timing import check_stream, check_time, repeats, restarts
 
 KINDS = ("cp", "fogmv", "fogma", "phi2")
 LOG_2PI = np.log(2.0 * np.pi)
+#: Every sensor's banks (:meth:`MMAE._state`, (S, 2, ...): a bank per look vector): the filters' states ``x``
+#: (S, 2, J, 3, 3) and covariances ``P``, the log probabilities ``logp`` (S, 2, J), whether started ``init``
+#: (S, 2, 1) and the output weights ``w`` (S, 2, J)
+State = namedtuple("State", "x P logp init w")
+#: One cycle's filters: transitions ``Phi`` (J, 3, 3), process noise ``Qd`` (J, 3, 3), the measurement variance
+#: ``r``, the divergence thresholds ``thr`` (J,) and the log of the probability floor ``log_pmin``
+Bank = namedtuple("Bank", "Phi Qd r thr log_pmin")
+#: The bank on a stream's own steps: the continuous models ``F``, ``GQG`` and ``kappa`` (``MMAE._models``)
+#: Φ and Qd are made from at each step, ``r``, ``thr``, ``log_pmin`` as :data:`Bank`, the starting covariances
+#: ``P0`` (J, 3, 3) and the nominal step ``tau`` s
+Steps = namedtuple("Steps", "F GQG kappa r thr log_pmin P0 tau")
 
 
 @dataclass(frozen=True)
@@ -94,12 +106,14 @@ class Elemental:
 
 
 @numba.njit(cache=True)
-def _step(z, ok, x, P, logp, init, w, Phi, Qd, r, thr, log_pmin, prow, out_pos):
-    """One MMAE cycle of one look-vector bank: x (J, 3, 3) states x axes, P (J, 3, 3), logp (J,).
+def _step(z, ok, x, P, logp, init, w, bank, prow, out_pos):
+    """One MMAE cycle of one look-vector bank: x (J, 3, 3) states x axes, P (J, 3, 3), logp (J,); ``bank`` a
+    :data:`Bank`.
 
     prow (H, J, 3) are the position rows of Φ_j(δ) per horizon; out_pos (H, 3) the blended predictions;
     w (J,) receives the output weights (probabilities with divergent filters zeroed).
     """
+    Phi, Qd, r, thr, log_pmin = bank
     J = x.shape[0]
     if not ok:
         out_pos[:, :] = np.nan
@@ -195,13 +209,15 @@ def _step(z, ok, x, P, logp, init, w, Phi, Qd, r, thr, log_pmin, prow, out_pos):
 
 
 @numba.njit(cache=True)
-def _run(vectors, ok, x, P, logp, init, w, Phi, Qd, r, thr, log_pmin, prow, out):
-    """vectors (F, S, 2, 3) look vectors; out (F, S, H, 2, 3) blended predictions."""
+def _run(vectors, ok, state, bank, prow, out):
+    """vectors (F, S, 2, 3) look vectors; out (F, S, H, 2, 3) blended predictions; ``state`` a :data:`State`,
+    ``bank`` a :data:`Bank`."""
+    x, P, logp, init, w = state
     for s in range(vectors.shape[1]):
         for k in range(vectors.shape[0]):
             for v in range(2):
-                _step(vectors[k, s, v], ok[k, s], x[s, v], P[s, v], logp[s, v], init[s, v], w[s, v], Phi, Qd, r, thr,
-                      log_pmin, prow, out[k, s, :, v])
+                _step(vectors[k, s, v], ok[k, s], x[s, v], P[s, v], logp[s, v], init[s, v], w[s, v], bank, prow,
+                      out[k, s, :, v])
 
 
 def frame_from_axes(forward: FloatArray, up: FloatArray) -> FloatArray:
@@ -225,17 +241,18 @@ class MMAEStepStream(TimedStepStream):
     def __init__(self, predictor: MMAE, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.state = predictor._state(self.n_sensors)
+        # the same arrays as the kernels take them: plain tuples (docs/kernels.md)
+        self._kernel_args = tuple(self.state), tuple(predictor._steps())
         self.latest = np.zeros(self.n_sensors)
 
     def _step(self, qs, ok, new, gap, now):
         T = rotations.to_matrix(np.where(ok[:, None], qs, rotations.IDENTITY))
         vectors = np.ascontiguousarray(np.stack([T[:, :, 0], T[:, :, 2]], axis=1))
-        p = self.predictor
-        _frame_steps(vectors, ok, new, gap, now, *self.state, self.latest, *p._models, p.r, p._config[3],
-                     np.log(p.p_min), p._config[2], p.tau)
+        state, steps = self._kernel_args
+        _frame_steps(vectors, ok, new, gap, now, state, self.latest, steps)
 
     def _show(self, horizon):
-        x, w, init = self.state[0], self.state[4], self.state[3]
+        x, w, init = self.state.x, self.state.w, self.state.init
         pos = np.full((self.n_sensors, 2, 3), np.nan)
         now = self.clock.now if self.clock.now is not None else 0.0
         for s in np.flatnonzero(self.ok & (init[:, 0, 0] == 1)):
@@ -283,10 +300,15 @@ class MMAE(FixedRatePredictor):
         """Position rows of Φ_j(δ) (H, J, 3): the prediction operator of each elemental filter."""
         return np.array([[e.transition(d)[0] for e in self.bank] for d in horizons])
 
-    def _state(self, S: int):
+    def _steps(self) -> Steps:
+        """The :data:`Steps` of the bank."""
+        return Steps(*self._models, self.r, self._config[3], np.log(self.p_min), self._config[2], self.tau)
+
+
+    def _state(self, S: int) -> State:
         J = len(self.bank)
         P = np.broadcast_to(self._config[2], (S, 2, J, 3, 3)).copy()
-        return (np.zeros((S, 2, J, 3, 3)), P, np.full((S, 2, J), -np.log(J)), np.zeros((S, 2, 1), np.int64),
+        return State(np.zeros((S, 2, J, 3, 3)), P, np.full((S, 2, J), -np.log(J)), np.zeros((S, 2, 1), np.int64),
                 np.full((S, 2, J), 1.0 / J))
 
     def _predict_uniform(self, q, horizons, valid=None):
@@ -297,7 +319,8 @@ class MMAE(FixedRatePredictor):
         vectors = np.ascontiguousarray(np.stack([T[..., :, 0], T[..., :, 2]], axis=2))
         Phi, Qd, _, thr = self._config
         out = np.zeros((F, S, len(h), 2, 3))
-        _run(vectors, ok, *self._state(S), Phi, Qd, self.r, thr, np.log(self.p_min), self.position_rows(h), out)
+        _run(vectors, ok, tuple(self._state(S)), tuple(Bank(Phi, Qd, self.r, thr, np.log(self.p_min))),
+             self.position_rows(h), out)
         pred = frame_from_axes(out[..., 0, :], out[..., 1, :])
         pred[~ok] = np.nan
         pred = np.moveaxis(pred, 2, 0)
@@ -319,8 +342,8 @@ class MMAE(FixedRatePredictor):
         T = rotations.to_matrix(np.where(ok[..., None], qs, rotations.IDENTITY))
         vectors = np.ascontiguousarray(np.stack([T[..., :, 0], T[..., :, 2]], axis=2))
         out = np.zeros((F, S, len(h), 2, 3))
-        _run_steps(vectors, ok, use, restarts(t, ok, self.max_gap_s), t, h, *self._state(S), np.zeros(S),
-                   *self._models, self.r, self._config[3], np.log(self.p_min), self._config[2], self.tau, out)
+        _run_steps(vectors, ok, use, restarts(t, ok, self.max_gap_s), t, h, tuple(self._state(S)), np.zeros(S),
+                   tuple(self._steps()), out)
         pred = frame_from_axes(out[..., 0, :], out[..., 1, :])
         pred[~ok] = np.nan
         return as_given(np.moveaxis(pred, 2, 0), single)
@@ -333,6 +356,9 @@ class MMAEStream(Stream):
     def __init__(self, predictor: MMAE, n_sensors: int):
         super().__init__(predictor, n_sensors)
         self.state = predictor._state(self.n_sensors)
+        Phi, Qd, _, thr = predictor._config
+        # the same arrays as the kernels take them: plain tuples (docs/kernels.md)
+        self._kernel_args = tuple(self.state), tuple(Bank(Phi, Qd, predictor.r, thr, np.log(predictor.p_min)))
         self.ok = np.zeros(self.n_sensors, bool)
         self._rows: dict[float, FloatArray] = {}
         self._now = predictor.position_rows(np.zeros(1))  # the kernel's own (unused) output horizon
@@ -341,18 +367,16 @@ class MMAEStream(Stream):
         qs, ok = self._check_frame(q, valid)
         T = rotations.to_matrix(np.where(ok[:, None], qs, rotations.IDENTITY))
         vectors = np.ascontiguousarray(np.stack([T[:, :, 0], T[:, :, 2]], axis=1))[None]
-        Phi, Qd, _, thr = self.predictor._config
         out = np.zeros((1, self.n_sensors, 1, 2, 3))
-        _run(vectors, ok[None], *self.state, Phi, Qd, self.predictor.r, thr, np.log(self.predictor.p_min),
-             self._now, out)
+        _run(vectors, ok[None], *self._kernel_args, self._now, out)
         self.ok = ok
 
     def predict(self, horizon):
         d = float(check_horizons(horizon)[0])
         if d not in self._rows:
             self._rows[d] = self.predictor.position_rows(np.array([d]))[0]
-        x = self.state[0]  # (S, 2, J, 3 states, 3 axes)
-        w = self.state[4]
+        x = self.state.x  # (S, 2, J, 3 states, 3 axes)
+        w = self.state.w
         pos = np.einsum("svj,jm,svjmc->svc", w, self._rows[d], x)
         out = frame_from_axes(pos[:, 0], pos[:, 1])
         out[~self.ok] = np.nan
@@ -425,8 +449,11 @@ def _show_steps(F, kappa, x, w, horizon, out):
 
 
 @numba.njit(cache=True)
-def _frame_steps(vectors, ok, use, restart, now, x, P, logp, init, w, last, F, GQG, kappa, r, thr, log_pmin, P0, tau):
-    """One frame for every sensor on its actual step: vectors (S, 2, 3); last (S,) each one's latest usable time."""
+def _frame_steps(vectors, ok, use, restart, now, state, last, steps):
+    """One frame for every sensor on its actual step: vectors (S, 2, 3); last (S,) each one's latest usable time;
+    ``state`` a :data:`State`, ``steps`` a :data:`Steps`."""
+    x, P, logp, init, w = state
+    F, GQG, kappa, r, thr, log_pmin, P0, tau = steps
     S, J = vectors.shape[0], F.shape[0]
     Phi = np.empty((J, 3, 3))
     Qd = np.empty((J, 3, 3))
@@ -447,19 +474,19 @@ def _frame_steps(vectors, ok, use, restart, now, x, P, logp, init, w, last, F, G
         dt = now - last[s] if init[s, 0, 0] == 1 else tau
         _discrete(F, GQG, kappa, dt, Phi, Qd)
         for v in range(2):
-            _step(vectors[s, v], np.bool_(True), x[s, v], P[s, v], logp[s, v], init[s, v], w[s, v], Phi, Qd, r, thr,
-                  log_pmin, none, dummy)
+            _step(vectors[s, v], np.bool_(True), x[s, v], P[s, v], logp[s, v], init[s, v], w[s, v],
+                  (Phi, Qd, r, thr, log_pmin), none, dummy)  # a Bank, as _run's: a plain tuple
         last[s] = now
 
 
 @numba.njit(cache=True)
-def _run_steps(vectors, ok, use, restart, t, horizons, x, P, logp, init, w, last, F, GQG, kappa, r, thr, log_pmin,
-               P0, tau, out):
+def _run_steps(vectors, ok, use, restart, t, horizons, state, last, steps, out):
     """The batch on the stream's steps: out (F, S, H, 2, 3) the blended look vectors, from each frame's latest usable
-    sample (horizon + its age)."""
+    sample (horizon + its age); ``state`` a :data:`State`, ``steps`` a :data:`Steps`."""
+    x, P, logp, init, w = state
+    F, GQG, kappa, r, thr, log_pmin, P0, tau = steps
     for k in range(vectors.shape[0]):
-        _frame_steps(vectors[k], ok[k], use[k], restart[k], t[k], x, P, logp, init, w, last, F, GQG, kappa, r, thr,
-                     log_pmin, P0, tau)
+        _frame_steps(vectors[k], ok[k], use[k], restart[k], t[k], state, last, steps)
         for s in range(vectors.shape[1]):
             if ok[k, s] and init[s, 0, 0] == 1:
                 for i in range(horizons.shape[0]):

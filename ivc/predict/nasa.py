@@ -24,6 +24,7 @@ not listed by Adelstein, Jung & Ellis 2001: :data:`DEFAULT_W` is ours, chosen on
 
 from __future__ import annotations
 
+from collections import namedtuple
 from dataclasses import dataclass, field
 
 import numba
@@ -145,10 +146,21 @@ def _step(z_in, ok, x, P, status, W, V, h, p0, work, tau):
     return True
 
 
+#: The filter's configuration (:attr:`NasaEKF._config`): the process noise ``W`` per nominal step, the measurement
+#: variances ``V`` (4,), the nominal step ``tau`` s and the starting covariance's diagonal ``p0``
+Config = namedtuple("Config", "W V tau p0")
+#: A batch's outputs (F, S, ...): the state ``x`` at each frame's latest usable sample, whether it is an estimate
+#: ``ok``, and that sample's time ``t`` s
+Output = namedtuple("Output", "x ok t")
+
+
 @numba.njit(cache=True)
-def _run(qs, ok, use, restart, t, x, P, status, W, V, tau, p0, out_x, out_ok, out_t):
-    """Every sensor through its frames: out_x the state at the latest usable sample, out_t that sample's time,
-    out_ok where it is an estimate (and the frame valid)."""
+def _run(qs, ok, use, restart, t, x, P, status, config, out):
+    """Every sensor through its frames (``config`` a :data:`Config`) into ``out`` (an :data:`Output`): out.x the
+    state at the latest usable sample, out.t that sample's time, out.ok where it is an estimate (and the frame
+    valid)."""
+    W, V, tau, p0 = config
+    out_x, out_ok, out_t = out
     for s in range(qs.shape[1]):
         work = _work()
         ready = False
@@ -247,7 +259,7 @@ class NasaEKF(Predictor):
             raise PredictorError("V must be a positive variance and p0 six positive variances (ω ×3, α ×3)")
         if not (np.isfinite(self.max_gap_s) and self.max_gap_s > 0):
             raise PredictorError(f"max_gap_s must be a positive number of seconds, got {self.max_gap_s}")
-        self._config = (W, np.full(4, float(self.V)), 1.0 / self.rate_hz, p0)
+        self._config = Config(W, np.full(4, float(self.V)), 1.0 / self.rate_hz, p0)
 
     def filter(self, q, valid=None, time=None):
         """(checked q (F, S, 4), states [q̂, ω̂, α̂] (F, S, 10) at each frame's latest usable sample, usable (F, S),
@@ -258,7 +270,7 @@ class NasaEKF(Predictor):
         use = ok & ~repeats(qs, ok)
         out_x, out_ok, out_t = np.zeros((F, S, N)), np.zeros((F, S), bool), np.zeros((F, S))
         _run(qs, ok, use, restarts(t, ok, self.max_gap_s), t, np.zeros((S, N)), np.zeros((S, N, N)),
-             np.zeros((S, 2), np.int64), *self._config, out_x, out_ok, out_t)
+             np.zeros((S, 2), np.int64), self._config, Output(out_x, out_ok, out_t))
         return qs, out_x, out_ok, t[:, None] - out_t
 
     def rates(self, q, valid=None, time=None):

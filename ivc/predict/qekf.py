@@ -9,6 +9,7 @@ the state q̂(k|k) by default (``base="state"``, the thesis's Q framework) or th
 
 from __future__ import annotations
 
+from collections import namedtuple
 from dataclasses import dataclass, field
 
 import numba
@@ -150,8 +151,18 @@ def _work():
             np.empty((7, 4)), np.empty((4, 4)))
 
 
+#: The filter's configuration: process-noise variances ``qvar``, measurement variances ``R``, the gap ``max_gap`` s
+#: that restarts it and the starting variance ``p0w`` of ω
+Config = namedtuple("Config", "qvar R max_gap p0w")
+#: A batch's outputs (F, S, ...): the state ``x`` [q̂, ω̂], whether it is an estimate ``ok``, and its ``age`` s
+Output = namedtuple("Output", "x ok age")
+
+
 @numba.njit(cache=True)
-def _run(qs, ok, dt, x, P, status, clock, qvar, R, max_gap, p0w, out_x, out_ok, out_age):
+def _run(qs, ok, dt, x, P, status, clock, config, out):
+    """Every sensor through its frames (``config`` a :data:`Config`) into ``out`` (an :data:`Output`)."""
+    qvar, R, max_gap, p0w = config
+    out_x, out_ok, out_age = out
     for s in range(qs.shape[1]):
         work = _work()
         for k in range(qs.shape[0]):
@@ -232,7 +243,7 @@ class QEKF(Predictor):
             dt[1:] = self.tau
         out_x, out_ok, age = np.zeros((F, S, 7)), np.zeros((F, S), bool), np.zeros((F, S))
         _run(qs, ok, dt, np.zeros((S, 7)), np.zeros((S, 7, 7)), np.zeros((S, 2), np.int64), np.zeros((S, 8)),
-             *self._config, self.max_gap_s, self.p0_omega, out_x, out_ok, age)
+             Config(*self._config, self.max_gap_s, self.p0_omega), Output(out_x, out_ok, age))
         return (qs, out_x, out_ok, age) if ages else (qs, out_x, out_ok)
 
     def rates(self, q, valid=None, time=None):
