@@ -50,7 +50,7 @@ StreamOutput = namedtuple("StreamOutput", "r q flags miss iterations")
 #: (the correction's own inversion makes none: where Broyden's estimate stalls, the sample is flagged, not pushed
 #: into a fold's neighbourhood)
 RESTARTS = 2
-#: the step (m) of the central differences of φ and C
+#: the step (m) of the central differences of φ
 DIFFERENCE_STEP = 1e-5
 
 
@@ -94,47 +94,29 @@ def _inverse3(D, out):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _map_derivatives(r, h, grid, D, W):
-    """D = ∂φ/∂r and W = ∂ω/∂r (the left increment of C per metre) at r (3,), both (3, 3), by central differences
-    of :data:`DIFFERENCE_STEP`; False where the map is not defined at a step."""
+def _jacobian_inverse(r, h, grid, H):
+    """H = (∂φ/∂r)⁻¹ at r (3,), ∂φ/∂r by central differences of :data:`DIFFERENCE_STEP` (the position of the
+    closed form only); False where the map is not defined at a step or ∂φ/∂r is singular."""
     nc = grid[0].shape[3]
     g = np.empty(nc)
     wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
-    F, wa, wb, B, Fd, K = (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
-                           np.empty((3, 3)))
+    F, wa, wb, B = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     ev, phi_p, phi_m, x = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-    C_p, C_m = np.empty((3, 3)), np.empty((3, 3))
+    D = np.empty((3, 3))
     for k in range(3):
         for a in range(3):
             x[a] = r[a]
         x[k] = r[k] + DIFFERENCE_STEP
         usable, _ = _field_at(x, grid, g, wx, wy, wz, dx, dy, dz, F)
-        closed_form_one(F, h, phi_p, C_p, wa, wb, ev, B, Fd, K)
+        closed_form_position(F, h, phi_p, wa, wb, ev, B)
         x[k] = r[k] - DIFFERENCE_STEP
         usable_m, _ = _field_at(x, grid, g, wx, wy, wz, dx, dy, dz, F)
-        closed_form_one(F, h, phi_m, C_m, wa, wb, ev, B, Fd, K)
+        closed_form_position(F, h, phi_m, wa, wb, ev, B)
         if not (usable and usable_m):
             return False
         for a in range(3):
             D[a, k] = (phi_p[a] - phi_m[a]) / (2 * DIFFERENCE_STEP)
-        # C₊ C₋ᵀ ≈ exp([2 δ w]×): w from its antisymmetric part
-        for i in range(3):
-            for j in range(3):
-                s = 0.0
-                for b in range(3):
-                    s += C_p[i, b] * C_m[j, b]
-                B[i, j] = s
-        W[0, k] = (B[2, 1] - B[1, 2]) / (4 * DIFFERENCE_STEP)
-        W[1, k] = (B[0, 2] - B[2, 0]) / (4 * DIFFERENCE_STEP)
-        W[2, k] = (B[1, 0] - B[0, 1]) / (4 * DIFFERENCE_STEP)
-    return True
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _jacobian_inverse(r, h, grid, H):
-    """H = (∂φ/∂r)⁻¹ at r (3,) by central differences; False where it is singular or not defined."""
-    D, W = np.empty((3, 3)), np.empty((3, 3))
-    return _map_derivatives(r, h, grid, D, W) and _inverse3(D, H)
+    return _inverse3(D, H)
 
 
 @numba.njit(cache=True, error_model="numpy")
