@@ -137,13 +137,13 @@ def _accumulate(pairs: PosePairs, basis: Basis, coefficients: np.ndarray, fold: 
             X = (_design(J, b) * weight[None, :, None]).reshape(-1, P)
             y = (e + (X @ coefficients.reshape(-1)).reshape(-1, 6)).reshape(-1)  # the absolute form's target
             sse += float(np.sum(e**2))
-            upper = dsyrk(1.0, X.T, trans=0)  # the upper triangle of XᵀX: half the work of a general product
-            normal.gram[k] += upper + np.triu(upper, 1).T
+            normal.gram[k] += dsyrk(1.0, X.T, trans=0)  # the upper triangle of XᵀX: half a general product's work
             normal.rhs[k] += X.T @ y
             normal.yy[k] += y @ y
             normal.count[k] += len(sub)
             if progress is not None:
                 progress(len(sub))
+    normal.gram += np.triu(normal.gram, 1).swapaxes(1, 2)  # the lower triangles, once
     return normal, float(np.sqrt(sse / max(len(pairs), 1)))
 
 
