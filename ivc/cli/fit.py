@@ -92,6 +92,11 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
         lines.append(f"Signal noise: {noise['sigma']:.3g} per entry, measured{source} on {', '.join(noise['steps'])} "
                      f"({noise['pairs']} frame pairs; per-sensor spread {noise['spread']:.2f}x): `ivc correct` "
                      "predicts each pose's precision from it and flags those over 0.8 mm RMS (docs/trust.md)")
+    error = report.map_error
+    if error:
+        lines.append(f"Map error: {error['position_mm']:.4f} mm / {error['orientation_mrad']:.4f} mrad RMS in the "
+                     "reported pose, from the residuals that revisits of one place share; added to each pose's "
+                     "predicted precision")
     if seconds is not None:
         lines.append(f"Done in {seconds:.1f} s")
     return "\n".join(lines)

@@ -216,15 +216,19 @@ class PoseCorrector:
     track) from its nearest probe and that probe's partner, and flag distinct mapped solutions.
     ``precision``, ``max_precision`` (m), ``signal_noise``: the predicted precision and its gate, as
     :class:`~ivc.correct.Corrector`'s (the noise: what the table's fit measured on the reported poses of the
-    static steps, or on their signals).
+    static steps, or on their signals). ``table_error``: add the map's own error that the table's fit measured
+    (:attr:`~ivc.table.lookup.LookupTable.map_error`) to the predicted precision, in quadrature.
     """
 
     def __init__(self, table: LookupTable | GridField, hemisphere: str | None = None, interpolation: str = "cubic",
                  solver: str | None = None, max_residual: float = MAX_RESIDUAL_M,
                  max_iterations: int = MAX_ITERATIONS, tolerance: float = TOLERANCE, check_ambiguity: bool = True,
                  precision: bool = True, max_precision: float | str | None = DEFAULT,
-                 signal_noise: float | None = None):
+                 signal_noise: float | None = None, table_error: bool = True):
         self.field = table.field(interpolation) if isinstance(table, LookupTable) else table
+        error = table.map_error if table_error and isinstance(table, LookupTable) else None
+        #: the map's own RMS error (position m, orientation rad) added to the predicted precision
+        self.map_error = (0.0, 0.0) if error is None else error
         if solver is None:
             solver = table_solver(table) if isinstance(table, LookupTable) else "closed-form"
         self.solver = check_solver(solver)
@@ -310,9 +314,10 @@ class PoseCorrector:
     def predict_precision(self, v: np.ndarray, Q: np.ndarray, r: np.ndarray, serial: bool = False
                           ) -> tuple[np.ndarray, np.ndarray]:
         """Predicted RMS position (n,) m and orientation (n,) rad errors of the poses corrected from reported
-        positions v (n, 3) m and rotations Q (n, 3, 3) to positions r (n, 3) m
-        (:func:`ivc.pose.precision.reported_pose_covariance`, compiled for the closed-form solver). NaN where
-        any of them is not finite."""
+        positions v (n, 3) m and rotations Q (n, 3, 3) to positions r (n, 3) m: the tracker's noise carried
+        through the map (:func:`ivc.pose.precision.reported_pose_covariance`, compiled for the closed-form
+        solver) and the map's own error (:attr:`map_error`), in quadrature. NaN where any of them is not
+        finite."""
         n = len(v)
         usable = np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(v), axis=1) & np.all(
             np.isfinite(Q.reshape(n, 9)), axis=1)
@@ -321,7 +326,7 @@ class PoseCorrector:
             out_r, out_a = np.empty(n), np.empty(n)
             kernel = compiled.choose(_pose_kernels.precision_serial if serial else _pose_kernels.precision_kernel, n)
             kernel(r_in, self._h, self.field.kernel_grid, float(self.gate.sigma), out_r, out_a)
-            return out_r, out_a
+            return self._with_map_error(out_r, out_a)
         at = np.where(usable[:, None], r, 1.0)
         g, dg, _ = self.field.evaluate(at)
         _, _, d_phi, d_omega, d_field = distortion(at, g.reshape(n, 3, 3), dg.reshape(n, 3, 3, 3), self.solver,
@@ -329,7 +334,14 @@ class PoseCorrector:
         Q = np.where(usable[:, None, None], Q, np.eye(3))
         out_r, out_a = traces(reported_pose_covariance(Q, d_phi, d_omega, d_field, float(self.gate.sigma)))
         out_r[~usable], out_a[~usable] = np.nan, np.nan
-        return out_r, out_a
+        return self._with_map_error(out_r, out_a)
+
+    def _with_map_error(self, position: np.ndarray, orientation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The predicted precision (m, rad) with the map's own error added in quadrature (in place)."""
+        if self.map_error != (0.0, 0.0):
+            np.hypot(position, self.map_error[0], out=position)
+            np.hypot(orientation, self.map_error[1], out=orientation)
+        return position, orientation
 
     def _ambiguous(self, v, Q, r, solved, serial) -> tuple[np.ndarray, np.ndarray]:
         """Whether each reported position v (n, 3) m, solved at r (n, 3) m where ``solved``, has another mapped

@@ -21,12 +21,13 @@ from ivc.fixtures.reported_mapping import DROP_REASONS
 from ivc.lut import harmonics
 from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
 from ivc.lut.fit_steps import ADVICE, check_enough, decimated, provenance
+from ivc.lut.map_error import BLOCK_SECONDS, shared_residual
 from ivc.lut.options import FitOptions
 from ivc.lut.support import mapped_nodes, node_support
-from ivc.pose.reported_fit import fit_through_tracker
-from ivc.pose.tracker_solver import check_solver
+from ivc.pose.reported_fit import ORIENTATION_LENGTH, PosePairs, fit_through_tracker, pose_residuals
+from ivc.pose.tracker_solver import check_solver, distortion
 from ivc.session import Session, SessionError
-from ivc.table.grid import Grid
+from ivc.table.grid import Grid, GridField
 from ivc.table.lookup import LookupTable
 
 #: the largest harmonic degree tried (cross-validated below it)
@@ -97,6 +98,8 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
     values = harmonic(grid.nodes())
     support = node_support(grid, pairs.position)
     valid = mapped_nodes(values, support, options.min_support)
+    map_error = table_error(pairs, GridField(grid, values, valid), sweep.time[pairs.frame], solver,
+                            session.hemisphere)
     dropped = dict(mapping.dropped)
     fit = {
         "method": "harmonic", **report, "input": "reported poses", "tracker_solver": solver,
@@ -108,7 +111,24 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
         "grid_from": "user" if options.origin is not None else "data (one-cell margin)",
         "min_support": options.min_support,
         "valid_nodes": int(valid.sum()),
+        "map_error": map_error,
     }
     fixtures = {"vertices": model.vertices, "interpolant": "HarmonicField (through the tracker model)"}
     parameters = {**options.describe(), "tracker_solver": solver, "max_pairs": max_pairs}
     return LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance(parameters, source, fixtures))
+
+
+def table_error(pairs: PosePairs, field: GridField, time: np.ndarray, solver: str, hemisphere: str) -> dict:
+    """The map's own error at the sweep's kept ``pairs`` (all of them, not only those the fit used), as
+    corrections use it (``field``: the table's interpolated field), from the residuals that revisits of one
+    place share (:func:`ivc.lut.map_error.shared_residual`; ``time`` (N,) s of each pair): the reported
+    position's (mm) and orientation's (mrad) RMS error. Pairs outside the mapped volume are left out."""
+    g, _, inside = field.evaluate(pairs.position)
+    pairs = pairs.subset(inside)
+    position, turn = distortion(pairs.position, g[inside].reshape(-1, 3, 3), solver=solver, hemisphere=hemisphere)
+    residual = pose_residuals(pairs, position, turn)
+    error = [shared_residual(pairs.position, part, time[inside], field.grid) for part in
+             (residual[:, :3], residual[:, 3:] / ORIENTATION_LENGTH)]
+    return {"position_mm": 1000 * error[0], "orientation_mrad": 1000 * error[1], "block_seconds": BLOCK_SECONDS,
+            "method": "residuals of the interpolated map that revisits of one grid cell in different time blocks "
+                      "share"}

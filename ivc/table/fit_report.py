@@ -83,7 +83,9 @@ class FitReport:
     (equivalent sources); ``cv_folds`` and ``cv_rms_mm``, the blocked cross-validation score (None when the
     fit had none to choose); ``refinement`` (single sweep), ``rounds`` with ``never_touched_mapped_region`` and
     ``error_by_distance`` (joint solve); ``reported_poses`` (a fit from reported poses, else None);
-    ``signal_noise``: the tracker's noise measured on the static steps (:mod:`ivc.lut.signal_noise`), or None.
+    ``signal_noise``: the tracker's noise measured on the static steps (:mod:`ivc.lut.signal_noise`), or None;
+    ``map_error``: the map's own error in the reported pose (``position_mm``, ``orientation_mrad``;
+    :mod:`ivc.lut.map_error`), or None (fits from signals).
     """
 
     method: str
@@ -107,6 +109,7 @@ class FitReport:
     error_by_distance: tuple[dict, ...] = ()
     reported_poses: ReportedPoseInput | None = None
     signal_noise: dict | None = None
+    map_error: dict | None = None
     stored: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -162,5 +165,6 @@ class FitReport:
             error_by_distance=tuple(fit.get("error_by_distance", [])),
             reported_poses=reported,
             signal_noise=fit.get("signal_noise"),
+            map_error=fit.get("map_error"),
             stored=copy.deepcopy(fit),
         )

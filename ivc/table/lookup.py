@@ -89,6 +89,16 @@ class LookupTable:
         noise = self.fit.get("signal_noise")
         return float(noise["sigma"]) if noise else None
 
+    @property
+    def map_error(self) -> tuple[float, float] | None:
+        """The map's own RMS error that its fit measured, in the reported pose (position m, orientation rad;
+        ``fit["map_error"]``, :mod:`ivc.lut.map_error`), or None when the table records none (fits from
+        signals, older tables)."""
+        error = self.fit.get("map_error")
+        if not error:
+            return None
+        return 1e-3 * float(error["position_mm"]), 1e-3 * float(error["orientation_mrad"])
+
     def field(self, interpolation: str = "cubic") -> GridField:
         """The interpolated field ``g(r)`` with its Jacobian and the mapped-volume test."""
         return GridField(self.grid, self.values, self.valid, interpolation)
