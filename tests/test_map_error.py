@@ -9,7 +9,8 @@ from ivc import rotations
 from ivc.correct import PoseCorrector
 from ivc.errors import InputError
 from ivc.lut.map_error import shared_residual
-from ivc.lut.reported_build import table_error
+from ivc.lut.reported_build import DISAGREEMENT, table_error
+from ivc.pose.precision import reported_noise
 from ivc.pose.reported_fit import PosePairs
 from ivc.pose.tracker_solver import distortion
 from ivc.table.grid import Grid
@@ -107,3 +108,28 @@ def test_the_map_error_adds_to_the_predicted_precision_in_quadrature(exact_table
     streamed = PoseCorrector(table, max_precision=None)
     one = streamed.update(v[:1], C[:1])
     assert one.precision[0] == pytest.approx(with_error.precision[0], rel=1e-6)
+
+
+def test_samples_that_disagree_with_the_map_beyond_the_noise_make_its_error_their_spread(rng):
+    """Samples whose reported positions scatter as the tracker's noise: no excess. Samples that are off by 20x
+    that noise, each its own way (no revisit shares it): the map error is their RMS beyond 5x the noise."""
+    r, t = visits(rng, 20_000)
+    T = rotations.to_matrix(rotations.random(len(r), rng))
+    v, C = distortion(r, quadratic_field(r))
+    sigma = 1e-3
+    noise = reported_noise(v, C @ T, sigma)
+    table = perturbed_table(0.0)
+
+    def pairs_with(spread):
+        off = spread[:, None] * rng.standard_normal(r.shape) / np.sqrt(3)
+        return PosePairs(r, T, v + off, C @ T, np.arange(len(r)), np.ones(len(r), int))
+
+    quiet = table_error(pairs_with(noise), table.field(), t, "closed-form", "+x", sigma)
+    assert quiet["disagreement"] < 1.2 and quiet["excess_position_mm"] == 0
+    loud_pairs = pairs_with(20 * noise)
+    loud = table_error(loud_pairs, table.field(), t, "closed-form", "+x", sigma)
+    length2 = np.sum((loud_pairs.reported_position - v) ** 2, axis=1)
+    expected = np.sqrt(np.mean(length2) - DISAGREEMENT**2 * np.mean(noise**2))
+    assert loud["disagreement"] > 15
+    assert 1e-3 * loud["position_mm"] == pytest.approx(expected, rel=0.02)
+    assert loud["shared_position_mm"] < 0.2 * loud["position_mm"]  # no revisit shares it

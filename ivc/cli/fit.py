@@ -95,8 +95,15 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
     error = report.map_error
     if error:
         lines.append(f"Map error: {error['position_mm']:.4f} mm / {error['orientation_mrad']:.4f} mrad RMS in the "
-                     "reported pose, from the residuals that revisits of one place share; added to each pose's "
-                     "predicted precision")
+                     "reported pose; added to each pose's predicted precision")
+        if error.get("excess_position_mm"):
+            lines.append(
+                f"  warning: the sweep's samples disagree with the map {error['disagreement']:.1f} times more than "
+                "the tracker's noise explains (median): sensor 0's poses traced through the cube's 8 vertex poses "
+                "are off in this room, and how far off the corrections are ivc cannot tell better than the "
+                f"samples' spread about the map, {error['excess_position_mm']:.2f} mm RMS. Poses predicted worse "
+                "than the precision limit are flagged (16). Record the session with signals if the tracker gives "
+                "them, or survey the cube at a second placement (docs/trust.md)")
     if seconds is not None:
         lines.append(f"Done in {seconds:.1f} s")
     return "\n".join(lines)

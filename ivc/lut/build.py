@@ -128,7 +128,7 @@ def _fit_signals(session: Session, measurement: SignalInput, options: FitOptions
 def _fit_reported(session: Session, measurement: PoseInput, options: FitOptions, source: str | Path | None,
                   progress: Progress) -> LookupTable:
     """The reported-pose path (:func:`ivc.lut.reported_build.fit_pose_lut`)."""
-    return _with_signal_noise(fit_pose_lut(session, options, source, progress, solver=measurement.solver), session)
+    return fit_pose_lut(session, options, source, progress, solver=measurement.solver)  # measures the noise itself
 
 
 #: the fit path of each kind of measurement (:mod:`ivc.fixtures.measurement`): ``(session, measurement, options,

@@ -23,7 +23,9 @@ from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
 from ivc.lut.fit_steps import ADVICE, check_enough, decimated, provenance
 from ivc.lut.map_error import BLOCK_SECONDS, shared_residual
 from ivc.lut.options import FitOptions
+from ivc.lut.signal_noise import measure_signal_noise
 from ivc.lut.support import mapped_nodes, node_support
+from ivc.pose.precision import reported_noise
 from ivc.pose.reported_fit import ORIENTATION_LENGTH, PosePairs, fit_through_tracker, pose_residuals
 from ivc.pose.tracker_solver import check_solver, distortion
 from ivc.session import Session, SessionError
@@ -32,6 +34,9 @@ from ivc.table.lookup import LookupTable
 
 #: the largest harmonic degree tried (cross-validated below it)
 MAX_DEGREE = 10
+#: the samples disagree with the map when their median reported-position residual is more than this many times
+#: the tracker's noise there (measured: 1.9 on the default scene, 2.5 on the severe one, 19 on the strong one)
+DISAGREEMENT = 5.0
 #: pairs used by the fit at most (every k-th kept pair): the Gauss-Newton passes cost per pair
 MAX_PAIRS = 40_000
 
@@ -98,8 +103,9 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
     values = harmonic(grid.nodes())
     support = node_support(grid, pairs.position)
     valid = mapped_nodes(values, support, options.min_support)
+    noise = measure_signal_noise(session)
     map_error = table_error(pairs, GridField(grid, values, valid), sweep.time[pairs.frame], solver,
-                            session.hemisphere)
+                            session.hemisphere, None if noise is None else noise.sigma)
     dropped = dict(mapping.dropped)
     fit = {
         "method": "harmonic", **report, "input": "reported poses", "tracker_solver": solver,
@@ -112,23 +118,46 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
         "min_support": options.min_support,
         "valid_nodes": int(valid.sum()),
         "map_error": map_error,
+        "signal_noise": None if noise is None else noise.as_dict(),
     }
     fixtures = {"vertices": model.vertices, "interpolant": "HarmonicField (through the tracker model)"}
     parameters = {**options.describe(), "tracker_solver": solver, "max_pairs": max_pairs}
     return LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance(parameters, source, fixtures))
 
 
-def table_error(pairs: PosePairs, field: GridField, time: np.ndarray, solver: str, hemisphere: str) -> dict:
+def table_error(pairs: PosePairs, field: GridField, time: np.ndarray, solver: str, hemisphere: str,
+                sigma: float | None = None) -> dict:
     """The map's own error at the sweep's kept ``pairs`` (all of them, not only those the fit used), as
-    corrections use it (``field``: the table's interpolated field), from the residuals that revisits of one
-    place share (:func:`ivc.lut.map_error.shared_residual`; ``time`` (N,) s of each pair): the reported
-    position's (mm) and orientation's (mrad) RMS error. Pairs outside the mapped volume are left out."""
+    corrections use it (``field``: the table's interpolated field): the reported position's (mm) and
+    orientation's (mrad) RMS error. Pairs outside the mapped volume are left out.
+
+    Two parts, the larger counts: the residual that revisits of one place share
+    (:func:`ivc.lut.map_error.shared_residual`; ``time`` (N,) s of each pair), and, when the samples disagree
+    with the map by more than :data:`DISAGREEMENT` times the tracker's noise at the median (``sigma``: its
+    white noise per signal entry; :func:`ivc.pose.precision.reported_noise` at each reported pose), the RMS
+    residual beyond that many times the noise: the samples themselves are off (sensor 0's tracing in the
+    cube), in a way no revisit shares, the map averaged them, and how far off it is ivc cannot tell better
+    than the samples' own spread."""
     g, _, inside = field.evaluate(pairs.position)
     pairs = pairs.subset(inside)
     position, turn = distortion(pairs.position, g[inside].reshape(-1, 3, 3), solver=solver, hemisphere=hemisphere)
     residual = pose_residuals(pairs, position, turn)
-    error = [shared_residual(pairs.position, part, time[inside], field.grid) for part in
-             (residual[:, :3], residual[:, 3:] / ORIENTATION_LENGTH)]
-    return {"position_mm": 1000 * error[0], "orientation_mrad": 1000 * error[1], "block_seconds": BLOCK_SECONDS,
-            "method": "residuals of the interpolated map that revisits of one grid cell in different time blocks "
-                      "share"}
+    residual[:, 3:] /= ORIENTATION_LENGTH
+    shared = [shared_residual(pairs.position, part, time[inside], field.grid) for part in
+              (residual[:, :3], residual[:, 3:])]
+    out = {"shared_position_mm": 1000 * shared[0], "shared_orientation_mrad": 1000 * shared[1],
+           "block_seconds": BLOCK_SECONDS}
+    error = list(shared)
+    if sigma is not None and len(pairs):
+        length = np.linalg.norm(residual[:, :3], axis=1)
+        noise = reported_noise(pairs.reported_position, pairs.reported_rotation, sigma)
+        ratio = float(np.median(length / noise))
+        excess = turn_excess = 0.0
+        if ratio > DISAGREEMENT:  # RMS beyond the noise allowed: the tail counts, a flag is a promise
+            typical = float(np.sqrt(np.mean(length**2)))
+            excess = float(np.sqrt(max(typical**2 - DISAGREEMENT**2 * float(np.mean(noise**2)), 0.0)))
+            turn_excess = excess / typical * float(np.sqrt(np.mean(np.sum(residual[:, 3:] ** 2, axis=1))))
+        error = [max(shared[0], excess), max(shared[1], turn_excess)]
+        out.update(disagreement=ratio, excess_position_mm=1000 * excess)
+    out.update(position_mm=1000 * error[0], orientation_mrad=1000 * error[1])
+    return out
