@@ -18,7 +18,6 @@ from pathlib import Path
 
 from ivc import lut
 from ivc import session as session_io
-from ivc.correct import Corrector
 from ivc.correct.evaluate import evaluate
 from ivc.lut.options import FitOptions, Progress
 from ivc.session import Session, Step
@@ -101,8 +100,7 @@ def run(scene: str | Scene = "default", *, seed: int = 0, sweep_frames: int = 10
     if result.table_file is not None:
         lut.write(result.table, result.table_file, overwrite=force)
     stage("evaluate", result)
-    # with the signal noise the fit measured, each check pose's predicted precision is reported beside its error
-    corrector = Corrector(result.table, result.session.hemisphere,
-                          precision=result.table.signal_noise is not None)
-    result.report = evaluate(corrector, result.session)
+    # the corrector of the session's kind (signals or reported poses) with the table's default trust test: the
+    # precision from the signal noise the fit measured (and, for reported poses, the map's own error)
+    result.report = evaluate(result.table, result.session)
     return result

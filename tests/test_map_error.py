@@ -133,3 +133,18 @@ def test_samples_that_disagree_with_the_map_beyond_the_noise_make_its_error_thei
     assert loud["disagreement"] > 15
     assert 1e-3 * loud["position_mm"] == pytest.approx(expected, rel=0.02)
     assert loud["shared_position_mm"] < 0.2 * loud["position_mm"]  # no revisit shares it
+
+
+@pytest.mark.slow
+def test_the_pose_only_demo_corrects_with_the_tables_trust_test():
+    """`ivc demo --pose-only` evaluated its check poses with a corrector built from the table's field alone: no
+    signal noise, so no predicted precision, no map error and no precision gate. Now the table's own."""
+    from ivc import demo as ivc_demo
+
+    result = ivc_demo.run(sweep_frames=3000, check_frames=300, pose_only=True)
+    error = result.table.map_error
+    assert error is not None and 0 < error[0] < 1e-3
+    assert result.table.fit["map_error"]["disagreement"] < 5
+    report = result.report
+    assert report["input"] == "reported poses"
+    assert 0.3 < report["predicted_precision"]["error_over_predicted_median"] < 3

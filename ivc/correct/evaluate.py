@@ -110,8 +110,8 @@ def check_errors(table: LookupTable | Corrector | PoseCorrector, check: Session,
         corrector = table
     elif isinstance(table, PoseCorrector):
         raise SessionError(f"the {step!r} step holds signals: evaluate it with a signal Corrector")
-    elif isinstance(table, Corrector):  # a signal corrector's table, for reported poses
-        corrector = corrector_for(measurement, table.field, table.hemisphere)
+    elif isinstance(table, Corrector):  # a signal corrector's table, for reported poses, with its noise
+        corrector = corrector_for(measurement, table.field, table.hemisphere, signal_noise=table.gate.sigma)
     else:
         corrector = corrector_for(measurement, table, check.hemisphere)
     out = corrector.batch(*measurement.data(data), valid)
