@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from ivc import compiled, dipole
+from ivc.correct import reported
 from ivc.correct import reported_kernels as kernels
 from ivc.correct.reported import REGION, RIVALS, PoseCorrector, SeedMap
 from ivc.errors import InputError
@@ -101,9 +102,13 @@ def test_queries_on_the_criteria_boundaries_match_the_brute_force_ones(folded_se
     assert len(rows) > 100
 
 
-def test_exact_ties_are_broken_by_region_key_then_probe_index():
+@pytest.mark.parametrize("layout", ["mixed", "one reach", "coarse"])
+def test_exact_ties_are_broken_by_region_key_then_probe_index(layout, monkeypatch):
     """Probes on a lattice, their images on another (exact binary fractions), queries on lattice points: many
-    candidates at exactly equal distances, in equal and in different regions."""
+    candidates at exactly equal distances, in equal and in different regions. ``mixed``: some probes too wide to
+    register; ``one reach``: every probe's the same; ``coarse``: a cap on the registrations makes the cells wider."""
+    if layout == "coarse":
+        monkeypatch.setattr(reported, "IMAGE_GRID_ITEMS", 3000)
     spacing = 0.25
     axis = np.arange(8) * spacing
     points = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -112,9 +117,12 @@ def test_exact_ties_are_broken_by_region_key_then_probe_index():
     reach = np.full(len(points), 0.125)
     reach[rng.random(len(points)) < 0.2] = 0.375
     reach[rng.random(len(points)) < 0.01] = 3.0  # wide: tested by every query
+    if layout == "one reach":
+        reach[:] = 0.375
     region = regions(points, spacing)
     grid = tuple(SeedMap._grid_over_images(images, reach))
-    assert len(grid[5]) > 0  # some probes are wide
+    assert (len(grid[5]) > 0) == (layout == "mixed")  # the wide probes (coarse cells hold them all)
+    assert grid[1] == np.median(reach) or layout == "coarse" and grid[1] > np.median(reach)  # the cell size
     probes = tuple(kernels.RivalProbes(points, images, reach, region))
     v = images[rng.integers(0, len(images), 400)] + rng.choice([0.0, 0.0625, -0.125], (400, 3))
     r = points[rng.integers(0, len(points), 400)]

@@ -68,8 +68,10 @@ RIVAL_NOISE = 4.0
 RIVALS = 4
 #: the regions rival probes are picked from: blocks of this many probe spacings
 REGION = 3
-#: the rival search's grid over image space has at most this many cells
+#: the rival search's grid over image space has at most this many cells, and registers its probes at most this many
+#: times (cells of their boxes)
 IMAGE_GRID_CELLS = 2 ** 21
+IMAGE_GRID_ITEMS = 2 ** 23
 #: a probe whose image neighbourhood spans more grid cells than this per axis is tested by every rival search
 WIDE = 32
 
@@ -135,27 +137,26 @@ class SeedMap:
 
     @staticmethod
     def _grid_over_images(images: np.ndarray, reach: np.ndarray) -> _pose_kernels.ImageGrid:
-        """A uniform grid over image space (:data:`~ivc.correct.reported_kernels.ImageGrid`) of cells half the median
-        ``reach`` (m) wide, at most :data:`IMAGE_GRID_CELLS` of them: each probe registered in every cell its image
-        (M, 3) m's ball of its reach (M,) m touches, or, where its box would span more than :data:`WIDE` cells per
+        """A uniform grid over image space (:data:`~ivc.correct.reported_kernels.ImageGrid`) of cells the median
+        ``reach`` (m) wide, or wider where it would have more than :data:`IMAGE_GRID_CELLS` cells or register the
+        probes more than :data:`IMAGE_GRID_ITEMS` times: each probe registered in every cell that the ball of its
+        reach (M,) m about its image (M, 3) m touches, or, where its box would span more than :data:`WIDE` cells per
         axis, listed as wide (every query tests it). The balls and boxes are ``pad`` wider than the reach: a probe
         the search takes (its distance computed in floating point) is never lost to the rounding of a cell's
         bounds."""
-        size = float(np.median(reach)) / 2
+        size = float(np.median(reach))
         while True:
             pad = 1e-6 * size
             wide = 2 * (reach + 2 * pad) / size + 2 > WIDE
             low_edge, high_edge = images - (reach + 2 * pad)[:, None], images + (reach + 2 * pad)[:, None]
-            if wide.all():
-                origin, shape = np.min(images, axis=0), np.ones(3, dtype=np.int64)
+            origin = np.min(low_edge[~wide], axis=0)  # at least half the probes are not wide: the median's
+            low = np.floor((low_edge - origin) / size).astype(np.int64)
+            width = np.floor((high_edge - origin) / size).astype(np.int64) - low + 1
+            shape = np.max(low[~wide] + width[~wide], axis=0)
+            grow = max(np.prod(shape) / IMAGE_GRID_CELLS, np.sum(np.prod(width[~wide], axis=1)) / IMAGE_GRID_ITEMS)
+            if grow <= 1:
                 break
-            origin = np.min(low_edge[~wide], axis=0)
-            shape = np.floor((np.max(high_edge[~wide], axis=0) - origin) / size).astype(np.int64) + 1
-            if np.prod(shape) <= IMAGE_GRID_CELLS:
-                break
-            size *= 1.01 * (np.prod(shape) / IMAGE_GRID_CELLS) ** (1 / 3)
-        low = np.floor((low_edge - origin) / size).astype(np.int64)
-        width = np.floor((high_edge - origin) / size).astype(np.int64) - low + 1
+            size *= 1.01 * grow ** (1 / 3)
         listed = np.flatnonzero(~wide)
         counts = np.prod(width[listed], axis=1)
         owner = np.repeat(listed, counts)
