@@ -502,7 +502,7 @@ def _nearest_regions(candidate, distance, m, region, found):
 @numba.njit(cache=True, error_model="numpy")
 def rivals_range(v, r, tolerance, probes, grid, apart, out, first, last):
     """The rival probes of samples ``first``…``last − 1``: reported positions v (n, 3) m solved at r (n, 3) m,
-    with their ``tolerance`` (n,) m; per sample, among the probes :func:`_consider` takes (farther than ``apart``
+    with their ``tolerance`` (n,) m; per sample, among the probes :func:`_rival_distance` takes (farther than ``apart``
     (m) from r), the nearest in image of each region, then the ``limit`` nearest regions (:func:`_nearest_regions`;
     ``limit``: the width of ``out.probe``). ``probes``, ``grid``, ``out``: a :data:`RivalProbes`, :data:`ImageGrid`
     and :data:`RivalOutput`. No rivals where v or the tolerance is not finite."""
