@@ -34,6 +34,7 @@ least-squares solver, :func:`ivc.pose.reported.invert_distortion` (NumPy) does.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -391,6 +392,11 @@ class PoseCorrector:
         idx = np.concatenate([np.arange(n), np.flatnonzero(has), rows])
         start = np.concatenate([p_start, q_start[has], r_start])
         H = np.concatenate([p_H, q_H[has], r_H])
+        # numba's threads take equal contiguous shares: interleave the cheap nearest-probe starts with the partner and
+        # rival ones (about twice the iterations each). Every inversion is its own, so the order changes no result
+        threads = numba.get_num_threads()
+        order = np.concatenate([np.arange(t, len(idx), threads) for t in range(threads)])
+        idx, start, H = idx[order], start[order], H[order]
         r2, _, miss2, _, it2, mapped2 = self._invert(np.ascontiguousarray(v[idx]), np.ascontiguousarray(start),
                                                      np.ascontiguousarray(H), serial, _pose_kernels.RESTARTS)
         other = mapped2 & (miss2 <= tolerance[idx]) & (np.linalg.norm(r2 - r[idx], axis=1) > AMBIGUITY)
