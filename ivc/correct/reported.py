@@ -34,6 +34,7 @@ least-squares solver, :func:`ivc.pose.reported.invert_distortion` (NumPy) does.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -68,6 +69,12 @@ RIVAL_NOISE = 4.0
 RIVALS = 4
 #: the regions rival probes are picked from: blocks of this many probe spacings
 REGION = 3
+#: the rival search's grid over image space has at most this many cells, and registers its probes at most this many
+#: times (cells of their boxes)
+IMAGE_GRID_CELLS = 2 ** 21
+IMAGE_GRID_ITEMS = 2 ** 23
+#: a probe whose image neighbourhood spans more grid cells than this per axis is tested by every rival search
+WIDE = 32
 
 
 class SeedMap:
@@ -123,48 +130,70 @@ class SeedMap:
         # every point of a probe's cell maps within ``cell_reach`` of the probe's image
         self.cell_reach = stretch * self.spacing * np.sqrt(3.0) / 2
         self.max_cell_reach = float(np.max(self.cell_reach))
-        # the probes by cell reach, in bins a factor 2 apart, each with its own tree: a query asks each bin
-        # for its own reach, not every probe for the largest
-        level = np.floor(np.log2(self.cell_reach / np.min(self.cell_reach))).astype(int)
-        self._bins = []
-        for b in np.unique(level):
-            members = np.flatnonzero(level == b)
-            self._bins.append((members, float(np.max(self.cell_reach[members])), cKDTree(self.images[members])))
+        # the rival search's probes (their region keys: blocks of REGION probe spacings) and its grid over image space
+        block = np.floor(self.probes / (REGION * self.spacing)).astype(np.int64)
+        region = (block[:, 0] * 1_000_003 + block[:, 1]) * 1_000_003 + block[:, 2]
+        self._rival_probes = tuple(_pose_kernels.RivalProbes(self.probes, self.images, self.cell_reach, region))
+        self._image_grid = tuple(self._grid_over_images(self.images, self.cell_reach))
 
-    def rivals(self, v: np.ndarray, r: np.ndarray, tolerance: np.ndarray, limit: int = RIVALS
+    @staticmethod
+    def _grid_over_images(images: np.ndarray, reach: np.ndarray) -> _pose_kernels.ImageGrid:
+        """A uniform grid over image space (:data:`~ivc.correct.reported_kernels.ImageGrid`) of cells the median
+        ``reach`` (m) wide, or wider where it would have more than :data:`IMAGE_GRID_CELLS` cells or register the
+        probes more than :data:`IMAGE_GRID_ITEMS` times: each probe registered in every cell that the ball of its
+        reach (M,) m about its image (M, 3) m touches, or, where its box would span more than :data:`WIDE` cells per
+        axis, listed as wide (every query tests it). The balls and boxes are ``pad`` wider than the reach: a probe
+        the search takes (its distance computed in floating point) is never lost to the rounding of a cell's
+        bounds."""
+        size = float(np.median(reach))
+        while True:
+            pad = 1e-6 * size
+            wide = 2 * (reach + 2 * pad) / size + 2 > WIDE
+            low_edge, high_edge = images - (reach + 2 * pad)[:, None], images + (reach + 2 * pad)[:, None]
+            origin = np.min(low_edge[~wide], axis=0)  # at least half the probes are not wide: the median's
+            low = np.floor((low_edge - origin) / size).astype(np.int64)
+            width = np.floor((high_edge - origin) / size).astype(np.int64) - low + 1
+            shape = np.max(low[~wide] + width[~wide], axis=0)
+            grow = max(np.prod(shape) / IMAGE_GRID_CELLS, np.sum(np.prod(width[~wide], axis=1)) / IMAGE_GRID_ITEMS)
+            if grow <= 1:
+                break
+            size *= 1.01 * grow ** (1 / 3)
+        listed = np.flatnonzero(~wide)
+        counts = np.prod(width[listed], axis=1)
+        owner = np.repeat(listed, counts)
+        k = np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
+        ny, nz = width[owner, 1], width[owner, 2]
+        index = low[owner] + np.stack([k // (ny * nz), (k // nz) % ny, k % nz], axis=1)
+        # the cells of each box that its ball touches
+        corner = origin + size * index
+        gap = images[owner] - np.clip(images[owner], corner, corner + size)
+        touches = np.linalg.norm(gap, axis=1) <= reach[owner] + 2 * pad
+        owner, index = owner[touches], index[touches]
+        cell = (index[:, 0] * shape[1] + index[:, 1]) * shape[2] + index[:, 2]
+        start = np.concatenate([[0], np.cumsum(np.bincount(cell, minlength=int(np.prod(shape))))])
+        items = owner[np.argsort(cell, kind="stable")]
+        return _pose_kernels.ImageGrid(origin, size, shape, start, items, np.flatnonzero(wide), pad)
+
+    def rivals(self, v: np.ndarray, r: np.ndarray, tolerance: np.ndarray, limit: int = RIVALS, serial: bool = False
                ) -> tuple[np.ndarray, np.ndarray]:
-        """Probes from which to look for another solution of ``φ(x) = v``: for reported positions v (n, 3) m
-        solved at r (n, 3) m, the probes farther than two probe spacings from r whose cell can map within
-        ``tolerance`` (n,) m of v (``|φ(p) − v| ≤ tolerance + cell_reach``), one per region (blocks of three
-        probe spacings; the nearest in image), at most ``limit`` regions per sample, nearest in image first.
-        Returns (sample rows, probe indices)."""
-        all_rows, all_probes = [], []
-        for members, reach, tree in self._bins:
-            found = tree.query_ball_point(v, tolerance + reach)
-            counts = np.fromiter((len(f) for f in found), dtype=np.int64, count=len(found))
-            if counts.sum():
-                all_rows.append(np.repeat(np.arange(len(v)), counts))
-                all_probes.append(members[np.concatenate([np.asarray(f, dtype=np.int64) for f in found])])
-        if not all_rows:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        rows, probes = np.concatenate(all_rows), np.concatenate(all_probes)
-        distance = np.linalg.norm(self.images[probes] - v[rows], axis=1)
-        keep = (distance - self.cell_reach[probes] <= tolerance[rows]) & (
-            np.linalg.norm(self.probes[probes] - r[rows], axis=1) > 2 * self.spacing)
-        rows, probes, distance = rows[keep], probes[keep], distance[keep]
-        # one probe per region (blocks of three probe spacings), the nearest in image; then the nearest regions
-        block = np.floor(self.probes[probes] / (REGION * self.spacing)).astype(np.int64)
-        key = (block[:, 0] * 1_000_003 + block[:, 1]) * 1_000_003 + block[:, 2]
-        order = np.lexsort((distance, key, rows))
-        rows, probes, key, distance = rows[order], probes[order], key[order], distance[order]
-        first = np.r_[True, (rows[1:] != rows[:-1]) | (key[1:] != key[:-1])] if len(rows) else np.zeros(0, bool)
-        rows, probes, distance = rows[first], probes[first], distance[first]
-        order = np.lexsort((distance, rows))
-        rows, probes = rows[order], probes[order]
-        start = np.r_[0, np.flatnonzero(rows[1:] != rows[:-1]) + 1] if len(rows) else np.zeros(0, np.int64)
-        rank = np.arange(len(rows)) - np.repeat(start, np.diff(np.r_[start, len(rows)]))
-        take = rank < limit
-        return rows[take], probes[take]
+        """Probes from which to look for another solution of ``φ(x) = v``: for reported positions v (n, 3) m solved at
+        r (n, 3) m, the probes farther than two probe spacings from r whose cell can map within ``tolerance`` (n,) m
+        of v (``|φ(p) − v| − cell_reach ≤ tolerance``), one per region (blocks of three probe spacings; the nearest in
+        image), at most ``limit`` regions per sample, nearest in image first (ties: the smaller region key).
+        Returns (sample rows, probe indices), by row. Compiled
+        (:func:`ivc.correct.reported_kernels.rivals_kernel`, ``serial``: without threads), on a grid over the
+        probes' images built once."""
+        v, r = np.ascontiguousarray(v, dtype=float), np.ascontiguousarray(r, dtype=float)
+        tolerance = np.ascontiguousarray(tolerance, dtype=float)
+        n = len(v)
+        if v.shape != (n, 3) or r.shape != (n, 3) or tolerance.shape != (n,) or limit < 0:
+            raise InputError(f"the rival search needs positions (n, 3), solutions (n, 3) and tolerances (n,) and a "
+                             f"limit >= 0, got {v.shape}, {r.shape}, {tolerance.shape} and {limit}")
+        probe, count = np.empty((n, int(limit)), dtype=np.int64), np.empty(n, dtype=np.int64)
+        kernel = compiled.choose(_pose_kernels.rivals_serial if serial else _pose_kernels.rivals_kernel, n)
+        kernel(v, r, tolerance, self._rival_probes, self._image_grid, 2 * self.spacing,
+               tuple(_pose_kernels.RivalOutput(probe, count)))
+        return np.repeat(np.arange(n), count), probe[np.arange(int(limit)) < count[:, None]]
 
     def start_from(self, probes: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The linear start ``p + (∂φ/∂r)⁻¹ (v − φ(p))`` (n, 3) and its inverse Jacobian (n, 3, 3) from probes."""
@@ -358,11 +387,16 @@ class PoseCorrector:
             tolerance = np.maximum(tolerance, np.where(np.isfinite(noise), RIVAL_NOISE * noise, np.inf))
         p_start, p_H, q_start, q_H = self.seeds.starts(v)
         has = np.all(np.isfinite(q_start), axis=1)
-        rows, probes = self.seeds.rivals(v, r, np.minimum(tolerance, self.seeds.reach))
+        rows, probes = self.seeds.rivals(v, r, np.minimum(tolerance, self.seeds.reach), serial=serial)
         r_start, r_H = self.seeds.start_from(probes, v[rows])
         idx = np.concatenate([np.arange(n), np.flatnonzero(has), rows])
         start = np.concatenate([p_start, q_start[has], r_start])
         H = np.concatenate([p_H, q_H[has], r_H])
+        # numba's threads take equal contiguous shares: interleave the cheap nearest-probe starts with the partner and
+        # rival ones (about twice the iterations each). Every inversion is its own, so the order changes no result
+        threads = numba.get_num_threads()
+        order = np.concatenate([np.arange(t, len(idx), threads) for t in range(threads)])
+        idx, start, H = idx[order], start[order], H[order]
         r2, _, miss2, _, it2, mapped2 = self._invert(np.ascontiguousarray(v[idx]), np.ascontiguousarray(start),
                                                      np.ascontiguousarray(H), serial, _pose_kernels.RESTARTS)
         other = mapped2 & (miss2 <= tolerance[idx]) & (np.linalg.norm(r2 - r[idx], axis=1) > AMBIGUITY)

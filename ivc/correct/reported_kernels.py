@@ -13,6 +13,10 @@ quaternions) and flags, for the batch; :func:`stream_kernel` does a live frame's
 correction, warm starts, inversion, attitude, flags and the sensors' new warm starts, in one
 call, with the same steps in the same order, so a frame streamed and the same samples batched
 differ only by where each inversion started.
+
+:func:`rivals_kernel` finds the probes the ambiguity test starts its other inversions from
+(:meth:`ivc.correct.reported.SeedMap.rivals`): on a uniform grid over the probes' images, the probes
+whose cells can map onto the reported position, one per region, the nearest regions first.
 """
 
 from __future__ import annotations
@@ -436,3 +440,126 @@ def precision_serial(r, h, grid, sigma, position_out, orientation_out):  # pragm
     """:func:`precision_kernel` without threads: a live frame's few samples."""
     for n in range(r.shape[0]):
         position_out[n], orientation_out[n] = precision_one(r[n], h, grid, sigma)
+
+
+# --- the rival search (SeedMap.rivals): probes elsewhere whose cells can map onto the reported position -----------
+
+#: A seed map's probes for the rival search: ``points`` (M, 3) m, their ``images`` φ(points) (M, 3) m, each cell's
+#: ``cell_reach`` (M,) m (every point of the probe's cell maps within it of the probe's image) and the ``region``
+#: (M,) int64 key of the block of probes each lies in
+RivalProbes = namedtuple("RivalProbes", "points images cell_reach region")
+#: A uniform grid over image space (:class:`ivc.correct.reported.SeedMap` builds it): cell (i, j, k) spans
+#: ``origin + size * [i, i+1)``… (m), ``shape`` (3,) int64 cells; the probes registered in cell c (each in every
+#: cell its image's ball of cell_reach + 2 pad touches) are ``items[start[c]:start[c+1]]``, c = (i shape₁ + j) shape₂
+#: + k; ``wide`` (K,) int64 the probes too wide to register, which every query tests; ``pad`` (m) widens the balls
+#: and the query boxes so that the rounding of a cell's bounds never loses a probe
+ImageGrid = namedtuple("ImageGrid", "origin size shape start items wide pad")
+#: The rival probes of each sample n: ``probe[n, :count[n]]`` (n, limit) int64, nearest in image first
+RivalOutput = namedtuple("RivalOutput", "probe count")
+#: samples per task of the threaded rival search (each task keeps its own candidate buffer)
+RIVAL_CHUNK = 64
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _rival_distance(p, v, r, tolerance, points, images, cell_reach, apart):
+    """|φ(p) − v| (m) of probe p if its cell can map within ``tolerance`` of v (``|φ(p) − v| − cell_reach ≤
+    tolerance``) and it lies farther than ``apart`` from r (m); else −1. The arithmetic of the NumPy reference:
+    (d₀² + d₁²) + d₂², as ``np.linalg.norm`` sums a row."""
+    d0, d1, d2 = images[p, 0] - v[0], images[p, 1] - v[1], images[p, 2] - v[2]
+    d = np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
+    if not (d - cell_reach[p] <= tolerance):
+        return -1.0
+    a0, a1, a2 = points[p, 0] - r[0], points[p, 1] - r[1], points[p, 2] - r[2]
+    if not (np.sqrt((a0 * a0 + a1 * a1) + a2 * a2) > apart):
+        return -1.0
+    return d
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _nearest_regions(candidate, distance, m, region, found):
+    """The nearest region not taken yet, ``len(found)`` times, into ``found``: the candidate of least (distance,
+    region key, probe index) among those of the regions not taken (so each region's pick is its nearest probe,
+    and the regions come nearest first); returns how many regions there were, at most ``len(found)``."""
+    for rank in range(found.shape[0]):
+        best = -1
+        for s in range(m):
+            p = candidate[s]
+            fresh = True
+            for u in range(rank):
+                fresh = fresh and region[p] != region[found[u]]
+            if not fresh:
+                continue
+            if best < 0 or distance[s] < distance[best] or (distance[s] == distance[best] and (
+                    region[p] < region[candidate[best]]
+                    or (region[p] == region[candidate[best]] and p < candidate[best]))):
+                best = s
+        if best < 0:
+            return rank
+        found[rank] = candidate[best]
+    return found.shape[0]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def rivals_range(v, r, tolerance, probes, grid, apart, out, first, last):
+    """The rival probes of samples ``first``…``last − 1``: reported positions v (n, 3) m solved at r (n, 3) m,
+    with their ``tolerance`` (n,) m; per sample, among the probes :func:`_rival_distance` takes (farther than ``apart``
+    (m) from r), the nearest in image of each region, then the ``limit`` nearest regions (:func:`_nearest_regions`;
+    ``limit``: the width of ``out.probe``). ``probes``, ``grid``, ``out``: a :data:`RivalProbes`, :data:`ImageGrid`
+    and :data:`RivalOutput`. No rivals where v or the tolerance is not finite."""
+    origin, size, shape, start, items, wide, pad = grid
+    points, images, cell_reach, region = probes
+    found, count = out
+    candidate, distance = np.empty(16, dtype=np.int64), np.empty(16)
+    lo, hi, width = np.empty(3, dtype=np.int64), np.empty(3, dtype=np.int64), np.empty(3, dtype=np.int64)
+    for n in range(first, last):
+        t = tolerance[n]
+        count[n] = 0
+        if not (np.isfinite(t) and t >= 0.0 and np.isfinite(v[n, 0]) and np.isfinite(v[n, 1])
+                and np.isfinite(v[n, 2])):
+            continue
+        cells = 1
+        for a in range(3):  # the query box's cells in the grid (clipped as floats: no integer overflow)
+            lo[a] = np.int64(max(np.floor((v[n, a] - t - pad - origin[a]) / size), 0.0))
+            hi[a] = np.int64(min(np.floor((v[n, a] + t + pad - origin[a]) / size), shape[a] - 1.0))
+            width[a] = max(hi[a] - lo[a] + 1, 0)
+            cells *= width[a]
+        m = 0
+        here, solved = v[n], r[n]
+        for c in range(cells + 1):  # the query box's cells, then the wide probes
+            if c < cells:
+                i, j, k = lo[0] + c // (width[1] * width[2]), lo[1] + (c // width[2]) % width[1], lo[2] + c % width[2]
+                cell = (i * shape[1] + j) * shape[2] + k
+                listed, begin, end = items, start[cell], start[cell + 1]
+            else:
+                listed, begin, end = wide, 0, wide.shape[0]
+            for s in range(begin, end):
+                p = listed[s]
+                d = _rival_distance(p, here, solved, t, points, images, cell_reach, apart)
+                if d < 0.0:
+                    continue
+                if cells > 1:  # a probe registered in several cells of the query box: taken once
+                    again = False
+                    for u in range(m):
+                        again = again or candidate[u] == p
+                    if again:
+                        continue
+                if m == candidate.shape[0]:
+                    candidate = np.concatenate((candidate, np.empty(m, dtype=np.int64)))
+                    distance = np.concatenate((distance, np.empty(m)))
+                candidate[m], distance[m] = p, d
+                m += 1
+        count[n] = _nearest_regions(candidate, distance, m, region, found[n])
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def rivals_kernel(v, r, tolerance, probes, grid, apart, out):  # pragma: no cover - compiled
+    """:func:`rivals_range` over every sample, :data:`RIVAL_CHUNK` samples per thread task."""
+    n = v.shape[0]
+    for c in numba.prange((n + RIVAL_CHUNK - 1) // RIVAL_CHUNK):
+        rivals_range(v, r, tolerance, probes, grid, apart, out, c * RIVAL_CHUNK, min(n, (c + 1) * RIVAL_CHUNK))
+
+
+@numba.njit(cache=True, nogil=True)
+def rivals_serial(v, r, tolerance, probes, grid, apart, out):  # pragma: no cover - compiled
+    """:func:`rivals_kernel` without threads: a live frame's few samples."""
+    rivals_range(v, r, tolerance, probes, grid, apart, out, 0, v.shape[0])
