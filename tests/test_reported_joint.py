@@ -115,15 +115,16 @@ def test_the_wand_pose_is_the_agreeing_sensors_mean(wand):
 
 
 @pytest.mark.slow
-def test_extension_sweeps_of_reported_poses_map_the_box():
+def test_extension_sweeps_of_reported_poses_map_the_box(monkeypatch):
     from dataclasses import replace
+    from functools import partial
 
+    from ivc import lut
     from ivc.correct import PoseCorrector
     from ivc.correct.evaluate import check_errors
-    from ivc.lut import FitOptions
+    from ivc.lut import FitOptions, reported_joint
     from ivc.lut.joint import JointOptions, mapped_litres
     from ivc.lut.reported_build import fit_pose_lut
-    from ivc.lut.reported_joint import fit_pose_joint_lut
     from ivc.session import Session
     from ivc.sim import Simulator
     from ivc.sim.scene import scene_from_dict
@@ -139,9 +140,12 @@ def test_extension_sweeps_of_reported_poses_map_the_box():
     signals = Simulator(scene, seed=5).protocol(frames)
     session = Session(signals.hemisphere, {k: replace(s, signal=None) for k, s in signals.steps.items()},
                       signals.truth, signals.attrs)
-    # one round, sources 0.1 m apart and 8,000 samples: the cockpit benchmark runs the defaults
-    joint = JointOptions(max_iterations=1, max_extension_frames=1500, source_spacing=0.1, max_samples=8000)
-    table = fit_pose_joint_lut(session, FitOptions(), joint=joint)
+    # one round, sources 0.1 m apart and 8,000 samples: the cockpit benchmark runs the defaults. fit_lut takes the
+    # pose-only joint solve for a pose-only session with extension sweeps
+    monkeypatch.setattr(reported_joint, "JointOptions", partial(JointOptions, max_iterations=1,
+                                                                max_extension_frames=1500, source_spacing=0.1,
+                                                                max_samples=8000))
+    table = lut.fit_lut(session, FitOptions())
     cube = fit_pose_lut(session, FitOptions())
     rounds = table.fit["rounds"]
     assert [r["iteration"] for r in rounds] == [0, 1]

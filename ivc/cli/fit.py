@@ -49,8 +49,9 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
         lines.append(f"From reported poses alone (tracker solver {reported.tracker_solver}): cube field degree "
                      f"{reported.cube_degree}, vertex residual {reported.vertex_position_rms_mm:.4f} mm / "
                      f"{reported.vertex_orientation_rms_mrad:.4f} mrad RMS")
+        scored = "pose-equivalent, the pairs' field samples" if report.rounds else "reported-pose residual"
         lines.append(f"Fit: {report.method} through the tracker model, {report.model_text()}; {report.cv_folds}-fold "
-                     f"cross-validation RMS {report.cv_rms_mm:.4f} mm (reported-pose residual)")
+                     f"cross-validation RMS {report.cv_rms_mm:.4f} mm ({scored})")
     else:
         lines.append(f"Fit: {report.method}, {report.model_text()}; {report.cv_folds}-fold cross-validation RMS "
                      f"{report.cv_rms_mm:.4f} mm (pose-equivalent)")
