@@ -299,6 +299,8 @@ def test_a_pose_only_fit_says_it_left_extension_sweeps_out(small_session):
     extended = Session(poses.hemisphere, steps, poses.truth, poses.attrs)
     table = lut.fit_lut(extended, FitOptions(fitter=HarmonicFit(degree=3), max_frames=500))
     assert table.fit["extension_sweeps_ignored"] == ["extension_sweep_1"]
+    assert table.report.extension_sweeps_ignored == ("extension_sweep_1",)
     assert "warning: extension_sweep_1 not used" in render_fit(table)
     plain = lut.fit_lut(poses, FitOptions(fitter=HarmonicFit(degree=3), max_frames=500))
-    assert "extension_sweeps_ignored" not in plain.fit and "not used" not in render_fit(plain)
+    assert "extension_sweeps_ignored" not in plain.fit and plain.report.extension_sweeps_ignored == ()
+    assert "not used" not in render_fit(plain)

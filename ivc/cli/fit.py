@@ -37,9 +37,10 @@ def parse_grid(value: str | None) -> dict:
 
 
 def _cv_text(report, scored: str) -> str:
-    """The cross-validation score in words, or that there was none (a fixed model on too few folds' data)."""
+    """The cross-validation score in words, or that there was none: nothing to choose (a single damping given) or
+    nothing to hold out (data within one block of frames)."""
     if report.cv_rms_mm is None:
-        return "no cross-validation score (the model's size was given and the data too few to score it)"
+        return "no cross-validation score (the model was given, or the data too few to hold any out)"
     return f"{report.cv_folds}-fold cross-validation RMS {report.cv_rms_mm:.4f} mm ({scored})"
 
 
@@ -75,12 +76,11 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
         solved = ", ".join(f"{name} {n}" for name, n in step.frames_solved.items())
         lines.append(f"  round {step.iteration}: {step.samples} samples, {step.mapped_litres:.1f} litres "
                      f"mapped{change}; frames solved: {solved}")
-    ignored = table.fit.get("extension_sweeps_ignored")
-    if ignored:
-        lines.append(f"  warning: {', '.join(ignored)} not used: a map from reported poses alone covers the wand's "
-                     "reach around the cube (extension sweeps are mapped from signals only); poses beyond it are "
-                     "flagged as outside the mapped volume, and a pose truly beyond it can be reported, and "
-                     "trusted, where a mapped pose would be (docs/trust.md)")
+    if report.extension_sweeps_ignored:
+        lines.append(f"  warning: {', '.join(report.extension_sweeps_ignored)} not used: a map from reported poses "
+                     "alone covers the wand's reach around the cube (extension sweeps are mapped from signals only); "
+                     "poses beyond it are flagged as outside the mapped volume, and a pose truly beyond it can be "
+                     "reported, and trusted, where a mapped pose would be (docs/trust.md)")
     for name in report.never_touched_mapped_region:
         lines.append(f"  warning: {name} never touched the mapped region (no frame had two sensors in it): "
                      "record it again, starting with the wand's tip near the cube")
