@@ -68,8 +68,10 @@ def test_tdata_round_trip():
     assert all(np.allclose(message.tools[k], tools[k]) for k in tools)
 
 
-def _collect(client, frames_expected, timeout=10.0):
-    """Corrected matrices received by a pyigtl client, sensor by sensor."""
+def _collect(client, frames_expected, timeout=60.0):
+    """Corrected matrices received by a pyigtl client, sensor by sensor. ``timeout`` (s) bounds the wait for an
+    event, not a timing: the first frame may wait on ``ivc correct --live`` compiling its kernels on a loaded
+    machine (10 s was missed once, in CI beside a cold ``ivc demo``)."""
     out = []
     for name in SENSORS:
         message = client.wait_for_message(name + "_ivc", timeout=timeout)

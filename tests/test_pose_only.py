@@ -284,3 +284,23 @@ def test_live_transform_input_is_corrected_and_published_as_trusted_tdata(exact_
         np.testing.assert_allclose(f.payload[:3, 3] / 1000, expected.position[k, n], atol=2e-6)
     # a TDATA "ivc" with the trusted sensors is published per round (each round: the three sensors once)
     assert len(tdata) >= 8 and all(f.device_name == "ivc" for f in tdata)
+
+
+@pytest.mark.slow
+def test_a_pose_only_fit_says_it_left_extension_sweeps_out(small_session):
+    """The map from reported poses covers the cube's reach: extension sweeps are named as not used, and `ivc fit`
+    warns (docs/trust.md, "Poses beyond the map")."""
+    from ivc.cli.fit import render_fit
+
+    _, session = small_session
+    poses = without_signals(session)
+    steps = dict(poses.steps)
+    steps["extension_sweep_1"] = steps["wand_sweep"]
+    extended = Session(poses.hemisphere, steps, poses.truth, poses.attrs)
+    table = lut.fit_lut(extended, FitOptions(fitter=HarmonicFit(degree=3), max_frames=500))
+    assert table.fit["extension_sweeps_ignored"] == ["extension_sweep_1"]
+    assert table.report.extension_sweeps_ignored == ("extension_sweep_1",)
+    assert "warning: extension_sweep_1 not used" in render_fit(table)
+    plain = lut.fit_lut(poses, FitOptions(fitter=HarmonicFit(degree=3), max_frames=500))
+    assert "extension_sweeps_ignored" not in plain.fit and plain.report.extension_sweeps_ignored == ()
+    assert "not used" not in render_fit(plain)

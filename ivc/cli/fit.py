@@ -36,6 +36,14 @@ def parse_grid(value: str | None) -> dict:
                              "300,-200,-200:12,12,12:38.1)", param_hint="--grid")
 
 
+def _cv_text(report, scored: str) -> str:
+    """The cross-validation score in words, or that there was none: nothing to choose (a single damping given) or
+    nothing to hold out (data within one block of frames)."""
+    if report.cv_rms_mm is None:
+        return "no cross-validation score (the model was given, or the data too few to hold any out)"
+    return f"{report.cv_folds}-fold cross-validation RMS {report.cv_rms_mm:.4f} mm ({scored})"
+
+
 def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
     report, grid = table.report, table.grid
     samples, frames = report.samples, report.frames
@@ -50,11 +58,10 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
                      f"{reported.cube_degree}, vertex residual {reported.vertex_position_rms_mm:.4f} mm / "
                      f"{reported.vertex_orientation_rms_mrad:.4f} mrad RMS")
         scored = "pose-equivalent, the pairs' field samples" if report.rounds else "reported-pose residual"
-        lines.append(f"Fit: {report.method} through the tracker model, {report.model_text()}; {report.cv_folds}-fold "
-                     f"cross-validation RMS {report.cv_rms_mm:.4f} mm ({scored})")
+        lines.append(f"Fit: {report.method} through the tracker model, {report.model_text()}; "
+                     f"{_cv_text(report, scored)}")
     else:
-        lines.append(f"Fit: {report.method}, {report.model_text()}; {report.cv_folds}-fold cross-validation RMS "
-                     f"{report.cv_rms_mm:.4f} mm (pose-equivalent)")
+        lines.append(f"Fit: {report.method}, {report.model_text()}; {_cv_text(report, 'pose-equivalent')}")
     if report.outliers_downweighted:
         lines.append(f"  {report.outliers_downweighted} samples down-weighted as outliers (Huber)")
     if table.fit.get("model_choice"):  # the adaptive fit says which model the cross-validation chose, and why
@@ -70,6 +77,11 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
         solved = ", ".join(f"{name} {n}" for name, n in step.frames_solved.items())
         lines.append(f"  round {step.iteration}: {step.samples} samples, {step.mapped_litres:.1f} litres "
                      f"mapped{change}; frames solved: {solved}")
+    if report.extension_sweeps_ignored:
+        lines.append(f"  warning: {', '.join(report.extension_sweeps_ignored)} not used: a map from reported poses "
+                     "alone covers the wand's reach around the cube (extension sweeps are mapped from signals only); "
+                     "poses beyond it are flagged as outside the mapped volume, and a pose truly beyond it can be "
+                     "reported, and trusted, where a mapped pose would be (docs/trust.md)")
     for name in report.never_touched_mapped_region:
         lines.append(f"  warning: {name} never touched the mapped region (no frame had two sensors in it): "
                      "record it again, starting with the wand's tip near the cube")

@@ -28,7 +28,7 @@ from ivc.lut.support import mapped_nodes, node_support
 from ivc.pose.precision import reported_noise
 from ivc.pose.reported_fit import ORIENTATION_LENGTH, PosePairs, fit_through_tracker, pose_residuals
 from ivc.pose.tracker_solver import check_solver, distortion
-from ivc.session import Session, SessionError
+from ivc.session import Session, SessionError, extension_steps
 from ivc.table.grid import Grid, GridField
 from ivc.table.lookup import LookupTable
 
@@ -128,6 +128,9 @@ def cube_map(session: Session, options: FitOptions | None = None, source: str | 
         "map_error": map_error,
         "signal_noise": None if noise is None else noise.as_dict(),
     }
+    ignored = extension_steps(session.steps)
+    if ignored:  # the pose-only map covers the cube's reach only: say so rather than drop them without a word
+        fit["extension_sweeps_ignored"] = ignored
     fixtures = {"vertices": model.vertices, "interpolant": "HarmonicField (through the tracker model)"}
     parameters = {**options.describe(), "tracker_solver": solver, "max_pairs": max_pairs}
     table = LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance(parameters, source, fixtures))

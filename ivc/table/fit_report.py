@@ -83,6 +83,7 @@ class FitReport:
     (equivalent sources); ``cv_folds`` and ``cv_rms_mm``, the blocked cross-validation score (None when the
     fit had none to choose); ``refinement`` (single sweep), ``rounds`` with ``never_touched_mapped_region`` and
     ``error_by_distance`` (joint solve); ``reported_poses`` (a fit from reported poses, else None);
+    ``extension_sweeps_ignored``: the extension sweeps a fit from reported poses left out (it maps the cube's reach);
     ``signal_noise``: the tracker's noise measured on the static steps (:mod:`ivc.lut.signal_noise`), or None;
     ``map_error``: the map's own error in the reported pose (``position_mm``, ``orientation_mrad``;
     :mod:`ivc.lut.map_error`), or None (fits from signals).
@@ -106,6 +107,7 @@ class FitReport:
     refinement_stopped: str | None = None
     rounds: tuple[Round, ...] = ()
     never_touched_mapped_region: tuple[str, ...] = ()
+    extension_sweeps_ignored: tuple[str, ...] = ()
     error_by_distance: tuple[dict, ...] = ()
     reported_poses: ReportedPoseInput | None = None
     signal_noise: dict | None = None
@@ -162,6 +164,7 @@ class FitReport:
             refinement_stopped=fit.get("refinement_stopped"),
             rounds=tuple(Round(**step) for step in fit.get("rounds", [])),
             never_touched_mapped_region=tuple(fit.get("never_touched_mapped_region", [])),
+            extension_sweeps_ignored=tuple(fit.get("extension_sweeps_ignored", [])),
             error_by_distance=tuple(fit.get("error_by_distance", [])),
             reported_poses=reported,
             signal_noise=fit.get("signal_noise"),
