@@ -288,16 +288,18 @@ def test_live_transform_input_is_corrected_and_published_as_trusted_tdata(exact_
 
 @pytest.mark.slow
 def test_a_pose_only_fit_says_it_left_extension_sweeps_out(small_session):
-    """The map from reported poses covers the cube's reach: extension sweeps are named as not used, and `ivc fit`
+    """The cube's map from reported poses (``fit_pose_lut``; ``fit_lut`` takes the whole-volume joint when a
+    session has extension sweeps) covers the cube's reach: extension sweeps are named as not used, and `ivc fit`
     warns (docs/trust.md, "Poses beyond the map")."""
     from ivc.cli.fit import render_fit
+    from ivc.lut.reported_build import fit_pose_lut
 
     _, session = small_session
     poses = without_signals(session)
     steps = dict(poses.steps)
     steps["extension_sweep_1"] = steps["wand_sweep"]
     extended = Session(poses.hemisphere, steps, poses.truth, poses.attrs)
-    table = lut.fit_lut(extended, FitOptions(fitter=HarmonicFit(degree=3), max_frames=500))
+    table = fit_pose_lut(extended, FitOptions(fitter=HarmonicFit(degree=3), max_frames=500))
     assert table.fit["extension_sweeps_ignored"] == ["extension_sweep_1"]
     assert table.report.extension_sweeps_ignored == ("extension_sweep_1",)
     assert "warning: extension_sweep_1 not used" in render_fit(table)

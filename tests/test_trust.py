@@ -235,6 +235,40 @@ def test_a_track_keeps_its_branch_and_a_stream_that_starts_there_is_flagged(fold
     assert kept >= 3
 
 
+def test_a_pose_whose_truth_lies_in_a_hole_of_the_map_is_flagged(folded):
+    """A true position in an unmapped hole whose reported pose a mapped region also produces: the mapped-only search
+    sees no rival and trusts the wrong branch; the hole search (an equivalent-source table's model over its unmapped
+    nodes) finds the truth's region and flags it. A polynomial table gets no hole search (its values off the data
+    are an extrapolation)."""
+    table, corrector, r, v, q, out, ambiguous = folded
+    grid, nodes = table.grid, table.grid.nodes()
+    rng = np.random.default_rng(5)
+    right = np.flatnonzero(ambiguous & (np.linalg.norm(out.position - r, axis=1) < 1e-3))
+    for centre in r[right]:
+        hole = np.linalg.norm(nodes - centre, axis=-1) < 0.05
+        truths = centre + rng.uniform(-0.012, 0.012, (200, 3))
+        v_t, q_t = reported_at(truths, rng)
+        kinds = {}
+        for method in ("harmonic", "equivalent sources, joint"):
+            holed = LookupTable(grid, table.values, ~hole, table.support, fit={"method": method})
+            c = PoseCorrector(holed, signal_noise=NOISE)
+            kinds[method] = (c, c.batch(v_t, q_t))
+        polynomial, sources = kinds["harmonic"][1], kinds["equivalent sources, joint"][1]
+        wrong = (polynomial.flags == 0) & (np.linalg.norm(polynomial.position - truths, axis=1) > 2e-3)
+        if wrong.sum() >= 10:
+            break
+    else:
+        pytest.fail("no hole of the folded room hides a branch: the test's premise does not hold")
+    assert kinds["harmonic"][0].holes is None
+    assert kinds["equivalent sources, joint"][0].holes is not None
+    trusted = sources.flags == 0
+    assert not np.any(np.linalg.norm(sources.position[trusted] - truths[trusted], axis=1) > 2e-3)
+    assert np.all(sources.flags[wrong] & HIGH_RESIDUAL)  # flagged as a pose the map does not produce uniquely
+    # where the polynomial table's answer was right, the hole search changes nothing it did not have to
+    fine = (polynomial.flags == 0) & ~wrong
+    np.testing.assert_allclose(sources.position[fine & trusted], polynomial.position[fine & trusted])
+
+
 def test_a_signal_noise_no_tracker_has_is_refused(exact_table):
     from ivc.errors import InputError
 

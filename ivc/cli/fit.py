@@ -57,8 +57,9 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
         lines.append(f"From reported poses alone (tracker solver {reported.tracker_solver}): cube field degree "
                      f"{reported.cube_degree}, vertex residual {reported.vertex_position_rms_mm:.4f} mm / "
                      f"{reported.vertex_orientation_rms_mrad:.4f} mrad RMS")
+        scored = "pose-equivalent, the pairs' field samples" if report.rounds else "reported-pose residual"
         lines.append(f"Fit: {report.method} through the tracker model, {report.model_text()}; "
-                     f"{_cv_text(report, 'reported-pose residual')}")
+                     f"{_cv_text(report, scored)}")
     else:
         lines.append(f"Fit: {report.method}, {report.model_text()}; {_cv_text(report, 'pose-equivalent')}")
     if report.outliers_downweighted:

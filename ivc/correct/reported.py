@@ -25,7 +25,9 @@ data cannot tell them apart. So each sample is also inverted from its nearest pr
 :class:`SeedMap` (``φ`` and ``(∂φ/∂r)⁻¹`` tabulated at probe points over the mapped volume, the
 table's grid refined twice), and from that probe's *partner* when its image lies among the
 images of a distant region; when two starts give distinct mapped solutions the pose is
-ambiguous and flagged HIGH_RESIDUAL (a reported pose the map does not produce uniquely). A
+ambiguous and flagged HIGH_RESIDUAL (a reported pose the map does not produce uniquely). The
+same holds for a solution in a *hole* of the map, an unmapped node of the grid where the table
+still holds its model's values (:class:`HoleMap`): the truth may lie where no data mapped it. A
 stream's continuing track skips that test: its history says which branch it is on.
 
 For the closed-form tracker solver a compiled kernel does the inversion; for the
@@ -73,68 +75,46 @@ REGION = 3
 #: times (cells of their boxes)
 IMAGE_GRID_CELLS = 2 ** 21
 IMAGE_GRID_ITEMS = 2 ** 23
+#: a solution in a hole of the map (:class:`HoleMap`) counts as another when it reproduces the reported position to
+#: the tolerance plus this (m): no data score the model there (measured on the cockpit: a truth in a hole that the
+#: model reproduced only to 1.6 mm, with a tolerance of 1.1 mm)
+HOLE_ALLOWANCE = 1e-3
 #: a probe whose image neighbourhood spans more grid cells than this per axis is tested by every rival search
 WIDE = 32
 
 
-class SeedMap:
-    """Where to start inverting ``φ``: probe points ``P`` (M, 3) m over the mapped volume, their images
-    ``φ(P)`` (M, 3), inverse Jacobians ``(∂φ/∂r)⁻¹`` (M, 3, 3) (central differences), and for each probe
-    the index of a distant probe whose image lies near its own (−1: none), see the module docstring."""
+class RivalMap:
+    """Probe points ``P`` (M, 3) m ``spacing`` m apart, their images ``φ(P)`` (M, 3) m and inverse Jacobians
+    ``(∂φ/∂r)⁻¹`` (M, 3, 3): where to look for other solutions of ``φ(x) = v`` (:meth:`rivals`) and how to start
+    inverting from them (:meth:`start_from`). Every point of a probe's cell maps within ``cell_reach`` (M,) m of
+    the probe's image (one probe spacing, stretched as the map stretches it there)."""
 
-    def __init__(self, field: GridField, solver: str = "closed-form", hemisphere: str = "+x",
-                 subdivision: int = SUBDIVISION):
-        grid = field.grid
-        self.spacing = grid.spacing / subdivision
-        axes = [grid.origin[a] + self.spacing * np.arange((grid.shape[a] - 1) * subdivision + 1) for a in range(3)]
-        fine = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-        probes = fine[field.evaluate(fine)[2]]
-        if len(probes) == 0:
-            raise InputError("the table has no mapped cell to correct in")
-
-        def phi(points):
-            return distortion(points, field.evaluate(points)[0], solver=solver, hemisphere=hemisphere)[0]
+    def __init__(self, field: GridField, points: np.ndarray, spacing: float, solver: str = "closed-form",
+                 hemisphere: str = "+x"):
+        def phi(at):
+            return distortion(at, field.evaluate(at)[0], solver=solver, hemisphere=hemisphere)[0]
 
         h = 1e-5
-        J = np.empty((len(probes), 3, 3))
-        for k in range(3):
+        J = np.empty((len(points), 3, 3))
+        for k in range(3):  # central differences
             step = np.zeros(3)
             step[k] = h
-            J[..., k] = (phi(probes + step) - phi(probes - step)) / (2 * h)
-        images = phi(probes)
+            J[..., k] = (phi(points + step) - phi(points - step)) / (2 * h)
+        images = phi(points)
         good = np.all(np.isfinite(images), axis=1) & np.all(np.isfinite(J.reshape(-1, 9)), axis=1)
         good &= np.abs(np.linalg.det(np.where(good[:, None, None], J, np.eye(3)))) > 1e-6
-        self.probes, self.images, J = probes[good], images[good], J[good]
-        self.inverse = np.linalg.inv(J)
-        self.tree = cKDTree(self.images)
-        # a probe's image neighbourhood: one probe spacing, stretched as the map stretches it there
-        stretch = np.linalg.norm(J, ord=2, axis=(1, 2))
-        radius = stretch * self.spacing
-        self.partner = np.full(len(self.probes), -1)
-        near = self.tree.query_ball_point(self.images, radius)
-        counts = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
-        i = np.repeat(np.arange(len(near)), counts)
-        j = np.fromiter((k for n in near for k in n), dtype=np.int64, count=int(counts.sum()))
-        apart = self.probes[j] - self.probes[i]
-        linear = np.einsum("nij,nj->ni", self.inverse[i], self.images[j] - self.images[i])
-        distance = np.linalg.norm(apart, axis=1)
-        # another branch: far apart, and not where the local linear map puts it
-        far = (distance > 2 * self.spacing) & (np.linalg.norm(apart - linear, axis=1) > 0.5 * distance)
-        i, j = i[far], j[far]
-        if len(i):
-            order = np.lexsort((np.linalg.norm(self.images[j] - self.images[i], axis=1), i))
-            i, j = i[order], j[order]
-            first = np.r_[True, i[1:] != i[:-1]]  # per probe, its partner with the nearest image
-            self.partner[i[first]] = j[first]
-        self.reach = 4.0 * self.spacing * max(float(np.max(stretch)), 1.0)
-        # every point of a probe's cell maps within ``cell_reach`` of the probe's image
-        self.cell_reach = stretch * self.spacing * np.sqrt(3.0) / 2
-        self.max_cell_reach = float(np.max(self.cell_reach))
+        self.spacing = float(spacing)
+        self.probes, self.images, self.jacobian = points[good], images[good], J[good]
+        self.inverse = np.linalg.inv(self.jacobian)
+        self.stretch = np.linalg.norm(self.jacobian, ord=2, axis=(1, 2))
+        self.reach = 4.0 * self.spacing * max(float(np.max(self.stretch, initial=0.0)), 1.0)
+        self.cell_reach = self.stretch * self.spacing * np.sqrt(3.0) / 2
+        self.max_cell_reach = float(np.max(self.cell_reach, initial=0.0))
         # the rival search's probes (their region keys: blocks of REGION probe spacings) and its grid over image space
         block = np.floor(self.probes / (REGION * self.spacing)).astype(np.int64)
         region = (block[:, 0] * 1_000_003 + block[:, 1]) * 1_000_003 + block[:, 2]
         self._rival_probes = tuple(_pose_kernels.RivalProbes(self.probes, self.images, self.cell_reach, region))
-        self._image_grid = tuple(self._grid_over_images(self.images, self.cell_reach))
+        self._image_grid = tuple(self._grid_over_images(self.images, self.cell_reach)) if len(self.probes) else None
 
     @staticmethod
     def _grid_over_images(images: np.ndarray, reach: np.ndarray) -> _pose_kernels.ImageGrid:
@@ -189,6 +169,8 @@ class SeedMap:
         if v.shape != (n, 3) or r.shape != (n, 3) or tolerance.shape != (n,) or limit < 0:
             raise InputError(f"the rival search needs positions (n, 3), solutions (n, 3) and tolerances (n,) and a "
                              f"limit >= 0, got {v.shape}, {r.shape}, {tolerance.shape} and {limit}")
+        if self._image_grid is None:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
         probe, count = np.empty((n, int(limit)), dtype=np.int64), np.empty(n, dtype=np.int64)
         kernel = compiled.choose(_pose_kernels.rivals_serial if serial else _pose_kernels.rivals_kernel, n)
         kernel(v, r, tolerance, self._rival_probes, self._image_grid, 2 * self.spacing,
@@ -200,6 +182,41 @@ class SeedMap:
         H = self.inverse[probes]
         return (np.ascontiguousarray(self.probes[probes] + np.einsum("nij,nj->ni", H, v - self.images[probes])),
                 np.ascontiguousarray(H))
+
+class SeedMap(RivalMap):
+    """Where to start inverting ``φ``: a :class:`RivalMap` over the mapped volume (probes on the table's grid refined
+    ``subdivision`` times) and, for each probe, the index of a distant probe whose image lies near its own (−1:
+    none), see the module docstring."""
+
+    def __init__(self, field: GridField, solver: str = "closed-form", hemisphere: str = "+x",
+                 subdivision: int = SUBDIVISION):
+        grid = field.grid
+        spacing = grid.spacing / subdivision
+        axes = [grid.origin[a] + spacing * np.arange((grid.shape[a] - 1) * subdivision + 1) for a in range(3)]
+        fine = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        probes = fine[field.evaluate(fine)[2]]
+        if len(probes) == 0:
+            raise InputError("the table has no mapped cell to correct in")
+        super().__init__(field, probes, spacing, solver, hemisphere)
+        self.tree = cKDTree(self.images)
+        # a probe's image neighbourhood: one probe spacing, stretched as the map stretches it there
+        radius = self.stretch * self.spacing
+        self.partner = np.full(len(self.probes), -1)
+        near = self.tree.query_ball_point(self.images, radius)
+        counts = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
+        i = np.repeat(np.arange(len(near)), counts)
+        j = np.fromiter((k for n in near for k in n), dtype=np.int64, count=int(counts.sum()))
+        apart = self.probes[j] - self.probes[i]
+        linear = np.einsum("nij,nj->ni", self.inverse[i], self.images[j] - self.images[i])
+        distance = np.linalg.norm(apart, axis=1)
+        # another branch: far apart, and not where the local linear map puts it
+        far = (distance > 2 * self.spacing) & (np.linalg.norm(apart - linear, axis=1) > 0.5 * distance)
+        i, j = i[far], j[far]
+        if len(i):
+            order = np.lexsort((np.linalg.norm(self.images[j] - self.images[i], axis=1), i))
+            i, j = i[order], j[order]
+            first = np.r_[True, i[1:] != i[:-1]]  # per probe, its partner with the nearest image
+            self.partner[i[first]] = j[first]
 
     @property
     def ambiguous_fraction(self) -> float:
@@ -229,6 +246,40 @@ class SeedMap:
         p_H = np.where(has[:, None, None], p_H, eye)
         return np.ascontiguousarray(start), np.ascontiguousarray(H), np.ascontiguousarray(p_start), \
             np.ascontiguousarray(p_H)
+
+
+def hole_nodes(table: LookupTable) -> np.ndarray:
+    """The table's holes, (nx, ny, nz) bool: the grid's unmapped nodes where the table holds the values of a field
+    model that holds between its data. That is an equivalent-source model (sources outside the working volume, a
+    physical field throughout the grid, which spans the samples). A polynomial's values off its data are an
+    extrapolation that grows without bound (measured on the default scene's cube map: the map's stretch up to 80
+    on the grid's margin, where every sample then had two or three false starts): no holes there."""
+    shape = table.grid.shape
+    if not str(table.fit.get("method", "")).startswith("equivalent sources"):
+        return np.zeros(shape, dtype=bool)
+    filled = np.all(np.isfinite(np.asarray(table.values).reshape(*shape, -1)), axis=-1)
+    return filled & ~np.asarray(table.valid, bool)
+
+
+class HoleMap(RivalMap):
+    """Rivals the mapped volume cannot show: a :class:`RivalMap` at the table's holes (:func:`hole_nodes`), with
+    ``field`` the table over its mapped nodes and its holes. A pose whose reported position a hole can also produce
+    is as ambiguous as one that two mapped regions produce: the model there is less certain (a solution there counts
+    to :data:`HOLE_ALLOWANCE` more), but where it puts a solution the truth may be (measured on the cockpit's
+    whole-volume map from reported poses: 106 of the 107 trusted poses more than 2 mm off had their truth in a hole,
+    up to 85 mm from the mapped volume; docs/trust.md)."""
+
+    def __init__(self, table: LookupTable, holes: np.ndarray, interpolation: str = "cubic",
+                 solver: str = "closed-form", hemisphere: str = "+x"):
+        grid = table.grid
+        self.field = GridField(grid, table.values, np.asarray(table.valid, bool) | holes, interpolation)
+        super().__init__(self.field, grid.nodes()[holes], grid.spacing, solver, hemisphere)
+
+    @classmethod
+    def of(cls, table: LookupTable, interpolation: str = "cubic", hemisphere: str = "+x") -> HoleMap | None:
+        """The table's hole map, or None where it has no holes (nothing to search)."""
+        holes = hole_nodes(table)
+        return cls(table, holes, interpolation, "closed-form", hemisphere) if holes.any() else None
 
 
 def table_solver(table: LookupTable) -> str:
@@ -274,6 +325,9 @@ class PoseCorrector:
         self._offset = np.zeros((16, 3))
         self._tracked = np.zeros(16, dtype=bool)
         self._seeds: SeedMap | None = None
+        self._table = table if isinstance(table, LookupTable) else None
+        self._interpolation = interpolation
+        self._holes: HoleMap | None | bool = False  # False: not built yet
         self.check_ambiguity = bool(check_ambiguity)
         self.gate = PrecisionGate.resolve(table, precision, max_precision, signal_noise)
         #: which samples of the last batch (or frame) were flagged as ambiguous (their map has two branches there)
@@ -290,10 +344,20 @@ class PoseCorrector:
             self._seeds = SeedMap(self.field, "closed-form", self.hemisphere)
         return self._seeds
 
-    def _invert(self, v, start, H, serial, restarts: int = 0):
+    @property
+    def holes(self) -> HoleMap | None:
+        """The rival map of the grid's unmapped nodes where the table holds values (built on first use; None: none)."""
+        if self._holes is False:
+            self._holes = None if self._table is None else HoleMap.of(self._table, self._interpolation,
+                                                                       self.hemisphere)
+        return self._holes
+
+    def _invert(self, v, start, H, serial, restarts: int = 0, field: GridField | None = None):
+        """Invert ``φ`` at reported positions v (n, 3) m from ``start`` (n, 3) m with inverse-Jacobian estimates H
+        (n, 3, 3), in ``field`` (default the table's mapped field)."""
         n = len(v)
+        f = self.field if field is None else field
         if self.solver == "closed-form":
-            f = self.field
             r, C = np.empty((n, 3)), np.empty((n, 3, 3))
             miss, converged = np.empty(n), np.empty(n, dtype=bool)
             iterations, mapped = np.empty(n, dtype=np.int64), np.empty(n, dtype=bool)
@@ -302,10 +366,10 @@ class PoseCorrector:
             out = _pose_kernels.InvertOutput(miss, converged, iterations, mapped)
             kernel(v, start, H.copy(), self._h, f.kernel_grid, tuple(limits), r, C, tuple(out))
             return r, C, miss, converged, iterations, mapped
-        inv = invert_distortion(v, self._secondary, self.solver, self.hemisphere, start, self.tolerance,
+        inv = invert_distortion(v, lambda r: f.evaluate(r)[0], self.solver, self.hemisphere, start, self.tolerance,
                                 self.max_iterations)
         ok = np.all(np.isfinite(inv.position), axis=1)
-        mapped = self.field.evaluate(np.where(ok[:, None], inv.position, 0.0))[2] & ok
+        mapped = f.evaluate(np.where(ok[:, None], inv.position, 0.0))[2] & ok
         return inv.position, inv.turn, inv.miss, inv.converged, inv.iterations, mapped
 
     def _run(self, v: np.ndarray, Q: np.ndarray, previous: np.ndarray, serial: bool) -> Correction:
@@ -402,9 +466,21 @@ class PoseCorrector:
         other = mapped2 & (miss2 <= tolerance[idx]) & (np.linalg.norm(r2 - r[idx], axis=1) > AMBIGUITY)
         ambiguous = np.zeros(n, dtype=bool)
         ambiguous[idx[other]] = True
+        iterations = np.bincount(idx, weights=it2, minlength=n)
+        holes = self.holes
+        if holes is not None:  # and from the grid's unmapped nodes, in the model the table holds there
+            loose = tolerance + HOLE_ALLOWANCE
+            rows, probes = holes.rivals(v, r, np.minimum(loose, holes.reach), serial=serial)
+            if len(rows):
+                h_start, h_H = holes.start_from(probes, v[rows])
+                r3, _, miss3, _, it3, inside3 = self._invert(np.ascontiguousarray(v[rows]), h_start, h_H, serial,
+                                                             _pose_kernels.RESTARTS, holes.field)
+                other = inside3 & (miss3 <= loose[rows]) & (np.linalg.norm(r3 - r[rows], axis=1) > AMBIGUITY)
+                ambiguous[rows[other]] = True
+                iterations += np.bincount(rows, weights=it3, minlength=n)
         # where the first start failed, another start's solution is not taken either (measured: it is most
         # often the wrong branch), nor is the sample called ambiguous: it is flagged already
-        return ambiguous & solved, np.bincount(idx, weights=it2, minlength=n).astype(np.int64)
+        return ambiguous & solved, iterations.astype(np.int64)
 
     def invert_from_probes(self, position: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Invert ``φ`` at reported positions (n, 3) m from each one's nearest probe of :attr:`seeds` rather than
@@ -541,6 +617,8 @@ class PoseCorrector:
         v = np.asarray(position, dtype=float).reshape(1, 3)
         Q = np.eye(3)[None]
         self.correct_from(v, Q, np.zeros((1, 3)))
+        if self.check_ambiguity:  # a track's first frame: the probe maps built, the ambiguity test compiled
+            self.correct_from(v, Q, np.full((1, 3), np.nan))
         if self.solver == "closed-form":
             out = [np.empty((1, 3)), np.empty((1, 4)), np.empty(1, dtype=np.uint8), np.empty(1),
                    np.empty(1, dtype=np.int64)]

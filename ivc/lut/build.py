@@ -33,6 +33,7 @@ from ivc.lut.options import (  # noqa: F401 (public here before ivc.lut.options)
 )
 from ivc.lut.refine import fit_map, refine_map
 from ivc.lut.reported_build import fit_pose_lut
+from ivc.lut.reported_joint import fit_pose_joint_lut
 from ivc.lut.samples import FieldSamples
 from ivc.lut.signal_noise import measure_signal_noise
 from ivc.session import Session, SessionError, extension_steps
@@ -70,7 +71,8 @@ def fit_lut(session: Session, options: FitOptions | None = None, source: str | P
     ``progress(description, total)`` returns an update callback per stage. The path is the session's
     measurement's (:func:`ivc.fixtures.measurement.measurement_of`, :data:`FIT_PATHS`): a session whose cube
     survey and sweep hold reported poses only is fitted from them through the model of the tracker's solver
-    ``tracker`` (:func:`ivc.lut.reported_build.fit_pose_lut`); one with signals by the chosen fitter, or, with
+    ``tracker`` (:func:`ivc.lut.reported_build.fit_pose_lut`; with extension sweeps
+    :func:`ivc.lut.reported_joint.fit_pose_joint_lut`); one with signals by the chosen fitter, or, with
     extension sweeps, over the whole working volume by the joint solve (:func:`ivc.lut.joint.fit_joint_lut`).
     """
     measurement = measurement_of(session, solver=tracker) if not session.missing_for_fit() else SignalInput()
@@ -127,8 +129,11 @@ def _fit_signals(session: Session, measurement: SignalInput, options: FitOptions
 
 def _fit_reported(session: Session, measurement: PoseInput, options: FitOptions, source: str | Path | None,
                   progress: Progress) -> LookupTable:
-    """The reported-pose path (:func:`ivc.lut.reported_build.fit_pose_lut`)."""
-    return fit_pose_lut(session, options, source, progress, solver=measurement.solver)  # measures the noise itself
+    """The reported-pose path (:func:`ivc.lut.reported_build.fit_pose_lut`, or with extension sweeps the whole
+    working volume, :func:`ivc.lut.reported_joint.fit_pose_joint_lut`); both measure the noise themselves."""
+    if extension_steps(session.steps):
+        return fit_pose_joint_lut(session, options, source, progress, solver=measurement.solver)
+    return fit_pose_lut(session, options, source, progress, solver=measurement.solver)
 
 
 #: the fit path of each kind of measurement (:mod:`ivc.fixtures.measurement`): ``(session, measurement, options,

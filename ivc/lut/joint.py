@@ -309,11 +309,11 @@ def subdivided(grid: Grid, valid: np.ndarray, support: np.ndarray, subdivision: 
     return fine, fine_valid, fine_support
 
 
-def _tabulate(model: SourceModel, samples: FieldSamples, spacing: float, min_support: int, subdivision: int = 1):
-    """The model on the grid around the samples: node support counted on the ``spacing`` grid, the table
-    ``subdivision`` times finer (:func:`subdivided`)."""
-    grid = Grid.around(samples.positions, spacing)
-    support = node_support(grid, samples.positions)
+def tabulate(model: SourceModel, positions: np.ndarray, spacing: float, min_support: int, subdivision: int = 1):
+    """The model on the grid around the samples' ``positions`` (N, 3) m: node support counted on the ``spacing``
+    grid, the table ``subdivision`` times finer (:func:`subdivided`)."""
+    grid = Grid.around(positions, spacing)
+    support = node_support(grid, positions)
     grid, valid, support = subdivided(grid, support >= min_support, support, subdivision)
     values = model(grid.nodes())
     return grid, values, valid, support
@@ -428,7 +428,7 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
                              progress=bar, even_cell=options.even_cell, error_floor=options.error_floor)
     damping = fit["damping"]
     samples = anchor
-    grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support,
+    grid, values, valid, support = tabulate(field, samples.positions, options.spacing, options.min_support,
                                                options.table_subdivision)
     history = [{"iteration": 0, "samples": len(samples), "mapped_litres": mapped_litres(grid, valid),
                 "map_change_mm": None, "frames_solved": {name: 0 for name in names}}]
@@ -448,7 +448,7 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
         field, _ = solve_normal_equations(normal, (damping,))
         change = _change(field, grid, values, valid)
         before = mapped_litres(grid, valid)
-        grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support,
+        grid, values, valid, support = tabulate(field, samples.positions, options.spacing, options.min_support,
                                                options.table_subdivision)
         litres = mapped_litres(grid, valid)
         history.append({"iteration": iteration, "samples": len(samples), "mapped_litres": litres,
@@ -463,7 +463,7 @@ def fit_joint(session: Session, options: JointOptions | None = None, progress=No
     stopped = stopped or f"max_iterations {options.max_iterations} reached"
     # the last round's samples: its normal equations, cross-validated
     field, fit = solve_normal_equations(normal, options.dampings)
-    grid, values, valid, support = _tabulate(field, samples, options.spacing, options.min_support,
+    grid, values, valid, support = tabulate(field, samples.positions, options.spacing, options.min_support,
                                                options.table_subdivision)
     never = [name for name in names if all(step["frames_solved"].get(name, 0) == 0 for step in history)]
     report = {"method": "equivalent sources, joint", **fit, "rounds": history, "stopped": stopped,

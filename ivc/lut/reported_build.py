@@ -60,8 +60,16 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
     ``solver``: the tracker's own pose solver (``ivc.pose.tracker_solver.SOLVERS``), recorded in the
     table so that corrections invert the same model. ``options``: as :func:`ivc.lut.fit_lut` (the
     fitter must be a :class:`~ivc.lut.fit_harmonic.HarmonicFit`, whose ``degree`` (None: cross-validated
-    up to MAX_DEGREE) and number of folds apply; ``refine`` does not apply).
+    up to MAX_DEGREE) and number of folds apply; ``refine`` does not apply). The map covers the wand's reach
+    around the cube; with extension sweeps :func:`ivc.lut.reported_joint.fit_pose_joint_lut` maps more.
     """
+    return cube_map(session, options, source, progress, solver, max_pairs)[0]
+
+
+def cube_map(session: Session, options: FitOptions | None = None, source: str | Path | None = None,
+             progress: Progress | None = None, solver: str = "closed-form", max_pairs: int = MAX_PAIRS
+             ) -> tuple[LookupTable, PosePairs, np.ndarray]:
+    """:func:`fit_pose_lut`, also returning the sweep's kept pairs and each one's time (s) on the sweep's clock."""
     check_solver(solver)
     options = options or FitOptions()
     progress = progress or _noop
@@ -125,7 +133,8 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
         fit["extension_sweeps_ignored"] = ignored
     fixtures = {"vertices": model.vertices, "interpolant": "HarmonicField (through the tracker model)"}
     parameters = {**options.describe(), "tracker_solver": solver, "max_pairs": max_pairs}
-    return LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance(parameters, source, fixtures))
+    table = LookupTable(grid, values, valid, support, session.hemisphere, fit, provenance(parameters, source, fixtures))
+    return table, pairs, sweep.time[pairs.frame]
 
 
 def table_error(pairs: PosePairs, field: GridField, time: np.ndarray, solver: str, hemisphere: str,
