@@ -269,6 +269,31 @@ def test_a_pose_whose_truth_lies_in_a_hole_of_the_map_is_flagged(folded):
     np.testing.assert_allclose(sources.position[fine & trusted], polynomial.position[fine & trusted])
 
 
+@pytest.mark.parametrize("room", ["folded", "quiet"])
+def test_skipping_the_nearest_start_where_nothing_folds_changes_no_result(folded, exact_table, rng, monkeypatch, room):
+    """The ambiguity test skips the nearest probe's start where no partner, rival candidate or far linear start shows
+    a fold: every output equals the test that always takes it, in the folded room and in a quiet one."""
+    from ivc.correct import reported
+
+    if room == "folded":
+        table, _, _, v, q, _, _ = folded
+        noise = NOISE
+    else:
+        table, noise = exact_table, None
+        r, T = poses(rng, 2000)
+        v, C = distortion(r, table.field()(r))
+        q = rotations.from_matrix(C @ rotations.to_matrix(T))
+    skipping = PoseCorrector(table, signal_noise=noise)
+    out = skipping.batch(v, q)
+    monkeypatch.setattr(reported, "QUIET_SKIP", False)
+    full = PoseCorrector(table, signal_noise=noise).batch(v, q)
+    for name in ("position", "quaternion", "flags", "residual", "precision"):
+        np.testing.assert_array_equal(getattr(out, name), getattr(full, name))
+    assert np.all(out.iterations <= full.iterations)
+    if room == "quiet":  # where nothing folds, the start is skipped (the folded room takes it nearly everywhere)
+        assert out.iterations.sum() < 0.9 * full.iterations.sum()
+
+
 def test_a_signal_noise_no_tracker_has_is_refused(exact_table):
     from ivc.errors import InputError
 
