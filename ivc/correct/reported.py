@@ -21,7 +21,8 @@ signal path, with these meanings:
 Where the inversion starts: at the reported position itself (a stream's sensor: moved by its
 previous correction). Next to metal the map can send two distant true regions to the same
 reported positions (measured on the default scene: about 0.2 % of the check poses), and pose-only
-data cannot tell them apart. So each sample is also inverted from its nearest probe of a
+data cannot tell them apart. So each sample is also inverted (where anything shows a fold
+near it: :data:`QUIET_SKIP`) from its nearest probe of a
 :class:`SeedMap` (``φ`` and ``(∂φ/∂r)⁻¹`` tabulated at probe points over the mapped volume, the
 table's grid refined twice), and from that probe's *partner* when its image lies among the
 images of a distant region; when two starts give distinct mapped solutions the pose is
