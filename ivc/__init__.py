@@ -123,6 +123,8 @@ _EXPORTS = {
     "PoseCorrector": ("ivc.correct", "PoseCorrector"),
     "Correction": ("ivc.correct", "Correction"),
     "evaluate": ("ivc.correct.evaluate", "evaluate"),
+    "agree_with_body": ("ivc.correct.rigid", "agree_with_body"),
+    "WandCalibration": ("ivc.fixtures.wand", "WandCalibration"),
     # the app layer: a command as a call (ivc correct, ivc predict)
     "correct_file": ("ivc.app.correct", "correct_file"),
     "CorrectOptions": ("ivc.app.correct", "CorrectOptions"),

@@ -11,6 +11,7 @@ of ``collect``, corrects (``correct``), predicts (``predict``) and writes throug
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -31,12 +32,14 @@ from ivc.correct import Correction, Corrector, PoseCorrector, describe
 from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, LOW_PRECISION, NOT_CONVERGED, OUTSIDE
 from ivc.correct.precision import DEFAULT
 from ivc.correct.residual_gate import RESIDUAL_SIGMAS
+from ivc.correct.rigid import agree_with_body
 from ivc.errors import OptionsError
+from ivc.fixtures.wand import WandCalibration
 from ivc.lut.build import file_digest
 from ivc.predict import TUNABLE
 from ivc.predict.steps import predicted_step, step_timing, tuning_from_file
 from ivc.predict.tuning import Tuning
-from ivc.session import Session, Step, StepCorrection
+from ivc.session import Session, Step, StepCorrection, extension_steps
 
 #: the name of the corrected transforms added to a PLUS sequence
 PLUS_CORRECTED = "{tool}To{tracker}Ivc"
@@ -67,6 +70,12 @@ class CorrectOptions:
     trusted samples; ``tune_from``: tune them from this recording or session instead (``tuning``: a tuning already
     made from it). ``overwrite``: replace the output if it exists (never an input). ``allow_corrected``: take an
     input that is ivc's corrected output (refused otherwise: its poses would be corrected twice).
+
+    ``rigid_body``: the recording's sensors are fixed to one body of this geometry (a
+    :class:`~ivc.fixtures.wand.WandCalibration`, or a file :func:`load_rigid_body` reads); a trusted sensor the
+    body's other trusted sensors do not agree with is flagged (4) (:func:`ivc.correct.rigid.agree_with_body`). In a
+    session it applies to the wand's steps (its sweep and extension sweeps); in a CSV or PLUS recording to every
+    sensor, which must be the body's, in its order.
     """
 
     steps: Sequence[str] = ()
@@ -85,6 +94,7 @@ class CorrectOptions:
     tuning: Tuning | None = None
     overwrite: bool = False
     allow_corrected: bool = False
+    rigid_body: str | os.PathLike | WandCalibration | None = None
 
     def precision_keywords(self) -> dict:
         """The correctors' precision keywords (:class:`~ivc.correct.Corrector`, :class:`~ivc.correct.PoseCorrector`)."""
@@ -284,6 +294,29 @@ def correction_advice(out: Correction, max_residual: float | None, pose_only: bo
             "are in the tracker's units")
 
 
+def load_rigid_body(source: str | os.PathLike | WandCalibration, hemisphere: str = "+x") -> WandCalibration:
+    """A rigid body's geometry: a :class:`~ivc.fixtures.wand.WandCalibration` as given; a session (``.h5``) whose
+    ``wand_calibration`` step holds the body's sensors in free space (ivc's own wand calibration); or a JSON
+    file ``{"positions": [[x, y, z], ...], "quaternions": [[w, x, y, z], ...]}``, each sensor's pose in one body
+    frame (metres), in the order of the recording's sensors."""
+    if isinstance(source, WandCalibration):
+        return source
+    path = Path(source)
+    if path.suffix.lower() == ".json":
+        try:
+            data = json.loads(path.read_text())
+            position, quaternion = np.asarray(data["positions"], float), np.asarray(data["quaternions"], float)
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            raise OptionsError(f"{path}: not a rigid body ({error}); give {{\"positions\": [[x, y, z], ...], "
+                               f"\"quaternions\": [[w, x, y, z], ...]}} in metres, one per sensor") from None
+        return WandCalibration.from_poses(position, quaternion)
+    data = session_io.read(path)
+    if "wand_calibration" not in data.steps:
+        raise OptionsError(f"{path} has no wand_calibration step to take a rigid body's geometry from (it has "
+                           f"{', '.join(data.steps)}); give a JSON file of the sensors' poses instead")
+    return WandCalibration.from_step(data.steps["wand_calibration"], data.hemisphere or hemisphere)
+
+
 class _Job:
     """One :func:`correct_file` call: the table and options, and the three input formats."""
 
@@ -291,20 +324,28 @@ class _Job:
         self.table, self.lut_file, self.options, self.tuning, self.say = table, lut_file, options, tuning, report
         self.precision = options.precision_keywords()
         self._gate_said = False
+        self.body = None if options.rigid_body is None else load_rigid_body(options.rigid_body, table.hemisphere)
 
-    def correct(self, step: Step, hemisphere: str) -> Correction:
+    def correct(self, step: Step, hemisphere: str, rigid: bool = True) -> Correction:
         """A step's corrections: from its signals when it has them, else from its reported poses, as the time
-        series they are (:meth:`~ivc.correct.PoseCorrector.track`: a continuing track keeps its branch)."""
+        series they are (:meth:`~ivc.correct.PoseCorrector.track`: a continuing track keeps its branch); then,
+        where ``rigid`` and a rigid body is given, the sensors its other sensors do not agree with flagged."""
         o = self.options
         if step.signal is not None:
             corrector = Corrector(self.table, hemisphere, o.interpolation, o.max_residual, **self.precision)
             if not self._gate_said:
                 self.say(INFO, corrector.residual_gate.describe())
             self._gate(corrector.gate)
-            return corrector.batch(step.signal, step.valid_mask)
-        poses = PoseCorrector(self.table, hemisphere, o.interpolation, o.solver, **self.precision)
-        self._gate(poses.gate)
-        return poses.track(step.position, step.quaternion, step.valid_mask)
+            out = corrector.batch(step.signal, step.valid_mask)
+        else:
+            poses = PoseCorrector(self.table, hemisphere, o.interpolation, o.solver, **self.precision)
+            self._gate(poses.gate)
+            out = poses.track(step.position, step.quaternion, step.valid_mask)
+        if rigid and self.body is not None:
+            flagged = agree_with_body(out, self.body)
+            self.say(INFO, f"{step.description or 'step'}: {int(flagged.sum())} trusted samples flagged (4): their "
+                           f"rigid body's other sensors disagree, or too few agree")
+        return out
 
     def _gate(self, gate) -> None:
         """Say once how the precision is gated (the default limit, another, none, or why not predicted)."""
@@ -399,8 +440,10 @@ class _Job:
             raise OptionsError(f"{input_path} has no step {', '.join(unknown)} (it has {', '.join(data.steps)})")
         data = apply_tracker_file(data, o.tracker_model, names)
         result = CorrectResult(output_path)
+        wand_steps = {"wand_sweep", *extension_steps(data.steps)}  # the steps whose sensors are the wand's
         for name in names:
-            self.finish(name, data.steps[name], self.correct(data.steps[name], data.hemisphere), result)
+            out = self.correct(data.steps[name], data.hemisphere, rigid=name in wand_steps)
+            self.finish(name, data.steps[name], out, result)
         fixed = {n: corrected_step(data.steps[n], result.corrections[n], self.lut_file) for n in names}
         if o.predictor:
             fixed = {n: self.predicted(fixed[n], result.corrections[n]) for n in names}

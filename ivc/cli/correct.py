@@ -82,10 +82,15 @@ def _cold_note() -> None:
 @click.option("--allow-corrected", is_flag=True, help="Take an INPUT_FILE that is ivc's corrected output (a session "
               "with corrected_with, a CSV with flags and residual columns): refused otherwise, as its poses would be "
               "corrected twice.")
+@click.option("--rigid-body", "rigid_body", type=click.Path(exists=True, dir_okay=False),
+              help="The sensors are fixed to one body: a session whose wand_calibration step holds them in free space, "
+                   "or a JSON file of their poses ({\"positions\": [[x, y, z], ...] m, \"quaternions\": [[w, x, y, "
+                   "z], ...]}). A trusted sensor the body's other sensors disagree with is flagged 4 (docs/trust.md). "
+                   "In a session: the wand's steps.")
 @tracker_option
 def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, solver, force, predictor,
             horizon, tune, tune_from, live_url, publish, length_unit, sensors, rate_hz, duration, with_precision,
-            max_precision, signal_noise, allow_corrected, tracker_file):
+            max_precision, signal_noise, allow_corrected, rigid_body, tracker_file):
     """Correct the poses in INPUT_FILE (session .h5, recording .csv or PLUS sequence .igs.mha) with LUT_FILE.
 
     A PLUS sequence (.igs.mha, .seq.mha, .igs.nrrd) is written back with each
@@ -107,10 +112,13 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
                              solver=solver, precision=with_precision, signal_noise=signal_noise,
                              max_precision=precision_limit(max_precision),
                              tracker_model=tracker_file, predictor=predictor, tune=tune, tune_from=tune_from,
-                             overwrite=force, allow_corrected=allow_corrected)
+                             overwrite=force, allow_corrected=allow_corrected, rigid_body=rigid_body)
     with usage_errors("correct"):
         options.check()
         if live_url:
+            if rigid_body:
+                raise click.UsageError("--rigid-body applies to recorded files; a live stream's sensors are checked "
+                                       "by the library (ivc.correct.rigid.agree_with_body on each frame)")
             if input_file or output:
                 raise click.UsageError("--live reads from the network: give no INPUT_FILE or --output")
             host, _, port = publish.rpartition(":")

@@ -37,7 +37,7 @@ from ivc import dipole, rotations
 from ivc.correct.reported import PoseCorrector
 from ivc.errors import InputError
 from ivc.fixtures.measurement import PoseInput
-from ivc.fixtures.wand import WandCalibration
+from ivc.fixtures.wand import AGREEMENT, WandCalibration
 from ivc.lut.fit_sources import (
     SourceModel,
     default_sources,
@@ -57,8 +57,6 @@ from ivc.session import Session, SessionError, extension_steps
 from ivc.table.grid import GridField
 from ivc.table.lookup import LookupTable
 
-#: two trusted sensors agree on the wand's pose when the sensor-0 poses they imply are this close (m, rad)
-AGREEMENT = (0.002, 0.02)
 #: Newton steps of a field sample's projection, and the reported pose it must then reproduce to (m, rad)
 NEWTON_STEPS, REPRODUCED = 12, (1e-6, 1e-5)
 #: projections and sources fits per round (step 3-4 of the module docstring)
@@ -131,30 +129,13 @@ def wand_from_sensors(position: np.ndarray, quaternion: np.ndarray, trusted: np.
     sensors. Returns sensor 0's position (F, 3) and rotation (F, 3, 3) (their mean: the rotation the polar
     projection of the mean matrix), the frames kept (F,), and sensor 0's position and angle standard errors
     (F,) m, rad (the members' predicted precision over √k)."""
-    F, W = trusted.shape
-    q = np.where(trusted[..., None], quaternion, [1.0, 0.0, 0.0, 0.0])
-    T0 = rotations.to_matrix(q) @ np.swapaxes(wand.rotations, -1, -2)[None]
-    r0 = np.where(trusted[..., None], position, 0.0) - np.einsum("fnij,nj->fni", T0, wand.positions)
-    apart = np.linalg.norm(r0[:, :, None] - r0[:, None], axis=-1)
-    relative = np.einsum("fmji,fnjk->fmnik", T0, T0)
-    cos = np.clip((np.trace(relative, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
-    agree = trusted[:, :, None] & trusted[:, None] & (apart <= AGREEMENT[0]) & (np.arccos(cos) <= AGREEMENT[1])
-    votes = agree.sum(axis=2)
-    best = np.argmax(votes, axis=1)
-    members = agree[np.arange(F), best]
+    position0, rotation0, kept, members = wand.consensus(position, quaternion, trusted, AGREEMENT, min_sensors)
     k = members.sum(axis=1)
-    kept = (k >= min_sensors) & (2 * k > trusted.sum(axis=1))
     weight = members / np.maximum(k, 1)[:, None]
-    position0 = np.einsum("fn,fni->fi", weight, r0)
-    U, _, Vt = np.linalg.svd(np.einsum("fn,fnij->fij", weight, T0))
-    D = np.ones((F, 3))
-    D[:, 2] = np.sign(np.linalg.det(U @ Vt))
-    rotation0 = (U * D[:, None, :]) @ Vt
     with np.errstate(invalid="ignore"):
         sigma = np.sqrt(np.einsum("fn,fn->f", weight, np.where(members, precision, 0.0) ** 2) / np.maximum(k, 1))
         angle = np.sqrt(np.einsum("fn,fn->f", weight, np.where(members, orientation_precision, 0.0) ** 2)
                         / np.maximum(k, 1))
-    position0[~kept], rotation0[~kept] = np.nan, np.nan
     return position0, rotation0, kept, sigma, angle
 
 
