@@ -132,3 +132,43 @@ def test_a_sessions_wand_calibration_is_a_rigid_body(small_session, tmp_path):
     write_session(type(session)(session.hemisphere, {"check": session.steps["check"]}, {}, {}), tmp_path / "c.h5")
     with pytest.raises(OptionsError, match="no wand_calibration step"):
         load_rigid_body(tmp_path / "c.h5")
+
+
+def test_the_live_loop_flags_a_sensor_its_rigid_body_disagrees_with(exact_table, rng):
+    """A round of the live loop (TRANSFORM poses of a four-sensor tool): all trusted as they are; one sensor
+    shifted is flagged (4); with one sensor missing from the round the other three still decide."""
+    import socket
+
+    from ivc.correct import Corrector
+    from ivc.live import LiveCorrector
+
+    calibration, _ = body(rng)
+    names = ["s0", "s1", "s2", "s3"]
+    listener = socket.create_server(("127.0.0.1", 0))
+    with pytest.raises(OptionsError, match="device names in its order"):
+        LiveCorrector(Corrector(exact_table), listener.getsockname(), ("127.0.0.1", 0), rigid_body=calibration)
+    live = LiveCorrector(Corrector(exact_table), listener.getsockname(), ("127.0.0.1", 0), sensors=names,
+                         pose_corrector=PoseCorrector(exact_table), background_compile=False,
+                         rigid_body=calibration)
+    try:
+        true_position, true_quaternion = moving(calibration, rng, 3)
+        v, C = distortion(true_position.reshape(-1, 3), exact_table.field()(true_position.reshape(-1, 3)))
+        Q = C @ rotations.to_matrix(true_quaternion.reshape(-1, 4))
+        v, Q = v.reshape(3, 4, 3), Q.reshape(3, 4, 3, 3)
+
+        def round_(frame, shifted=None, missing=None):
+            before = live.stats.flagged
+            position = v[frame].copy()
+            if shifted is not None:
+                position[shifted] += [0.0, 0.0, 0.03]
+            samples = [(name, 1000.0 + frame, None, (position[n], Q[frame, n]))
+                       for n, name in enumerate(names) if n != missing]
+            live._correct_round(samples)
+            return live.stats.flagged - before
+
+        assert round_(0) == 0
+        assert round_(1, shifted=1) == 1
+        assert round_(2, shifted=2, missing=3) == 1
+    finally:
+        live.close()
+        listener.close()

@@ -466,7 +466,8 @@ class LiveOptions:
     ``publish``: (host, port) the corrected poses are served on (port 0: any free port); ``length_unit``: of the
     stream's translations (``ivc.units.LENGTH_UNITS``; PLUS and Slicer use mm); ``sensors``: correct only these
     device names (default: every device that sends TRANSFORM or NDARRAY messages); ``rate_hz``: the stream's sample
-    rate, for the prediction.
+    rate, for the prediction. With ``CorrectOptions.rigid_body``, ``sensors`` names the body's sensors in its order,
+    and each round's trusted sensors the others disagree with are flagged (4).
     """
 
     publish: tuple[str, int] = ("127.0.0.1", 18945)
@@ -506,9 +507,11 @@ def live_corrector(lut_file: str | os.PathLike, url: str, options: CorrectOption
     corrector = Corrector(table, hemisphere, options.interpolation, options.max_residual,
                           **options.precision_keywords())
     poses = PoseCorrector(table, hemisphere, options.interpolation, options.solver, **options.precision_keywords())
+    body = None if options.rigid_body is None else load_rigid_body(options.rigid_body, hemisphere)
     return LiveCorrector(corrector, parse_url(url), tuple(live.publish), length_unit=LENGTH_UNITS[live.length_unit],
                          predictor=options.predictor, horizon=options.horizon if options.predictor else 0.0,
-                         rate_hz=live.rate_hz, tuning=tuning, pose_corrector=poses, sensors=list(live.sensors) or None)
+                         rate_hz=live.rate_hz, tuning=tuning, pose_corrector=poses, sensors=list(live.sensors) or None,
+                         rigid_body=body)
 
 
 __all__ = ["CorrectOptions", "CorrectResult", "LiveOptions", "correct_file", "live_corrector"]

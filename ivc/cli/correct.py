@@ -86,7 +86,7 @@ def _cold_note() -> None:
               help="The sensors are fixed to one body: a session whose wand_calibration step holds them in free space, "
                    "or a JSON file of their poses ({\"positions\": [[x, y, z], ...] m, \"quaternions\": [[w, x, y, "
                    "z], ...]}). A trusted sensor the body's other sensors disagree with is flagged 4 (docs/trust.md). "
-                   "In a session: the wand's steps.")
+                   "In a session: the wand's steps; live: the --sensor names given, in the body's order.")
 @tracker_option
 def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, solver, force, predictor,
             horizon, tune, tune_from, live_url, publish, length_unit, sensors, rate_hz, duration, with_precision,
@@ -116,9 +116,6 @@ def correct(lut_file, input_file, output, steps, interpolation, max_residual, he
     with usage_errors("correct"):
         options.check()
         if live_url:
-            if rigid_body:
-                raise click.UsageError("--rigid-body applies to recorded files; a live stream's sensors are checked "
-                                       "by the library (ivc.correct.rigid.agree_with_body on each frame)")
             if input_file or output:
                 raise click.UsageError("--live reads from the network: give no INPUT_FILE or --output")
             host, _, port = publish.rpartition(":")

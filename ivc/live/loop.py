@@ -35,12 +35,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ivc import compiled, dipole, rotations
-from ivc.correct import Correction, Corrector
+from ivc.correct import HIGH_RESIDUAL, INVALID_INPUT, Correction, Corrector
 from ivc.correct import kernels as _correct_kernels
 from ivc.correct import reported_kernels as _pose_kernels
 from ivc.correct.reported import PoseCorrector
+from ivc.correct.rigid import agree_with_body
 from ivc.dipole import kernels as _dipole_kernels
-from ivc.errors import LiveError
+from ivc.errors import LiveError, OptionsError
+from ivc.fixtures.wand import WandCalibration
 from ivc.igtl import Downstream, Framer, TrackingDataMessage, encode_transforms
 from ivc.predict import Tuning
 from ivc.predict import make as make_predictor
@@ -141,7 +143,7 @@ class LiveCorrector:
                  *, length_unit: float = 1e-3, predictor: str | None = None, horizon: float = 0.0,
                  rate_hz: float = 240.0, suffix: str = "_ivc", sensors: list[str] | None = None,
                  retry_s: float = 0.5, tuning: Tuning | None = None, pose_corrector: PoseCorrector | None = None,
-                 background_compile: bool = True):
+                 background_compile: bool = True, rigid_body: WandCalibration | None = None):
         if predictor:
             make_predictor(predictor, rate_hz, tuning)  # an unknown filter or a tuning at another rate: refuse now
         self.corrector, self.source = corrector, source
@@ -150,6 +152,11 @@ class LiveCorrector:
         self.predictor, self.horizon, self.rate_hz = predictor, float(horizon), float(rate_hz)
         self.tuning = tuning
         self.sensors = set(sensors) if sensors else None
+        if rigid_body is not None and (not sensors or len(sensors) != len(rigid_body.positions)):
+            raise OptionsError(f"a rigid body of {len(rigid_body.positions)} sensors needs their device names in its "
+                               f"order (sensors=[...], {len(rigid_body.positions)} names), got {sensors or 'none'}")
+        #: the rigid body the named sensors are fixed to, in ``sensors``' order (None: none)
+        self.rigid_body, self._body_names = rigid_body, list(sensors or ())
         self.retry_s = retry_s
         self.stats = LiveStats()
         self._upstream: socket.socket | None = None
@@ -372,10 +379,28 @@ class LiveCorrector:
                     getattr(merged, key)[idx] = getattr(out, key)
         return merged
 
+    def _agree(self, out: Correction, names: list[str]) -> None:
+        """Flag (4), in place, the trusted sensors of a round that their rigid body's other trusted sensors of the
+        round disagree with (:func:`ivc.correct.rigid.agree_with_body`); a sensor missing from the round counts as
+        untrusted."""
+        W = len(self._body_names)
+        at = {name: n for n, name in enumerate(names)}
+        rows = np.array([at.get(name, -1) for name in self._body_names])
+        present = rows >= 0
+        body = Correction(np.full((1, W, 3), np.nan), np.full((1, W, 4), np.nan), np.full((1, W), INVALID_INPUT,
+                          np.uint8), np.full((1, W), np.nan), np.zeros((1, W), np.int64))
+        body.position[0, present], body.quaternion[0, present] = out.position[rows[present]], \
+            out.quaternion[rows[present]]
+        body.flags[0, present] = out.flags[rows[present]]
+        flagged = agree_with_body(body, self.rigid_body)[0]
+        out.flags[rows[present & flagged]] |= HIGH_RESIDUAL
+
     def _correct_round(self, samples) -> None:
         names = [s[0] for s in samples]
         stamps = [s[1] for s in samples]
         out = self._correct(samples, names)
+        if self.rigid_body is not None:
+            self._agree(out, names)
         ok = out.flags == 0
         self.stats.corrected += int(ok.sum())
         self.stats.flagged += int((~ok).sum())
