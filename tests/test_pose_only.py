@@ -112,6 +112,10 @@ def test_compiled_stream_frame_is_the_batch_computation_from_the_same_start(exac
         assert np.array_equal(np.isfinite(after).all(axis=1), ok)
         np.testing.assert_array_equal(after[ok], (out.position - v[k : k + 4])[ok])
     assert stream.update(v[8:12], Q[8:12], sensors="abcd").flags[1] == INVALID_INPUT
+    stream.update(v[12:16], Q[12:16], sensors="abcd")
+    stream.reset(["c", "unknown"])  # the named sensors only (a name never seen: nothing to forget)
+    starts = stream.warm_starts("abcd")
+    assert np.isnan(starts[2]).all() and np.isfinite(starts[[0, 1, 3]]).all()
     stream.reset()
     stream.warm_up(v[0])  # runs the compiled steps, touches no sensor's warm start
     assert np.isnan(stream.warm_starts("abcd")).all()

@@ -168,6 +168,8 @@ def test_the_live_loop_flags_a_sensor_its_rigid_body_disagrees_with(exact_table,
 
         assert round_(0) == 0
         assert round_(1, shifted=1) == 1
+        starts = live.pose_corrector.warm_starts(names)  # the flagged sensor's track does not continue
+        assert np.isnan(starts[1]).all() and np.isfinite(starts[[0, 2, 3]]).all()
         assert round_(2, shifted=2, missing=3) == 1
     finally:
         live.close()

@@ -659,6 +659,10 @@ class PoseCorrector:
             self._slot_cache[keys] = slots
         return slots
 
-    def reset(self) -> None:
-        """Forget every sensor's warm start (after a gap in the stream)."""
-        self._tracked[:] = False
+    def reset(self, sensors: list | tuple | None = None) -> None:
+        """Forget every sensor's warm start (after a gap in the stream), or the named ``sensors``' (a pose found
+        wrong after its correction: its track does not continue)."""
+        if sensors is None:
+            self._tracked[:] = False
+        else:
+            self._tracked[[self._slot[k] for k in sensors if k in self._slot]] = False

@@ -239,6 +239,7 @@ class LiveCorrector:
         self._selector.register(sock, selectors.EVENT_READ, "upstream")
         self.stats.connections += 1
         self.corrector.reset()
+        self.pose_corrector.reset()  # a gap: no sensor continues its track
         self._streams.clear()
         self._stream_time.clear()
         self._last_time.clear()
@@ -394,6 +395,8 @@ class LiveCorrector:
         body.flags[0, present] = out.flags[rows[present]]
         flagged = agree_with_body(body, self.rigid_body)[0]
         out.flags[rows[present & flagged]] |= HIGH_RESIDUAL
+        # a sensor found on the wrong branch does not continue its track: its next pose gets the full test
+        self.pose_corrector.reset([name for name, f in zip(self._body_names, flagged, strict=True) if f])
 
     def _correct_round(self, samples) -> None:
         names = [s[0] for s in samples]
