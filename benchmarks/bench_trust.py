@@ -7,6 +7,10 @@ gated at 1 mm RMS (``ivc.correct.precision``) and, for reported poses, the ambig
 are corrected each on its own (batch) and as the recorded track they are (``PoseCorrector.track``).
 Errors are in the declared cube frame, among the trusted poses.
 
+A scene with extension sweeps (the cockpit) also has its recorded wand sweeps corrected from reported poses
+(2,500 frames of each, as the track they are) without and with the wand as a rigid body
+(``ivc.correct.rigid.agree_with_body``, docs/trust.md): the trusted samples more than 5 mm off (target: none).
+
 Targets: >= 95 % trusted; no trusted pose more than 5 mm off; at most 0.05 % of trusted poses more than
 2 mm off; the median of actual / predicted error within 0.7-1.4; at most 0.1 % of trusted poses more
 than 5x their prediction. Baseline in the same run: the same table without the precision gate
@@ -23,6 +27,8 @@ import numpy as np
 from benchmarks.harness import Figure
 from ivc.correct import Corrector, PoseCorrector
 from ivc.correct.evaluate import check_errors
+from ivc.correct.rigid import agree_with_body
+from ivc.fixtures.wand import WandCalibration
 from ivc.lut import FitOptions, fit_lut
 from ivc.session import Session
 from ivc.sim import Simulator, load_scene
@@ -31,6 +37,8 @@ from ivc.truth import declared_frame_map
 SCENES = ("default", "mild", "severe", "cockpit")
 CHECK_POSES = 10_000
 INPUTS = ("signals", "reported poses")
+#: frames of each recorded wand sweep corrected as a track
+SWEEP_FRAMES = 2_500
 
 
 def _sessions(name: str) -> tuple[Session, Session]:
@@ -86,6 +94,36 @@ def _figures(label: str, error: np.ndarray, ok: np.ndarray, predicted: np.ndarra
     return figures
 
 
+def sweep_figures(name: str, corrector: PoseCorrector, session: Session) -> list[Figure]:
+    """The recorded wand sweeps (the wand sweep and every extension sweep), ``SWEEP_FRAMES`` frames of each,
+    corrected from their reported poses as tracks, without and with the wand as a rigid body."""
+    wand = WandCalibration.from_step(session.steps["wand_calibration"], session.hemisphere)
+    D_R, D_t, _ = declared_frame_map(session)
+    counts = np.zeros((2, 3), dtype=np.int64)  # (without, with) x (trusted, > 2 mm, > 5 mm)
+    worst = np.zeros(2)
+    steps = [n for n in session.steps if n == "wand_sweep" or n.startswith("extension_sweep")]
+    for step_name in steps:
+        step = session.steps[step_name]
+        k = max(1, step.n_frames // SWEEP_FRAMES)
+        out = corrector.track(step.position[::k], step.quaternion[::k], step.valid_mask[::k])
+        error = 1000 * np.linalg.norm(out.position - (session.truth[step_name].position[::k] @ D_R.T + D_t), axis=-1)
+        for row in range(2):
+            if row == 1:
+                agree_with_body(out, wand)
+            ok = out.flags == 0
+            counts[row] += [ok.sum(), (error[ok] > 2).sum(), (error[ok] > 5).sum()]
+            worst[row] = max(worst[row], float(error[ok].max()) if ok.any() else 0.0)
+    label = f"{name}, recorded sweeps ({len(steps)} x {SWEEP_FRAMES} frames), reported poses as tracks"
+    base = "without the rigid body"
+    return [Figure(f"{label}: trusted with the rigid body", float(counts[1, 0]), "samples", base, float(counts[0, 0])),
+            Figure(f"{label}: trusted > 5 mm off, rigid body", float(counts[1, 2]), "samples", base,
+                   float(counts[0, 2]), "0", passed=counts[1, 2] == 0, higher_is_better=False),
+            Figure(f"{label}: trusted > 2 mm off, rigid body", float(counts[1, 1]), "samples", base,
+                   float(counts[0, 1]), higher_is_better=False),
+            Figure(f"{label}: max error, trusted, rigid body", worst[1], "mm", base, worst[0], "<= 5 mm",
+                   passed=worst[1] <= 5, higher_is_better=False)]
+
+
 def scene_figures(name: str, inputs: tuple[str, ...] = INPUTS) -> list[Figure]:
     start = time.perf_counter()
     signals, poses = _sessions(name)
@@ -112,6 +150,8 @@ def scene_figures(name: str, inputs: tuple[str, ...] = INPUTS) -> list[Figure]:
             figures += _figures(f"{name}, reported poses as a track", error, tracked.flags == 0,
                                 1000 * tracked.precision if tracked.precision is not None else None,
                                 base.ivc_position_mm, base.ok, map_error)
+            if any(n.startswith("extension_sweep") for n in session.steps):
+                figures += sweep_figures(name, gated, session)
     return figures
 
 
