@@ -337,9 +337,6 @@ class PoseCorrector:
         #: which samples of the last batch (or frame) were flagged as ambiguous (their map has two branches there)
         self.last_ambiguous = np.zeros(0, dtype=bool)
 
-    def _secondary(self, r: np.ndarray) -> np.ndarray:
-        return self.field.evaluate(r)[0]
-
     @property
     def seeds(self) -> SeedMap:
         """The probe map the inversions start from (built on first use)."""
