@@ -294,6 +294,45 @@ def test_skipping_the_nearest_start_where_nothing_folds_changes_no_result(folded
         assert out.iterations.sum() < 0.9 * full.iterations.sum()
 
 
+@pytest.mark.parametrize("room", ["folded", "quiet"])
+def test_a_search_that_comes_back_to_the_solution_stops_and_changes_no_result(folded, exact_table, rng, monkeypatch,
+                                                                               room):
+    """The ambiguity test's searches stop where they come back to within RETURNED of the solution found: every output
+    but the iteration count equals that of searches run to the end, and they take fewer iterations."""
+    from ivc.correct import reported_kernels
+
+    if room == "folded":
+        table, _, _, v, q, _, _ = folded
+        noise = NOISE
+    else:
+        table, noise = exact_table, None
+        r, T = poses(rng, 2000)
+        v, C = distortion(r, table.field()(r))
+        q = rotations.from_matrix(C @ rotations.to_matrix(T))
+    stopping = PoseCorrector(table, signal_noise=noise)
+    out = stopping.batch(v, q)
+    full = PoseCorrector(table, signal_noise=noise)
+    invert = full._invert
+    monkeypatch.setattr(full, "_invert", lambda *a, known=None, **k: invert(*a, **k))  # no solution known
+    to_the_end = full.batch(v, q)
+    for name in ("position", "quaternion", "flags", "residual", "precision"):
+        np.testing.assert_array_equal(getattr(out, name), getattr(to_the_end, name))
+    assert np.all(out.iterations <= to_the_end.iterations)
+    if room == "folded":  # where the map folds the test searches nearly everywhere (a quiet room: hardly at all)
+        assert out.iterations.sum() < 0.95 * to_the_end.iterations.sum()
+    # the kernel itself: a search started beside the solution it knows stops within RETURNED of it, unconverged
+    n = min(len(v), 200)
+    solved = np.isfinite(out.position[:n, 0]) & (out.flags[:n] == 0)
+    at = np.ascontiguousarray(v[:n][solved])
+    known = np.ascontiguousarray(out.position[:n][solved])
+    start = known + 2e-4
+    eye = np.broadcast_to(np.eye(3), (len(at), 3, 3))
+    r2, _, miss, converged, iterations, _ = stopping._invert(at, start, eye, False, known=known)
+    assert len(at) > 10 and np.all(np.linalg.norm(r2 - known, axis=1) <= reported_kernels.RETURNED)
+    r3, _, _, converged3, iterations3, _ = stopping._invert(at, start, eye, False)
+    assert np.all(converged3) and np.all(iterations <= iterations3) and np.sum(iterations) < np.sum(iterations3)
+
+
 def test_a_signal_noise_no_tracker_has_is_refused(exact_table):
     from ivc.errors import InputError
 

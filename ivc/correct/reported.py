@@ -353,9 +353,11 @@ class PoseCorrector:
                                                                        self.hemisphere)
         return self._holes
 
-    def _invert(self, v, start, H, serial, restarts: int = 0, field: GridField | None = None):
+    def _invert(self, v, start, H, serial, restarts: int = 0, field: GridField | None = None,
+                known: np.ndarray | None = None):
         """Invert ``φ`` at reported positions v (n, 3) m from ``start`` (n, 3) m with inverse-Jacobian estimates H
-        (n, 3, 3), in ``field`` (default the table's mapped field)."""
+        (n, 3, 3), in ``field`` (default the table's mapped field). ``known`` (n, 3) m: the solution each search
+        has already; a search that comes back to it stops there (the compiled solver only)."""
         n = len(v)
         f = self.field if field is None else field
         if self.solver == "closed-form":
@@ -365,7 +367,8 @@ class PoseCorrector:
             kernel = compiled.choose(_pose_kernels.invert_serial if serial else _pose_kernels.invert_kernel, n)
             limits = _pose_kernels.Limits(int(self.max_iterations), float(self.tolerance), int(restarts))
             out = _pose_kernels.InvertOutput(miss, converged, iterations, mapped)
-            kernel(v, start, H.copy(), self._h, f.kernel_grid, tuple(limits), r, C, tuple(out))
+            known = np.full((n, 3), np.nan) if known is None else np.ascontiguousarray(known, dtype=float)
+            kernel(v, start, H.copy(), known, self._h, f.kernel_grid, tuple(limits), r, C, tuple(out))
             return r, C, miss, converged, iterations, mapped
         inv = invert_distortion(v, lambda r: f.evaluate(r)[0], self.solver, self.hemisphere, start, self.tolerance,
                                 self.max_iterations)
@@ -444,7 +447,8 @@ class PoseCorrector:
         where the noise is known (a region that produces v within the noise is as likely the truth), else
         ``max_residual``. It is looked for from the nearest probe (:meth:`SeedMap.starts`: its start and its
         partner's) and from :data:`RIVALS` probes elsewhere whose cells can map within the tolerance
-        (:meth:`SeedMap.rivals`)."""
+        (:meth:`SeedMap.rivals`). A search that comes back to within
+        :data:`~ivc.correct.reported_kernels.RETURNED` of r stops there."""
         n = len(v)
         tolerance = np.full(n, self.max_residual)
         if self.gate.predicts:
@@ -472,7 +476,8 @@ class PoseCorrector:
         order = np.concatenate([np.arange(t, len(idx), threads) for t in range(threads)])
         idx, start, H = idx[order], start[order], H[order]
         r2, _, miss2, _, it2, mapped2 = self._invert(np.ascontiguousarray(v[idx]), np.ascontiguousarray(start),
-                                                     np.ascontiguousarray(H), serial, _pose_kernels.RESTARTS)
+                                                     np.ascontiguousarray(H), serial, _pose_kernels.RESTARTS,
+                                                     known=r[idx])
         other = mapped2 & (miss2 <= tolerance[idx]) & (np.linalg.norm(r2 - r[idx], axis=1) > AMBIGUITY)
         ambiguous = np.zeros(n, dtype=bool)
         ambiguous[idx[other]] = True
@@ -480,7 +485,7 @@ class PoseCorrector:
         if len(h_rows):  # and from the holes of the map, in the model the table holds there
             h_start, h_H = holes.start_from(h_probes, v[h_rows])
             r3, _, miss3, _, it3, inside3 = self._invert(np.ascontiguousarray(v[h_rows]), h_start, h_H, serial,
-                                                         _pose_kernels.RESTARTS, holes.field)
+                                                         _pose_kernels.RESTARTS, holes.field, known=r[h_rows])
             other = inside3 & (miss3 <= loose[h_rows]) & (np.linalg.norm(r3 - r[h_rows], axis=1) > AMBIGUITY)
             ambiguous[h_rows[other]] = True
             iterations += np.bincount(h_rows, weights=it3, minlength=n)

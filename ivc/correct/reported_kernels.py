@@ -56,6 +56,11 @@ StreamOutput = namedtuple("StreamOutput", "r q flags miss iterations")
 RESTARTS = 2
 #: the step (m) of the central differences of φ
 DIFFERENCE_STEP = 1e-5
+#: how near (m) an iterate of a search for another solution must come to the solution known already to stop there:
+#: the Broyden iteration from that near a regular solution converges to it (a search counts another solution only
+#: beyond ``ivc.correct.reported.AMBIGUITY``, 1 mm). Measured on the default scene's check poses: seven in eight of
+#: the ambiguity test's starts come back, and a third of the test's iterations were spent after this point
+RETURNED = 1e-5
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -124,9 +129,11 @@ def _jacobian_inverse(r, h, grid, H):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def invert_one(v, start, H, h, grid, limits, r, C, out, n):
+def invert_one(v, start, H, known, h, grid, limits, r, C, out, n):
     """Invert one sample from ``start`` (3,) with the inverse-Jacobian estimate H (3, 3, updated in place) into
-    r (3,) and C (3, 3) within ``limits`` (a :data:`Limits`); writes row n of ``out`` (an :data:`InvertOutput`)."""
+    r (3,) and C (3, 3) within ``limits`` (a :data:`Limits`); writes row n of ``out`` (an :data:`InvertOutput`).
+    ``known`` (3,) m: a solution found already (NaN: none); an iterate that comes within :data:`RETURNED` of it
+    stops there, not converged (a search for another solution has come back to the one it has)."""
     max_iterations, tolerance, max_restarts = limits
     miss_out, converged_out, iterations_out, mapped_out = out
     nc = grid[0].shape[3]
@@ -203,6 +210,12 @@ def invert_one(v, start, H, h, grid, limits, r, C, out, n):
         mapped = mapped_t
         miss = miss_t
         converged = miss <= tolerance
+        if not converged and np.isfinite(known[0]):
+            d = 0.0
+            for a in range(3):
+                d += (r[a] - known[a]) * (r[a] - known[a])
+            if d <= RETURNED * RETURNED:
+                break
     # the orientation part, once, at the solution: C(r) of the closed form
     _field_at(r, grid, g, wx, wy, wz, dx, dy, dz, F)
     closed_form_one(F, h, phi, C, wa, wb, ev, B, Fd, K)
@@ -210,19 +223,19 @@ def invert_one(v, start, H, h, grid, limits, r, C, out, n):
 
 
 @numba.njit(**_OPTS)
-def invert_kernel(v, start, H, h, grid, limits, r, C, out):  # pragma: no cover - compiled
+def invert_kernel(v, start, H, known, h, grid, limits, r, C, out):  # pragma: no cover - compiled
     """Invert every sample n from ``start[n]`` with the inverse-Jacobian estimates ``H[n]`` (updated in place) into
     r[n], C[n] and row n of ``out`` (an :data:`InvertOutput`, written only through :func:`invert_one`: numba loses
     the writes a ``prange`` body makes through a tuple's arrays)."""
     for n in numba.prange(v.shape[0]):
-        invert_one(v[n], start[n], H[n], h, grid, limits, r[n], C[n], out, np.int64(n))
+        invert_one(v[n], start[n], H[n], known[n], h, grid, limits, r[n], C[n], out, np.int64(n))
 
 
 @numba.njit(cache=True, nogil=True)
-def invert_serial(v, start, H, h, grid, limits, r, C, out):  # pragma: no cover - compiled
+def invert_serial(v, start, H, known, h, grid, limits, r, C, out):  # pragma: no cover - compiled
     """:func:`invert_kernel` without threads: for a few samples at a time (a live frame)."""
     for n in range(v.shape[0]):
-        invert_one(v[n], start[n], H[n], h, grid, limits, r[n], C[n], out, np.int64(n))
+        invert_one(v[n], start[n], H[n], known[n], h, grid, limits, r[n], C[n], out, np.int64(n))
 
 
 _OUTSIDE, _NOT_CONVERGED, _HIGH_RESIDUAL, _INVALID_INPUT = OUTSIDE, NOT_CONVERGED, HIGH_RESIDUAL, INVALID_INPUT
@@ -274,6 +287,7 @@ def stream_kernel(v, Q, tracks, h, grid, limits, max_residual, out):  # pragma: 
     c = np.empty(1, dtype=np.bool_)
     it = np.empty(1, dtype=np.int64)
     mp = np.empty(1, dtype=np.bool_)
+    none = np.full(3, np.nan)
     for n in range(v.shape[0]):
         slot = slots[n]
         finite = True
@@ -293,7 +307,7 @@ def stream_kernel(v, Q, tracks, h, grid, limits, max_residual, out):  # pragma: 
             start[a] = v[n, a] + offset[slot, a] if tracked[slot] else v[n, a]
             for b in range(3):
                 H[a, b] = 1.0 if a == b else 0.0
-        invert_one(v[n], start, H, h, grid, limits, r[n], C, (m, c, it, mp), np.int64(0))
+        invert_one(v[n], start, H, none, h, grid, limits, r[n], C, (m, c, it, mp), np.int64(0))
         flags[n] = _compose_one(C, Q[n], mp[0], c[0], m[0], max_residual, q[n])
         miss[n], iterations[n] = m[0], it[0]
         tracked[slot] = flags[n] == 0

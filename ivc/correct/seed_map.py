@@ -54,7 +54,8 @@ def correction_seeds(field: GridField, hemisphere: np.ndarray, subdivision: int 
     iterations, mapped = np.empty(n, dtype=np.int64), np.empty(n, dtype=bool)
     kernel = compiled.choose(pose_kernels.invert_kernel, n)
     limits = pose_kernels.Limits(int(MAX_ITERATIONS), float(TOLERANCE), 0)
-    kernel(v, v.copy(), H, np.ascontiguousarray(hemisphere, dtype=float), field.kernel_grid, tuple(limits), r, C,
+    none = np.full((n, 3), np.nan)  # no solution known: every node is solved to convergence
+    kernel(v, v.copy(), H, none, np.ascontiguousarray(hemisphere, dtype=float), field.kernel_grid, tuple(limits), r, C,
            (miss, converged, iterations, mapped))  # an InvertOutput
     good = converged & np.all(np.isfinite(r), axis=1) & (miss <= TOLERANCE)
     delta = np.where(good[:, None], r - v, 0.0)
