@@ -232,7 +232,9 @@ class SeedMap(RivalMap):
         partner's start and H (NaN and I where there is none). Far from every image: v and I."""
         n = len(v)
         eye = np.broadcast_to(np.eye(3), (n, 3, 3))
-        distance, index = self.tree.query(np.where(np.isfinite(v), v, 0.0))
+        # a batch's query on as many threads as numba's kernels (the same answer: each point's query is its own)
+        workers = numba.get_num_threads() if n >= 1024 else 1
+        distance, index = self.tree.query(np.where(np.isfinite(v), v, 0.0), workers=workers)
         near = np.isfinite(distance) & (distance <= self.reach) & np.all(np.isfinite(v), axis=1)
         index = np.where(near, index, 0)
 
