@@ -27,7 +27,7 @@ import numpy as np
 from benchmarks.harness import Figure
 from ivc.correct import Corrector, PoseCorrector
 from ivc.correct.evaluate import check_errors
-from ivc.correct.rigid import agree_with_body
+from ivc.correct.rigid import agree_with_body, decide_with_body
 from ivc.fixtures.wand import WandCalibration
 from ivc.lut import FitOptions, fit_lut
 from ivc.session import Session
@@ -100,22 +100,28 @@ def sweep_figures(name: str, corrector: PoseCorrector, session: Session) -> list
     wand = WandCalibration.from_step(session.steps["wand_calibration"], session.hemisphere)
     D_R, D_t, _ = declared_frame_map(session)
     counts = np.zeros((2, 3), dtype=np.int64)  # (without, with) x (trusted, > 2 mm, > 5 mm)
+    decided = 0
     worst = np.zeros(2)
     steps = [n for n in session.steps if n == "wand_sweep" or n.startswith("extension_sweep")]
     for step_name in steps:
         step = session.steps[step_name]
         k = max(1, step.n_frames // SWEEP_FRAMES)
-        out = corrector.track(step.position[::k], step.quaternion[::k], step.valid_mask[::k])
-        error = 1000 * np.linalg.norm(out.position - (session.truth[step_name].position[::k] @ D_R.T + D_t), axis=-1)
+        position, quaternion, valid = step.position[::k], step.quaternion[::k], step.valid_mask[::k]
+        out = corrector.track(position, quaternion, valid)
+        truth = session.truth[step_name].position[::k] @ D_R.T + D_t
         for row in range(2):
-            if row == 1:
+            if row == 1:  # as ivc correct --rigid-body: flag what the body disagrees with, then let it decide
                 agree_with_body(out, wand)
+                decided += int(decide_with_body(corrector, position, np.where(valid[..., None], quaternion, np.nan),
+                                                out, wand).sum())
+            error = 1000 * np.linalg.norm(out.position - truth, axis=-1)
             ok = out.flags == 0
             counts[row] += [ok.sum(), (error[ok] > 2).sum(), (error[ok] > 5).sum()]
             worst[row] = max(worst[row], float(error[ok].max()) if ok.any() else 0.0)
     label = f"{name}, recorded sweeps ({len(steps)} x {SWEEP_FRAMES} frames), reported poses as tracks"
     base = "without the rigid body"
     return [Figure(f"{label}: trusted with the rigid body", float(counts[1, 0]), "samples", base, float(counts[0, 0])),
+            Figure(f"{label}: ambiguous samples the rigid body decides", float(decided), "samples"),
             Figure(f"{label}: trusted > 5 mm off, rigid body", float(counts[1, 2]), "samples", base,
                    float(counts[0, 2]), "0", passed=counts[1, 2] == 0, higher_is_better=False),
             Figure(f"{label}: trusted > 2 mm off, rigid body", float(counts[1, 1]), "samples", base,

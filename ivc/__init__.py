@@ -124,6 +124,7 @@ _EXPORTS = {
     "Correction": ("ivc.correct", "Correction"),
     "evaluate": ("ivc.correct.evaluate", "evaluate"),
     "agree_with_body": ("ivc.correct.rigid", "agree_with_body"),
+    "decide_with_body": ("ivc.correct.rigid", "decide_with_body"),
     "WandCalibration": ("ivc.fixtures.wand", "WandCalibration"),
     # the app layer: a command as a call (ivc correct, ivc predict)
     "correct_file": ("ivc.app.correct", "correct_file"),

@@ -8,6 +8,7 @@ import pytest
 from ivc import dipole, rotations
 from ivc.correct import Corrector, PoseCorrector
 from ivc.correct.flags import HIGH_RESIDUAL, LOW_PRECISION, NOT_CONVERGED, OUTSIDE
+from ivc.errors import InputError
 from ivc.lut.signal_noise import measure_reported_noise, measure_signal_noise
 from ivc.pose.precision import pose_covariance, pose_precision, reported_pose_covariance, traces
 from ivc.pose.tracker_solver import distortion, reported_pose, reported_pose_jacobian
@@ -233,6 +234,101 @@ def test_a_track_keeps_its_branch_and_a_stream_that_starts_there_is_flagged(fold
         assert late.update(v[-1][None], rotations.to_matrix(q[-1])[None], sensors=["s"]).flags[0] & HIGH_RESIDUAL
         assert corrector.track(v[-1:, None], q[-1:, None]).flags[0, 0] & HIGH_RESIDUAL
     assert kept >= 3
+
+
+def folded_bodies(corrector, r, ambiguous, rng):
+    """Three-sensor bodies in the folded room: sensor 0 where its reported pose alone is ambiguous, the other two
+    where the map places them uniquely. Returns the body, its layout and mounting, and per frame the true positions
+    (F, 3, 3), the reported positions (F, 3, 3) and quaternions (F, 3, 4)."""
+    from ivc.fixtures.wand import WandCalibration
+
+    layout = np.array([[0.0, 0.0, 0.0], [0.04, 0.0, 0.0], [0.0, 0.035, 0.0]])
+    mounted = rotations.random(3, rng)
+    calibration = WandCalibration.from_poses(layout, mounted)
+    frames = []
+    for truth in np.repeat(r[ambiguous], 4, axis=0):
+        T0 = rotations.to_matrix(rotations.random(1, rng))
+        position, rotation = calibration.propagate(truth[None], T0)
+        v, C = distortion(position[0], mirror_field(position[0]))
+        q = rotations.from_matrix(C @ rotation[0])
+        alone = corrector.batch(v, q)
+        if alone.flags[0] & HIGH_RESIDUAL and np.all(alone.flags[1:] == 0) and np.all(
+                np.linalg.norm(alone.position[1:] - position[0, 1:], axis=1) < 1e-3):
+            frames.append((position[0], v, q))
+        if len(frames) == 8:
+            break
+    assert len(frames) >= 5
+    return calibration, layout, mounted, *(np.stack([f[k] for f in frames]) for k in range(3))
+
+
+def test_a_rigid_body_decides_the_branch_of_a_sensor_its_reported_pose_leaves_ambiguous(folded, rng):
+    """Sensor 0 of a three-sensor body sits where the map folds (its reported pose alone is ambiguous), the other
+    two where it does not: the body puts sensor 0 on its true branch, and nothing is trusted off the truth."""
+    from ivc.correct.rigid import agree_with_body, decide_with_body
+
+    _, corrector, r, _, _, _, ambiguous = folded
+    calibration, _, _, true_position, v, q = folded_bodies(corrector, r, ambiguous, rng)
+    body = corrector.batch(v, q)
+    assert np.all(body.flags[:, 0] & HIGH_RESIDUAL)
+    assert not agree_with_body(body, calibration).any()
+    decided = decide_with_body(corrector, v, q, body, calibration)
+    assert decided[:, 0].sum() >= len(v) - 1 and not decided[:, 1:].any()
+    np.testing.assert_array_equal(body.flags[decided], 0)
+    trusted = body.flags == 0
+    # on the true branch: within the table's own error there (the folded room's grid is coarse), as the batch's
+    assert np.all(np.linalg.norm(body.position[trusted] - true_position[trusted], axis=1) < 2e-3)
+    # with its other sensors untrusted the body has nothing to decide with
+    lone = corrector.batch(v, q)
+    lone.flags[:, 1:] = HIGH_RESIDUAL
+    assert not decide_with_body(corrector, v, q, lone, calibration).any()
+    with pytest.raises(InputError, match="reported positions"):
+        decide_with_body(corrector, v[:, :2], q, body, calibration)
+
+
+def test_correct_file_and_the_live_loop_let_a_rigid_body_decide(folded, rng, tmp_path):
+    """The same bodies through ``correct_file(..., rigid_body=...)`` (a CSV of reported poses) and a live round:
+    sensor 0 trusted where the body decides it, flagged without the body."""
+    import json
+    import socket
+
+    from ivc.app.correct import CorrectOptions, correct_file
+    from ivc.collect.replay import write_csv
+    from ivc.correct.rigid import agree_with_body, decide_with_body
+    from ivc.live import LiveCorrector
+    from ivc.lut import write as write_lut
+    from ivc.session import Step
+
+    table, corrector, r, _, _, _, ambiguous = folded
+    calibration, layout, mounted, _, v, q = folded_bodies(corrector, r, ambiguous, rng)
+    body = corrector.batch(v, q)
+    agree_with_body(body, calibration)
+    decided = decide_with_body(corrector, v, q, body, calibration)
+    assert decided[:, 0].sum() >= len(v) - 1
+    F = len(v)
+    write_csv(Step(time=np.arange(F) / 240.0, position=v, quaternion=q), tmp_path / "tool.csv")
+    write_lut(table, tmp_path / "lut.h5")
+    (tmp_path / "tool.json").write_text(json.dumps({"positions": layout.tolist(), "quaternions": mounted.tolist()}))
+    plain = correct_file(tmp_path / "lut.h5", tmp_path / "tool.csv", tmp_path / "plain.csv",
+                         CorrectOptions(signal_noise=NOISE))
+    bodied = correct_file(tmp_path / "lut.h5", tmp_path / "tool.csv", tmp_path / "bodied.csv",
+                          CorrectOptions(signal_noise=NOISE, rigid_body=tmp_path / "tool.json"))
+    assert np.all(plain.corrections["tool.csv"].flags[:, 0] & HIGH_RESIDUAL)
+    np.testing.assert_array_equal(bodied.corrections["tool.csv"].flags[:, 0] == 0, decided[:, 0])
+    names = ["s0", "s1", "s2"]
+    listener = socket.create_server(("127.0.0.1", 0))
+    live = LiveCorrector(Corrector(table), listener.getsockname(), ("127.0.0.1", 0), sensors=names,
+                         pose_corrector=PoseCorrector(table, signal_noise=NOISE), background_compile=False,
+                         rigid_body=calibration)
+    try:
+        Q = rotations.to_matrix(q)
+        for f in range(F):
+            live.pose_corrector.reset()  # each frame a new place: no track continues
+            before = live.stats.flagged
+            live._correct_round([(name, 1000.0 + f, None, (v[f, n], Q[f, n])) for n, name in enumerate(names)])
+            assert live.stats.flagged - before == (0 if decided[f, 0] else 1)
+    finally:
+        live.close()
+        listener.close()
 
 
 def test_a_pose_whose_truth_lies_in_a_hole_of_the_map_is_flagged(folded):

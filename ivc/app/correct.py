@@ -32,7 +32,7 @@ from ivc.correct import Correction, Corrector, PoseCorrector, describe
 from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, LOW_PRECISION, NOT_CONVERGED, OUTSIDE
 from ivc.correct.precision import DEFAULT
 from ivc.correct.residual_gate import RESIDUAL_SIGMAS
-from ivc.correct.rigid import agree_with_body
+from ivc.correct.rigid import agree_with_body, decide_with_body
 from ivc.errors import OptionsError
 from ivc.fixtures.wand import WandCalibration
 from ivc.lut.build import file_digest
@@ -73,9 +73,10 @@ class CorrectOptions:
 
     ``rigid_body``: the recording's sensors are fixed to one body of this geometry (a
     :class:`~ivc.fixtures.wand.WandCalibration`, or a file :func:`load_rigid_body` reads); a trusted sensor the
-    body's other trusted sensors do not agree with is flagged (4) (:func:`ivc.correct.rigid.agree_with_body`). In a
-    session it applies to the wand's steps (its sweep and extension sweeps); in a CSV or PLUS recording to every
-    sensor, which must be the body's, in its order.
+    body's other trusted sensors do not agree with is flagged (4) (:func:`ivc.correct.rigid.agree_with_body`), and a
+    reported pose the map produces twice is trusted where the body puts it on one branch
+    (:func:`ivc.correct.rigid.decide_with_body`). In a session it applies to the wand's steps (its sweep and
+    extension sweeps); in a CSV or PLUS recording to every sensor, which must be the body's, in its order.
     """
 
     steps: Sequence[str] = ()
@@ -345,6 +346,11 @@ class _Job:
             flagged = agree_with_body(out, self.body)
             self.say(INFO, f"{step.description or 'step'}: {int(flagged.sum())} trusted samples flagged (4): their "
                            f"rigid body's other sensors disagree, or too few agree")
+            if step.signal is None:
+                quaternion = np.where(step.valid_mask[..., None], step.quaternion, np.nan)
+                decided = decide_with_body(poses, step.position, quaternion, out, self.body)
+                self.say(INFO, f"{step.description or 'step'}: {int(decided.sum())} samples the reported pose left "
+                               f"ambiguous trusted: their rigid body puts them on one branch")
         return out
 
     def _gate(self, gate) -> None:

@@ -85,7 +85,8 @@ def _cold_note() -> None:
 @click.option("--rigid-body", "rigid_body", type=click.Path(exists=True, dir_okay=False),
               help="The sensors are fixed to one body: a session whose wand_calibration step holds them in free space, "
                    "or a JSON file of their poses ({\"positions\": [[x, y, z], ...] m, \"quaternions\": [[w, x, y, "
-                   "z], ...]}). A trusted sensor the body's other sensors disagree with is flagged 4 (docs/trust.md). "
+                   "z], ...]}). A trusted sensor the body's other sensors disagree with is flagged 4, and a reported "
+                   "pose the map produces twice is trusted where the body puts it on one branch (docs/trust.md). "
                    "In a session: the wand's steps; live: the --sensor names given, in the body's order.")
 @tracker_option
 def correct(lut_file, input_file, output, steps, interpolation, max_residual, hemisphere, solver, force, predictor,

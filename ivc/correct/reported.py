@@ -378,16 +378,18 @@ class PoseCorrector:
         mapped = f.evaluate(np.where(ok[:, None], inv.position, 0.0))[2] & ok
         return inv.position, inv.turn, inv.miss, inv.converged, inv.iterations, mapped
 
-    def _run(self, v: np.ndarray, Q: np.ndarray, previous: np.ndarray, serial: bool) -> Correction:
+    def _run(self, v: np.ndarray, Q: np.ndarray, previous: np.ndarray, serial: bool, restarts: int = 0
+             ) -> Correction:
         """Correct reported positions v (n, 3) and rotations Q (n, 3, 3); ``previous`` (n, 3): each sample's
-        previous good correction offset r − v (NaN: none), which then starts the inversion."""
+        previous good correction offset r − v (NaN: none), which then starts the inversion; ``restarts``: the
+        inversion's recomputations of its inverse Jacobian where Broyden's estimate stalls."""
         n = len(v)
         finite = np.all(np.isfinite(v), axis=1) & np.all(np.isfinite(Q.reshape(n, 9)), axis=1)
         v = np.ascontiguousarray(np.where(finite[:, None], v, 1.0))
         tracked = np.all(np.isfinite(previous), axis=1)
         start = np.where(tracked[:, None], v + np.where(tracked[:, None], previous, 0.0), v)
         eye = np.broadcast_to(np.eye(3), (n, 3, 3))
-        r, C, miss, converged, iterations, mapped = self._invert(v, start, eye, serial)
+        r, C, miss, converged, iterations, mapped = self._invert(v, start, eye, serial, restarts)
         ambiguous = np.zeros(n, dtype=bool)
         check = np.flatnonzero(finite & ~tracked) if self.check_ambiguity else np.zeros(0, int)
         if len(check):  # a stream's continuing track needs no other start: its history tells which branch
@@ -613,16 +615,20 @@ class PoseCorrector:
         slots = self._slots(sensors, len(tuple(sensors)))
         return np.where(self._tracked[slots][:, None], self._offset[slots], np.nan)
 
-    def correct_from(self, position: np.ndarray, rotation: np.ndarray, offsets: np.ndarray) -> Correction:
+    def correct_from(self, position: np.ndarray, rotation: np.ndarray, offsets: np.ndarray, restarts: int = 0
+                     ) -> Correction:
         """The batch's path for reported positions (n, 3) m and rotations (n, 3, 3), each sample started at
         ``position + offsets`` ((n, 3) m; a NaN row: at the position, with the ambiguity test), without touching
-        any sensor's warm start: what :meth:`update` computes for a frame, in the batch's steps."""
+        any sensor's warm start: what :meth:`update` computes for a frame, in the batch's steps. ``restarts``: how
+        often the inversion may recompute its inverse Jacobian where Broyden's estimate stalls (near a fold; the
+        correction's own inversion makes none, the ambiguity test's searches
+        :data:`~ivc.correct.reported_kernels.RESTARTS`)."""
         v = np.ascontiguousarray(np.asarray(position, dtype=float).reshape(-1, 3))
         Q = np.asarray(rotation, dtype=float).reshape(-1, 3, 3)
         offsets = np.asarray(offsets, dtype=float).reshape(-1, 3)
         if not len(v) == len(Q) == len(offsets):
             raise InputError(f"{len(v)} positions, {len(Q)} rotations and {len(offsets)} offsets: give one each")
-        return self._run(v, Q, offsets, serial=True)
+        return self._run(v, Q, offsets, serial=True, restarts=restarts)
 
     def warm_up(self, position: np.ndarray) -> None:
         """Run the compiled steps of :meth:`batch` and :meth:`update` once, at a reported position (3,) m, so

@@ -39,7 +39,7 @@ from ivc.correct import HIGH_RESIDUAL, INVALID_INPUT, Correction, Corrector
 from ivc.correct import kernels as _correct_kernels
 from ivc.correct import reported_kernels as _pose_kernels
 from ivc.correct.reported import PoseCorrector
-from ivc.correct.rigid import agree_with_body
+from ivc.correct.rigid import agree_with_body, decide_with_body
 from ivc.dipole import kernels as _dipole_kernels
 from ivc.errors import LiveError, OptionsError
 from ivc.fixtures.wand import WandCalibration
@@ -380,10 +380,11 @@ class LiveCorrector:
                     getattr(merged, key)[idx] = getattr(out, key)
         return merged
 
-    def _agree(self, out: Correction, names: list[str]) -> None:
+    def _agree(self, out: Correction, names: list[str], samples) -> None:
         """Flag (4), in place, the trusted sensors of a round that their rigid body's other trusted sensors of the
         round disagree with (:func:`ivc.correct.rigid.agree_with_body`); a sensor missing from the round counts as
-        untrusted."""
+        untrusted. Then trust the reported poses the map produces twice where the body puts them on one branch
+        (:func:`ivc.correct.rigid.decide_with_body`; not a signal's sample: its signal decides)."""
         W = len(self._body_names)
         at = {name: n for n, name in enumerate(names)}
         rows = np.array([at.get(name, -1) for name in self._body_names])
@@ -397,13 +398,33 @@ class LiveCorrector:
         out.flags[rows[present & flagged]] |= HIGH_RESIDUAL
         # a sensor found on the wrong branch does not continue its track: its next pose gets the full test
         self.pose_corrector.reset([name for name, f in zip(self._body_names, flagged, strict=True) if f])
+        body.flags[0, present] = out.flags[rows[present]]
+        reported = np.array([present[n] and samples[rows[n]][3] is not None for n in range(W)])
+        if not reported.any():
+            return
+        position, quaternion = np.full((1, W, 3), np.nan), np.full((1, W, 4), np.nan)
+        for n in np.flatnonzero(reported):
+            v, R = samples[rows[n]][3]
+            position[0, n], quaternion[0, n] = v, rotations.from_matrix(np.asarray(R, float)[None])[0]
+        body.flags[0, ~reported & (body.flags[0] == HIGH_RESIDUAL)] |= INVALID_INPUT  # a signal's: not re-solved
+        body.residual[0, present] = out.residual[rows[present]]
+        body.iterations[0, present] = out.iterations[rows[present]]
+        if out.precision is not None:
+            body.precision, body.orientation_precision = np.full((1, W), np.nan), np.full((1, W), np.nan)
+        decided = decide_with_body(self.pose_corrector, position, quaternion, body, self.rigid_body)[0]
+        for n in np.flatnonzero(decided):
+            i = rows[n]
+            out.position[i], out.quaternion[i], out.flags[i] = body.position[0, n], body.quaternion[0, n], 0
+            out.residual[i], out.iterations[i] = body.residual[0, n], body.iterations[0, n]
+            if out.precision is not None:
+                out.precision[i], out.orientation_precision[i] = body.precision[0, n], body.orientation_precision[0, n]
 
     def _correct_round(self, samples) -> None:
         names = [s[0] for s in samples]
         stamps = [s[1] for s in samples]
         out = self._correct(samples, names)
         if self.rigid_body is not None:
-            self._agree(out, names)
+            self._agree(out, names, samples)
         ok = out.flags == 0
         self.stats.corrected += int(ok.sum())
         self.stats.flagged += int((~ok).sum())
