@@ -365,20 +365,24 @@ def test_a_pose_whose_truth_lies_in_a_hole_of_the_map_is_flagged(folded):
     np.testing.assert_allclose(sources.position[fine & trusted], polynomial.position[fine & trusted])
 
 
+def room_poses(room: str, folded, exact_table, rng):
+    """A room's table, its tracker noise (None: not known) and reported positions (n, 3) and quaternions (n, 4):
+    the folded room's check poses, or 2,000 poses in a quiet one (the exact table's)."""
+    if room == "folded":
+        table, _, _, v, q, _, _ = folded
+        return table, NOISE, v, q
+    r, T = poses(rng, 2000)
+    v, C = distortion(r, exact_table.field()(r))
+    return exact_table, None, v, rotations.from_matrix(C @ rotations.to_matrix(T))
+
+
 @pytest.mark.parametrize("room", ["folded", "quiet"])
 def test_skipping_the_nearest_start_where_nothing_folds_changes_no_result(folded, exact_table, rng, monkeypatch, room):
     """The ambiguity test skips the nearest probe's start where no partner, rival candidate or far linear start shows
     a fold: every output equals the test that always takes it, in the folded room and in a quiet one."""
     from ivc.correct import reported
 
-    if room == "folded":
-        table, _, _, v, q, _, _ = folded
-        noise = NOISE
-    else:
-        table, noise = exact_table, None
-        r, T = poses(rng, 2000)
-        v, C = distortion(r, table.field()(r))
-        q = rotations.from_matrix(C @ rotations.to_matrix(T))
+    table, noise, v, q = room_poses(room, folded, exact_table, rng)
     skipping = PoseCorrector(table, signal_noise=noise)
     out = skipping.batch(v, q)
     monkeypatch.setattr(reported, "QUIET_SKIP", False)
@@ -397,14 +401,7 @@ def test_a_search_that_comes_back_to_the_solution_stops_and_changes_no_result(fo
     but the iteration count equals that of searches run to the end, and they take fewer iterations."""
     from ivc.correct import reported_kernels
 
-    if room == "folded":
-        table, _, _, v, q, _, _ = folded
-        noise = NOISE
-    else:
-        table, noise = exact_table, None
-        r, T = poses(rng, 2000)
-        v, C = distortion(r, table.field()(r))
-        q = rotations.from_matrix(C @ rotations.to_matrix(T))
+    table, noise, v, q = room_poses(room, folded, exact_table, rng)
     stopping = PoseCorrector(table, signal_noise=noise)
     out = stopping.batch(v, q)
     full = PoseCorrector(table, signal_noise=noise)
