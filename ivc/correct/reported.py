@@ -392,11 +392,11 @@ class PoseCorrector:
         r, C, miss, converged, iterations, mapped = self._invert(v, start, eye, serial, restarts)
         ambiguous = np.zeros(n, dtype=bool)
         # a stream's continuing track needs no other start: its history tells which branch; nor does a sample whose
-        # first inversion failed (it is flagged already, and another start's solution is not taken: _ambiguous)
+        # first inversion failed: it is flagged already, and another start's solution is not taken (measured: it is
+        # most often the wrong branch)
         check = np.flatnonzero(finite & ~tracked & converged & mapped) if self.check_ambiguity else np.zeros(0, int)
         if len(check):
-            ambiguous[check], extra = self._ambiguous(v[check], Q[check], r[check], np.ones(len(check), bool),
-                                                      serial)
+            ambiguous[check], extra = self._ambiguous(v[check], Q[check], r[check], serial)
             iterations[check] += extra
         q, flags = np.empty((n, 4)), np.empty(n, dtype=np.uint8)
         contiguous = np.ascontiguousarray
@@ -446,8 +446,8 @@ class PoseCorrector:
             np.hypot(orientation, self.map_error[1], out=orientation)
         return position, orientation
 
-    def _ambiguous(self, v, Q, r, solved, serial) -> tuple[np.ndarray, np.ndarray]:
-        """Whether each reported position v (n, 3) m, solved at r (n, 3) m where ``solved``, has another mapped
+    def _ambiguous(self, v, Q, r, serial) -> tuple[np.ndarray, np.ndarray]:
+        """Whether each reported position v (n, 3) m, solved at r (n, 3) m, has another mapped
         solution, and the iterations spent looking. Another solution is one more than :data:`AMBIGUITY` from r
         that reproduces v to a tolerance: :data:`RIVAL_NOISE` times the reported position's predicted RMS noise
         where the noise is known (a region that produces v within the noise is as likely the truth), else
@@ -503,9 +503,7 @@ class PoseCorrector:
             other = inside3 & (miss3 <= loose[rows]) & (np.linalg.norm(r3 - r[rows], axis=1) > AMBIGUITY)
             ambiguous[rows[other]] = True
             iterations += np.bincount(rows, weights=it3, minlength=n)
-        # where the first start failed, another start's solution is not taken either (measured: it is most
-        # often the wrong branch), nor is the sample called ambiguous: it is flagged already
-        return ambiguous & solved, iterations.astype(np.int64)
+        return ambiguous, iterations.astype(np.int64)
 
     def invert_from_probes(self, position: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Invert ``φ`` at reported positions (n, 3) m from each one's nearest probe of :attr:`seeds` rather than
