@@ -112,8 +112,7 @@ def sweep_figures(name: str, corrector: PoseCorrector, session: Session) -> list
         for row in range(2):
             if row == 1:  # as ivc correct --rigid-body: flag what the body disagrees with, then let it decide
                 agree_with_body(out, wand)
-                decided += int(decide_with_body(corrector, position, np.where(valid[..., None], quaternion, np.nan),
-                                                out, wand).sum())
+                decided += int(decide_with_body(corrector, position, quaternion, out, wand).sum())
             error = 1000 * np.linalg.norm(out.position - truth, axis=-1)
             ok = out.flags == 0
             counts[row] += [ok.sum(), (error[ok] > 2).sum(), (error[ok] > 5).sum()]

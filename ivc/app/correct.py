@@ -347,8 +347,7 @@ class _Job:
             self.say(INFO, f"{step.description or 'step'}: {int(flagged.sum())} trusted samples flagged (4): their "
                            f"rigid body's other sensors disagree, or too few agree")
             if step.signal is None:
-                quaternion = np.where(step.valid_mask[..., None], step.quaternion, np.nan)
-                decided = decide_with_body(poses, step.position, quaternion, out, self.body)
+                decided = decide_with_body(poses, step.position, step.quaternion, out, self.body)
                 self.say(INFO, f"{step.description or 'step'}: {int(decided.sum())} samples the reported pose left "
                                f"ambiguous trusted: their rigid body puts them on one branch")
         return out

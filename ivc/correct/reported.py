@@ -490,7 +490,7 @@ class PoseCorrector:
         iterations = np.bincount(idx, weights=it2, minlength=n)
         # and from the holes of the map, in the model the table holds there: each sample's hole probes in turn, nearest
         # in image first, until one finds another solution (a sample that is ambiguous already needs no more; most
-        # hole searches find none and cost about ten iterations each, so this saves a third of them on the cockpit)
+        # hole searches find none and cost about ten iterations each: a sixth fewer of them on the cockpit)
         rank = np.arange(len(h_rows)) - np.searchsorted(h_rows, h_rows)  # h_rows comes by row
         for k in range(int(rank.max(initial=-1)) + 1):
             turn = (rank == k) & ~ambiguous[h_rows]

@@ -50,13 +50,14 @@ def decide_with_body(corrector: PoseCorrector, position: np.ndarray, quaternion:
                      ) -> np.ndarray:
     """Trust, in place, the sensors of ``out`` that their rigid body puts on one branch: frames (F, W) of the body's W
     sensors in its calibration's order, corrected by ``corrector`` from reported ``position`` (F, W, 3) m and
-    ``quaternion`` (F, W, 4) [w, x, y, z]. A sensor flagged HIGH_RESIDUAL alone (the map produces its reported pose
-    twice, or not within the residual limit) in a frame where the body's trusted sensors agree on its pose
-    (:meth:`~ivc.fixtures.wand.WandCalibration.consensus`, ``agreement`` (m, rad), ``min_sensors``) is solved again,
-    started where the body puts it (:meth:`~ivc.correct.reported.PoseCorrector.correct_from`: no other start, as a
-    continuing track, with the ambiguity test's Jacobian restarts); where that solution passes every test and lies
-    within ``agreement`` of the body's pose for it, it replaces the sample's. Run :func:`agree_with_body` first, so
-    that the consensus is of agreeing sensors. Returns the samples newly trusted (F, W) bool."""
+    ``quaternion`` (F, W, 4) [w, x, y, z] (NaN: no reported pose, nothing to decide). A sensor flagged HIGH_RESIDUAL
+    alone (the map produces its reported pose twice, or not within the residual limit) in a frame where the body's
+    trusted sensors agree on its pose (:meth:`~ivc.fixtures.wand.WandCalibration.consensus`, ``agreement`` (m, rad),
+    ``min_sensors``) is solved again, started where the body puts it
+    (:meth:`~ivc.correct.reported.PoseCorrector.correct_from`: no other start, as a continuing track, with the
+    ambiguity test's Jacobian restarts); where that solution passes every test and lies within ``agreement`` of the
+    body's pose for it, it replaces the sample's. Run :func:`agree_with_body` first, so that the consensus is of
+    agreeing sensors. Returns the samples newly trusted (F, W) bool."""
     flags = out.flags
     W = len(body.positions)
     position, quaternion = np.asarray(position, float), np.asarray(quaternion, float)
@@ -67,7 +68,8 @@ def decide_with_body(corrector: PoseCorrector, position: np.ndarray, quaternion:
                          f"{position.shape} and {quaternion.shape}")
     decided = np.zeros(flags.shape, dtype=bool)
     consensus = body.consensus(out.position, out.quaternion, flags == 0, agreement, min_sensors)
-    frame, sensor = np.nonzero((flags == HIGH_RESIDUAL) & consensus.kept[:, None])
+    has_pose = np.all(np.isfinite(position), axis=-1) & np.all(np.isfinite(quaternion), axis=-1)
+    frame, sensor = np.nonzero((flags == HIGH_RESIDUAL) & has_pose & consensus.kept[:, None])
     if not len(frame):
         return decided
     # where the body puts each candidate: T_n = T_0 R_n, r_n = r_0 + T_0 p_n
@@ -75,8 +77,7 @@ def decide_with_body(corrector: PoseCorrector, position: np.ndarray, quaternion:
     T = T0 @ body.rotations[sensor]
     r = r0 + np.einsum("nij,nj->ni", T0, body.positions[sensor])
     v = position[frame, sensor]
-    with np.errstate(invalid="ignore"):
-        Q = rotations.to_matrix(quaternion[frame, sensor])
+    Q = rotations.to_matrix(quaternion[frame, sensor])
     # near a fold Broyden's estimate from the identity stalls: the search recomputes it, as the ambiguity test's do
     again = corrector.correct_from(v, Q, r - v, restarts=RESTARTS)
     turned = rotations.to_matrix(np.where(np.isfinite(again.quaternion), again.quaternion, [1.0, 0.0, 0.0, 0.0]))

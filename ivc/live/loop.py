@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ivc import compiled, dipole, rotations
-from ivc.correct import HIGH_RESIDUAL, INVALID_INPUT, Correction, Corrector
+from ivc.correct import INVALID_INPUT, Correction, Corrector
 from ivc.correct import kernels as _correct_kernels
 from ivc.correct import reported_kernels as _pose_kernels
 from ivc.correct.reported import PoseCorrector
@@ -384,40 +384,35 @@ class LiveCorrector:
         """Flag (4), in place, the trusted sensors of a round that their rigid body's other trusted sensors of the
         round disagree with (:func:`ivc.correct.rigid.agree_with_body`); a sensor missing from the round counts as
         untrusted. Then trust the reported poses the map produces twice where the body puts them on one branch
-        (:func:`ivc.correct.rigid.decide_with_body`; not a signal's sample: its signal decides)."""
+        (:func:`ivc.correct.rigid.decide_with_body`; not a signal's sample: it has no reported pose, its signal
+        decides)."""
         W = len(self._body_names)
         at = {name: n for n, name in enumerate(names)}
         rows = np.array([at.get(name, -1) for name in self._body_names])
         present = rows >= 0
-        body = Correction(np.full((1, W, 3), np.nan), np.full((1, W, 4), np.nan), np.full((1, W), INVALID_INPUT,
-                          np.uint8), np.full((1, W), np.nan), np.zeros((1, W), np.int64))
-        body.position[0, present], body.quaternion[0, present] = out.position[rows[present]], \
-            out.quaternion[rows[present]]
-        body.flags[0, present] = out.flags[rows[present]]
+        got = rows[present]
+        # the round as one frame of the body (a missing sensor: no pose, INVALID_INPUT), and its reported poses
+        body = Correction(np.full((1, W, 3), np.nan), np.full((1, W, 4), np.nan),
+                          np.full((1, W), INVALID_INPUT, np.uint8), np.full((1, W), np.nan), np.zeros((1, W), np.int64),
+                          *(None if out.precision is None else np.full((1, W), np.nan) for _ in range(2)))
+        fields = ("position", "quaternion", "flags", "residual", "iterations") + (
+            () if out.precision is None else ("precision", "orientation_precision"))
+        for name in fields:
+            getattr(body, name)[0, present] = getattr(out, name)[got]
         flagged = agree_with_body(body, self.rigid_body)[0]
-        out.flags[rows[present & flagged]] |= HIGH_RESIDUAL
+        out.flags[got] = body.flags[0, present]
         # a sensor found on the wrong branch does not continue its track: its next pose gets the full test
         self.pose_corrector.reset([name for name, f in zip(self._body_names, flagged, strict=True) if f])
-        body.flags[0, present] = out.flags[rows[present]]
         reported = np.array([present[n] and samples[rows[n]][3] is not None for n in range(W)])
         if not reported.any():
             return
         position, quaternion = np.full((1, W, 3), np.nan), np.full((1, W, 4), np.nan)
-        for n in np.flatnonzero(reported):
-            v, R = samples[rows[n]][3]
-            position[0, n], quaternion[0, n] = v, rotations.from_matrix(np.asarray(R, float)[None])[0]
-        body.flags[0, ~reported & (body.flags[0] == HIGH_RESIDUAL)] |= INVALID_INPUT  # a signal's: not re-solved
-        body.residual[0, present] = out.residual[rows[present]]
-        body.iterations[0, present] = out.iterations[rows[present]]
-        if out.precision is not None:
-            body.precision, body.orientation_precision = np.full((1, W), np.nan), np.full((1, W), np.nan)
+        position[0, reported] = [samples[rows[n]][3][0] for n in np.flatnonzero(reported)]
+        quaternion[0, reported] = rotations.from_matrix(
+            np.array([samples[rows[n]][3][1] for n in np.flatnonzero(reported)], dtype=float))
         decided = decide_with_body(self.pose_corrector, position, quaternion, body, self.rigid_body)[0]
-        for n in np.flatnonzero(decided):
-            i = rows[n]
-            out.position[i], out.quaternion[i], out.flags[i] = body.position[0, n], body.quaternion[0, n], 0
-            out.residual[i], out.iterations[i] = body.residual[0, n], body.iterations[0, n]
-            if out.precision is not None:
-                out.precision[i], out.orientation_precision[i] = body.precision[0, n], body.orientation_precision[0, n]
+        for name in fields:
+            getattr(out, name)[rows[decided]] = getattr(body, name)[0, decided]
 
     def _correct_round(self, samples) -> None:
         names = [s[0] for s in samples]
