@@ -83,7 +83,7 @@ def closed_form_position(S, hemisphere, r, work_a, work_b, v, B):
         for j in range(3):
             B[i, j] = S[0, i] * S[0, j] + S[1, i] * S[1, j] + S[2, i] * S[2, j]
     tr = B[0, 0] + B[1, 1] + B[2, 2]
-    principal_eigenvector(B, work_a, work_b, v)
+    principal_eigenvector(B, v)
     sign = 1.0
     if v[0] * hemisphere[0] + v[1] * hemisphere[1] + v[2] * hemisphere[2] < 0.0:
         sign = -1.0

@@ -15,6 +15,7 @@ import numba
 import numpy as np
 
 from ivc.dipole.kernels import dipole_jacobian, field_matrix
+from ivc.linalg import cholesky, cholesky_inverse
 
 #: an information matrix worse conditioned than this fixes no pose: its covariance is infinite
 MAX_CONDITION = 1e14
@@ -25,7 +26,7 @@ def crb_covariance_one(T, M, dM, J, out):
     """``out`` (6, 6) = ``(JᵀJ)⁻¹`` for the pose (position, rotation increment) a signal ``Tᵀ M`` fixes, with
     M (3, 3) the field at the pose and dM (3, 3, 3) its derivative ∂M_aj/∂r_k; J (9, 6) is work space.
     Returns False (and ``out`` infinite) where the information matrix is singular or not finite."""
-    P = np.empty((3, 3))
+    P = out[:3, :3]  # Tᵀ M; out is free until the information matrix is inverted into it
     for i in range(3):
         for j in range(3):
             s = 0.0
@@ -42,23 +43,25 @@ def crb_covariance_one(T, M, dM, J, out):
         J[0 * 3 + j, 3], J[1 * 3 + j, 3], J[2 * 3 + j, 3] = 0.0, P[2, j], -P[1, j]
         J[0 * 3 + j, 4], J[1 * 3 + j, 4], J[2 * 3 + j, 4] = -P[2, j], 0.0, P[0, j]
         J[0 * 3 + j, 5], J[1 * 3 + j, 5], J[2 * 3 + j, 5] = P[1, j], -P[0, j], 0.0
-    info = np.zeros((6, 6))
+    # the information matrix JᵀJ into out's lower triangle; its Cholesky factor and from it the inverse into J's
+    # first six rows (J is no longer needed), then back into out
     finite = True
+    size = 0.0
     for a in range(6):
-        for b in range(a, 6):
+        for b in range(a + 1):
             s = 0.0
             for m in range(9):
                 s += J[m, a] * J[m, b]
-            info[a, b] = s
-            info[b, a] = s
+            out[a, b] = s
+            size += s * s if a == b else 2.0 * s * s
             finite = finite and np.isfinite(s)
-    if finite:
-        inverse = np.linalg.inv(info)
+    inverse = J[:6, :]
+    if finite and cholesky(out, 6, inverse):
+        cholesky_inverse(inverse, 6)
         # the condition number in the Frobenius norm (an upper bound of the 2-norm's, without an SVD)
-        size, inverse_size = 0.0, 0.0
+        inverse_size = 0.0
         for a in range(6):
             for b in range(6):
-                size += info[a, b] * info[a, b]
                 inverse_size += inverse[a, b] * inverse[a, b]
         if np.isfinite(inverse_size) and np.sqrt(size * inverse_size) < MAX_CONDITION:
             for a in range(6):
