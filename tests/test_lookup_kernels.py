@@ -15,9 +15,10 @@ def _table(rng, shape=(6, 7, 5), channels=9):
 
 
 @pytest.mark.parametrize("cubic", [True, False])
-def test_separable_value_only_and_contains_equal_the_reference(cubic):
+@pytest.mark.parametrize("channels", [9, 3])  # a field matrix (grid_value's nine registers) and a seed map
+def test_separable_value_only_and_contains_equal_the_reference(cubic, channels):
     rng = np.random.default_rng(3)
-    padded, valid_cells, origin, spacing, shape = _table(rng)
+    padded, valid_cells, origin, spacing, shape = _table(rng, channels=channels)
     extent = spacing * (shape - 1)
     points = origin + rng.uniform(-0.1, 1.1, size=(400, 3)) * extent  # some outside the grid
     points[:5] = origin + spacing * np.array([[0, 0, 0], [1, 2, 3], [5, 6, 4], [2.5, 0, 1], [0, 6, 0.5]])  # nodes

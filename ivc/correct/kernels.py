@@ -104,7 +104,7 @@ def correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations,
     elif use_map:
         # the closed-form position v and the map's r − v at v (one closed form and a 3-channel look-up,
         # landing about 10 µm from the answer, where the fixed point below costs three closed forms)
-        closed_form_position(S, hemisphere, r, work_a, work_b, v, B)
+        closed_form_position(S, hemisphere, r, v, B)
         if grid_value(seed_map, r, g, wx, wy, wz, dx, dy, dz):
             for a in range(3):
                 r[a] += g[a]
@@ -119,7 +119,7 @@ def correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations,
             if step_number < FIXED_POINT_STEPS - 1:
                 _closed_form(Sc, hemisphere, r, T, work_a, work_b, v, B, F, K)
             else:  # the last step's orientation would be replaced below: its position is all that is used
-                closed_form_position(Sc, hemisphere, r, work_a, work_b, v, B)
+                closed_form_position(Sc, hemisphere, r, v, B)
     mapped = pose_model_separable(r, grid, M, dM, lookup)
     for i in range(3):  # the model at the accepted position, and whether it is mapped: no re-evaluation at the end
         for j in range(3):

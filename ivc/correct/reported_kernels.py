@@ -109,18 +109,17 @@ def _jacobian_inverse(r, h, grid, H):
     nc = grid[0].shape[3]
     g = np.empty(nc)
     wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
-    F, wa, wb, B = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    F, B, D = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     ev, phi_p, phi_m, x = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-    D = np.empty((3, 3))
     for k in range(3):
         for a in range(3):
             x[a] = r[a]
         x[k] = r[k] + DIFFERENCE_STEP
         usable, _ = _field_at(x, grid, g, wx, wy, wz, dx, dy, dz, F)
-        closed_form_position(F, h, phi_p, wa, wb, ev, B)
+        closed_form_position(F, h, phi_p, ev, B)
         x[k] = r[k] - DIFFERENCE_STEP
         usable_m, _ = _field_at(x, grid, g, wx, wy, wz, dx, dy, dz, F)
-        closed_form_position(F, h, phi_m, wa, wb, ev, B)
+        closed_form_position(F, h, phi_m, ev, B)
         if not (usable and usable_m):
             return False
         for a in range(3):
@@ -153,7 +152,7 @@ def invert_one(v, start, H, known, h, grid, limits, r, C, out, n):
                 C[a, b] = np.nan
         miss_out[n], converged_out[n], iterations_out[n], mapped_out[n] = np.nan, False, 0, False
         return
-    closed_form_position(F, h, phi, wa, wb, ev, B)
+    closed_form_position(F, h, phi, ev, B)
     miss = 0.0
     for a in range(3):
         e[a] = v[a] - phi[a]
@@ -175,7 +174,7 @@ def invert_one(v, start, H, known, h, grid, limits, r, C, out, n):
                 trial[a] = r[a] + step[a]
             usable, mapped_t = _field_at(trial, grid, g, wx, wy, wz, dx, dy, dz, F)
             if usable:
-                closed_form_position(F, h, phi, wa, wb, ev, B)
+                closed_form_position(F, h, phi, ev, B)
                 miss_t = 0.0
                 for a in range(3):
                     e_t[a] = v[a] - phi[a]

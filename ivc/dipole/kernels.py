@@ -76,7 +76,7 @@ def signal_kernel(r, T, out):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, error_model="numpy")  # compiled once; inf/NaN as in a parallel kernel
-def closed_form_position(S, hemisphere, r, work_a, work_b, v, B):
+def closed_form_position(S, hemisphere, r, v, B):
     """The position of :func:`closed_form_one` (the same operations) into r (3,), without the orientation: range
     from tr SᵀS, direction its principal eigenvector on the hemisphere's side (docs/math.md §3)."""
     for i in range(3):
@@ -99,7 +99,7 @@ def closed_form_one(s, hemisphere, r_out, T_out, work_a, work_b, v, B, F, K):
 
     ``work_a``, ``work_b``, ``B``, ``F``, ``K`` are (3, 3) and ``v`` (3,) scratch arrays.
     """
-    closed_form_position(s, hemisphere, r_out, work_a, work_b, v, B)  # eq. 75
+    closed_form_position(s, hemisphere, r_out, v, B)  # eq. 75
     # K = f_D(r) Sᵀ; the rotation maximising tr(Tᵀ K) minimises ‖S − Tᵀ f_D‖
     field_matrix(r_out[0], r_out[1], r_out[2], F)
     for i in range(3):
