@@ -50,6 +50,10 @@ InvertOutput = namedtuple("InvertOutput", "miss converged iterations mapped")
 Tracks = namedtuple("Tracks", "slots offset tracked")
 #: A live frame's outputs: ``r`` (n, 3), ``q`` (n, 4), ``flags`` (n,) uint8, ``miss`` (n,), ``iterations`` (n,)
 StreamOutput = namedtuple("StreamOutput", "r q flags miss iterations")
+#: The scratch arrays of one inversion (:func:`invert_workspace`), by name: the table's value ``g`` (C,) and the
+#: look-up's weights ``wx wy wz`` and derivatives ``dx dy dz`` (4,); the field ``F`` and the closed form's
+#: ``wa wb B Fd K`` (3, 3) and ``ev`` (3,); the iteration's ``phi trial e e_t step Hdy sH`` (3,)
+InvertWork = namedtuple("InvertWork", "g wx wy wz dx dy dz F wa wb B Fd K ev phi trial e e_t step Hdy sH")
 #: recomputations of the inverse Jacobian (central differences) before a search for another solution gives up
 #: (the correction's own inversion makes none: where Broyden's estimate stalls, the sample is flagged, not pushed
 #: into a fold's neighbourhood)
@@ -127,21 +131,28 @@ def _jacobian_inverse(r, h, grid, H):
     return _inverse3(D, H)
 
 
+@numba.njit(cache=True)
+def invert_workspace(channels):
+    """The scratch arrays of one inversion (an :data:`InvertWork`) for a table of ``channels`` values per node,
+    allocated once and reused over many samples (21 allocations per sample were 4 % of the batch)."""
+    return InvertWork(np.empty(channels), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4),
+                      np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+                      np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(3), np.empty(3), np.empty(3),
+                      np.empty(3), np.empty(3), np.empty(3), np.empty(3))
+
+
 @numba.njit(cache=True, error_model="numpy")
-def invert_one(v, start, H, known, h, grid, limits, r, C, out, n):
+def invert_one(v, start, H, known, h, grid, limits, r, C, out, n, ws):
     """Invert one sample from ``start`` (3,) with the inverse-Jacobian estimate H (3, 3, updated in place) into
     r (3,) and C (3, 3) within ``limits`` (a :data:`Limits`); writes row n of ``out`` (an :data:`InvertOutput`).
     ``known`` (3,) m: a solution found already (NaN: none); an iterate that comes within :data:`RETURNED` of it
-    stops there, not converged (a search for another solution has come back to the one it has)."""
+    stops there, not converged (a search for another solution has come back to the one it has). ``ws``: an
+    :data:`InvertWork` (:func:`invert_workspace`)."""
     max_iterations, tolerance, max_restarts = limits
     miss_out, converged_out, iterations_out, mapped_out = out
-    nc = grid[0].shape[3]
-    g = np.empty(nc)
-    wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
-    F, wa, wb, B, Fd, K = (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
-                           np.empty((3, 3)))
-    ev, phi, trial, e, e_t, step, Hdy, sH = (np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3),
-                                             np.empty(3), np.empty(3), np.empty(3))
+    g, wx, wy, wz, dx, dy, dz = ws.g, ws.wx, ws.wy, ws.wz, ws.dx, ws.dy, ws.dz
+    F, wa, wb, B, Fd, K, ev = ws.F, ws.wa, ws.wb, ws.B, ws.Fd, ws.K, ws.ev
+    phi, trial, e, e_t, step, Hdy, sH = ws.phi, ws.trial, ws.e, ws.e_t, ws.step, ws.Hdy, ws.sH
     for a in range(3):
         r[a] = start[a] if np.isfinite(start[a]) else v[a]
     usable, mapped = _field_at(r, grid, g, wx, wy, wz, dx, dy, dz, F)
@@ -221,20 +232,32 @@ def invert_one(v, start, H, known, h, grid, limits, r, C, out, n):
     miss_out[n], converged_out[n], iterations_out[n], mapped_out[n] = miss, converged, iterations, mapped
 
 
-@numba.njit(**_OPTS)
-def invert_kernel(v, start, H, known, h, grid, limits, r, C, out):  # pragma: no cover - compiled
-    """Invert every sample n from ``start[n]`` with the inverse-Jacobian estimates ``H[n]`` (updated in place) into
-    r[n], C[n] and row n of ``out`` (an :data:`InvertOutput`, written only through :func:`invert_one`: numba loses
-    the writes a ``prange`` body makes through a tuple's arrays)."""
-    for n in numba.prange(v.shape[0]):
-        invert_one(v[n], start[n], H[n], known[n], h, grid, limits, r[n], C[n], out, np.int64(n))
+#: samples per block of the parallel kernels: one workspace per block
+BLOCK = 256
 
 
 @numba.njit(cache=True, nogil=True)
 def invert_serial(v, start, H, known, h, grid, limits, r, C, out):  # pragma: no cover - compiled
-    """:func:`invert_kernel` without threads: for a few samples at a time (a live frame)."""
+    """Invert every sample n from ``start[n]`` with the inverse-Jacobian estimates ``H[n]`` (updated in place) into
+    r[n], C[n] and row n of ``out`` (an :data:`InvertOutput`), on the calling thread with one workspace: a few
+    samples at a time (a live frame), and the loop body of :func:`invert_kernel`."""
+    ws = invert_workspace(grid[0].shape[3])
     for n in range(v.shape[0]):
-        invert_one(v[n], start[n], H[n], known[n], h, grid, limits, r[n], C[n], out, np.int64(n))
+        invert_one(v[n], start[n], H[n], known[n], h, grid, limits, r[n], C[n], out, np.int64(n), ws)
+
+
+@numba.njit(**_OPTS)
+def invert_kernel(v, start, H, known, h, grid, limits, r, C, out):  # pragma: no cover - compiled
+    """:func:`invert_serial` on blocks of :data:`BLOCK` samples on numba's threads, each block with its own
+    workspace; ``out`` is written only through that call, into views of the block's rows (numba loses the writes a
+    ``prange`` body makes through a tuple's arrays)."""
+    miss, converged, iterations, mapped = out
+    blocks = (v.shape[0] + BLOCK - 1) // BLOCK
+    for block in numba.prange(blocks):
+        a = BLOCK * block
+        b = min(a + BLOCK, v.shape[0])
+        invert_serial(v[a:b], start[a:b], H[a:b], known[a:b], h, grid, limits, r[a:b], C[a:b],
+                      (miss[a:b], converged[a:b], iterations[a:b], mapped[a:b]))
 
 
 _OUTSIDE, _NOT_CONVERGED, _HIGH_RESIDUAL, _INVALID_INPUT = OUTSIDE, NOT_CONVERGED, HIGH_RESIDUAL, INVALID_INPUT
@@ -287,6 +310,7 @@ def stream_kernel(v, Q, tracks, h, grid, limits, max_residual, out):  # pragma: 
     it = np.empty(1, dtype=np.int64)
     mp = np.empty(1, dtype=np.bool_)
     none = np.full(3, np.nan)
+    ws = invert_workspace(grid[0].shape[3])
     for n in range(v.shape[0]):
         slot = slots[n]
         finite = True
@@ -306,7 +330,7 @@ def stream_kernel(v, Q, tracks, h, grid, limits, max_residual, out):  # pragma: 
             start[a] = v[n, a] + offset[slot, a] if tracked[slot] else v[n, a]
             for b in range(3):
                 H[a, b] = 1.0 if a == b else 0.0
-        invert_one(v[n], start, H, none, h, grid, limits, r[n], C, (m, c, it, mp), np.int64(0))
+        invert_one(v[n], start, H, none, h, grid, limits, r[n], C, (m, c, it, mp), np.int64(0), ws)
         flags[n] = _compose_one(C, Q[n], mp[0], c[0], m[0], max_residual, q[n])
         miss[n], iterations[n] = m[0], it[0]
         tracked[slot] = flags[n] == 0
