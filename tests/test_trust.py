@@ -288,8 +288,7 @@ def test_a_rigid_body_decides_the_branch_of_a_sensor_its_reported_pose_leaves_am
 
 def test_correct_file_and_the_live_loop_let_a_rigid_body_decide(folded, rng, tmp_path):
     """The same bodies through ``correct_file(..., rigid_body=...)`` (a CSV of reported poses) and a live round:
-    sensor 0 trusted where the body decides it, flagged without the body; in the live loop a sensor the body
-    decided continues its track from there."""
+    sensor 0 trusted where the body decides it, flagged without the body."""
     import json
     import socket
 
@@ -328,13 +327,6 @@ def test_correct_file_and_the_live_loop_let_a_rigid_body_decide(folded, rng, tmp
             before = live.stats.flagged
             live._correct_round([(name, 1000.0 + f, None, (v[f, n], Q[f, n])) for n, name in enumerate(names)])
             assert live.stats.flagged - before == (0 if decided[f, 0] else 1)
-            start = live.pose_corrector.warm_starts(["s0"])[0]
-            assert np.all(np.isfinite(start)) == decided[f, 0]
-            if decided[f, 0]:  # the decided sensor continues its track: its next pose alone is trusted, on its branch
-                np.testing.assert_allclose(start, body.position[f, 0] - v[f, 0], atol=1e-9)
-                again = live.pose_corrector.update(v[f, :1], Q[f, :1], ["s0"])
-                assert again.flags[0] == 0
-                assert np.linalg.norm(again.position[0] - body.position[f, 0]) < 1e-6
     finally:
         live.close()
         listener.close()

@@ -623,17 +623,6 @@ class PoseCorrector:
         slots = self._slots(sensors, len(tuple(sensors)))
         return np.where(self._tracked[slots][:, None], self._offset[slots], np.nan)
 
-    def continue_tracks(self, sensors: list | tuple, offsets: np.ndarray) -> None:
-        """Let the named sensors' next :meth:`update` continue a track from ``offsets`` (n, 3) m, the ``r − v`` of
-        corrections trusted by other means (their rigid body decided the branch,
-        :func:`ivc.correct.rigid.decide_with_body`), as after a trusted sample of their own: it starts there and
-        skips the ambiguity test unless its correction jumps. A NaN row leaves that sensor as it is."""
-        offsets = np.asarray(offsets, dtype=float).reshape(-1, 3)
-        slots = self._slots(sensors, len(offsets))
-        finite = np.all(np.isfinite(offsets), axis=1)
-        self._offset[slots[finite]] = offsets[finite]
-        self._tracked[slots[finite]] = True
-
     def correct_from(self, position: np.ndarray, rotation: np.ndarray, offsets: np.ndarray, restarts: int = 0
                      ) -> Correction:
         """The batch's path for reported positions (n, 3) m and rotations (n, 3, 3), each sample started at

@@ -385,8 +385,7 @@ class LiveCorrector:
         round disagree with (:func:`ivc.correct.rigid.agree_with_body`); a sensor missing from the round counts as
         untrusted. Then trust the reported poses the map produces twice where the body puts them on one branch
         (:func:`ivc.correct.rigid.decide_with_body`; not a signal's sample: it has no reported pose, its signal
-        decides); a sensor so decided continues its track from there
-        (:meth:`~ivc.correct.reported.PoseCorrector.continue_tracks`)."""
+        decides)."""
         W = len(self._body_names)
         at = {name: n for n, name in enumerate(names)}
         rows = np.array([at.get(name, -1) for name in self._body_names])
@@ -414,9 +413,6 @@ class LiveCorrector:
         decided = decide_with_body(self.pose_corrector, position, quaternion, body, self.rigid_body)[0]
         for name in fields:
             getattr(out, name)[rows[decided]] = getattr(body, name)[0, decided]
-        # a sensor the body put on its branch continues its track from there, as after a trusted pose of its own
-        self.pose_corrector.continue_tracks([self._body_names[n] for n in np.flatnonzero(decided)],
-                                            body.position[0, decided] - position[0, decided])
 
     def _correct_round(self, samples) -> None:
         names = [s[0] for s in samples]
