@@ -54,14 +54,6 @@ StreamOutput = namedtuple("StreamOutput", "r q flags miss iterations")
 #: look-up's weights ``wx wy wz`` and derivatives ``dx dy dz`` (4,); the field ``F`` and the closed form's
 #: ``wa wb B Fd K`` (3, 3) and ``ev`` (3,); the iteration's ``phi trial e e_t step Hdy sH`` (3,)
 InvertWork = namedtuple("InvertWork", "g wx wy wz dx dy dz F wa wb B Fd K ev phi trial e e_t step Hdy sH")
-#: The scratch arrays of :func:`closed_form_jacobian` (:func:`jacobian_workspace`): ``r v ev u dv dr rhs w`` (3,),
-#: ``C wa wb B Fd K Minv Ainv X dK`` (3, 3) and the dipole field's derivative ``dfd`` (3, 3, 3)
-JacobianWork = namedtuple("JacobianWork", "r v ev u dv dr rhs w C wa wb B Fd K Minv Ainv X dK dfd")
-#: The scratch arrays of :func:`precision_one` (:func:`precision_workspace`): the model ``F`` (3, 3) and ``dF``
-#: (3, 3, 3), the table's ``g`` (C,) and ``dg`` (C, 3) with the look-up's ``wx wy wz dx dy dz`` (4,), the closed
-#: form's Jacobian ``J`` (6, 9), ``D`` = ∂φ/∂r, ``W`` = ∂ω/∂r and ``H`` = D⁻¹ (3, 3), a column ``P`` (3,) and
-#: ``jacobian``, a :data:`JacobianWork`
-PrecisionWork = namedtuple("PrecisionWork", "F dF g dg wx wy wz dx dy dz J D W H P jacobian")
 #: recomputations of the inverse Jacobian (central differences) before a search for another solution gives up
 #: (the correction's own inversion makes none: where Broyden's estimate stalls, the sample is flagged, not pushed
 #: into a fold's neighbourhood)
@@ -347,36 +339,18 @@ def stream_kernel(v, Q, tracks, h, grid, limits, max_residual, out):  # pragma: 
                 offset[slot, a] = r[n, a] - v[n, a]
 
 
-@numba.njit(cache=True)
-def jacobian_workspace():
-    """The scratch arrays of :func:`closed_form_jacobian` (a :data:`JacobianWork`)."""
-    return JacobianWork(np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3),
-                        np.empty(3), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
-                        np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
-                        np.empty((3, 3)), np.empty((3, 3, 3)))
-
-
-@numba.njit(cache=True)
-def precision_workspace(channels):
-    """The scratch arrays of :func:`precision_one` (a :data:`PrecisionWork`) for a table of ``channels`` values
-    per node, allocated once and reused over many samples."""
-    return PrecisionWork(np.empty((3, 3)), np.empty((3, 3, 3)), np.empty(channels), np.empty((channels, 3)),
-                         np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4),
-                         np.empty((6, 9)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty(3),
-                         jacobian_workspace())
-
-
 @numba.njit(cache=True, error_model="numpy")
-def closed_form_jacobian(F, h, J, ws):
+def closed_form_jacobian(F, h, J):
     """J (6, 9) = ∂(φ, ω)/∂F of the closed form at the field matrix F (3, 3): rows the position (m) and the left
     rotation increment (rad), columns F's entries row by row; analytic, the equations of the NumPy reference
     (``ivc.pose.tracker_solver._closed_form_jacobian``): the range from ``tr FᵀF``, the principal eigenvector's
     first-order change ``(λ I − B + v vᵀ)⁻¹ (I − v vᵀ) δB v`` (B = FᵀF, λ = vᵀ B v: the added v vᵀ makes the
     matrix invertible and keeps the change orthogonal to v), and the polar factor's from
-    ``(tr P I − P) w = vee(Cᵀ δK − δKᵀ C)``, K = f_D(φ) Fᵀ, P = sym(Cᵀ K), ω = C w. False where not finite.
-    ``ws``: a :data:`JacobianWork` (:func:`jacobian_workspace`)."""
-    r, v, ev, u, dv, dr, rhs, w = ws.r, ws.v, ws.ev, ws.u, ws.dv, ws.dr, ws.rhs, ws.w
-    C, wa, wb, B, Fd, K = ws.C, ws.wa, ws.wb, ws.B, ws.Fd, ws.K
+    ``(tr P I − P) w = vee(Cᵀ δK − δKᵀ C)``, K = f_D(φ) Fᵀ, P = sym(Cᵀ K), ω = C w. False where not finite."""
+    r, v, ev, u, dv, dr, rhs, w = (np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3),
+                                    np.empty(3), np.empty(3))
+    C, wa, wb, B, Fd, K = (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+                           np.empty((3, 3)))
     closed_form_one(F, h, r, C, wa, wb, ev, B, Fd, K)  # leaves B = FᵀF, Fd = f_D(φ), K = Fd Fᵀ
     rng = np.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
     if not (rng > 0.0 and np.isfinite(rng)):
@@ -392,7 +366,7 @@ def closed_form_jacobian(F, h, J, ws):
         for b in range(3):
             wa[a, b] = -B[a, b] + v[a] * v[b]
         wa[a, a] += lam
-    Minv, Ainv, X, dK = ws.Minv, ws.Ainv, ws.X, ws.dK
+    Minv, Ainv, X, dK = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     trP = 0.0
     for a in range(3):  # wb = sym(Cᵀ K)
         for b in range(3):
@@ -405,7 +379,7 @@ def closed_form_jacobian(F, h, J, ws):
         wb[a, a] += trP
     if not (_inverse3(wa, Minv) and _inverse3(wb, Ainv)):
         return False
-    dfd = ws.dfd
+    dfd = np.empty((3, 3, 3))
     dipole_jacobian(r, dfd)
     for d in range(9):
         i, j = d // 3, d % 3
@@ -446,25 +420,29 @@ def closed_form_jacobian(F, h, J, ws):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def precision_one(r, h, grid, sigma, ws):
+def precision_one(r, h, grid, sigma):
     """Predicted RMS position (m) and orientation (rad) error of the pose corrected from a reported pose to the
     position ``r`` (3,), for white signal noise ``sigma``: the closed form's scatter at the field the sensor is
     in, ``J = ∂(φ, ω)/∂F`` at ``F = f_D(r) + g(r)`` (:func:`closed_form_jacobian`), carried through the inverse
     map, ``δr = (∂φ/∂r)⁻¹ J_φ δF`` and ``δt ∝ (J_ω − (∂ω/∂r) (∂φ/∂r)⁻¹ J_φ) δF``
     (:func:`ivc.pose.precision.reported_pose_covariance`; the orientation's trace does not depend on the frame it
     is written in), with ``∂(φ, ω)/∂r = J ∂F/∂r`` from the table's gradient. NaN where r is not finite; inf where
-    the map is singular there (the reported pose does not fix the true one). ``ws``: a :data:`PrecisionWork`
-    (:func:`precision_workspace`)."""
+    the map is singular there (the reported pose does not fix the true one)."""
     for a in range(3):
         if not np.isfinite(r[a]):
             return np.nan, np.nan
     rho2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
     if not rho2 > 1e-12:
         return np.inf, np.inf
-    F, dF, J, D, W, H, P = ws.F, ws.dF, ws.J, ws.D, ws.W, ws.H, ws.P  # D = ∂φ/∂r, W = ∂ω/∂r
-    pose_model(r, grid, F, dF, ws.g, ws.dg, ws.wx, ws.wy, ws.wz, ws.dx, ws.dy, ws.dz)
-    if not closed_form_jacobian(F, h, J, ws.jacobian):
+    nc = grid[0].shape[3]
+    F, dF, g, dg = np.empty((3, 3)), np.empty((3, 3, 3)), np.empty(nc), np.empty((nc, 3))
+    wx, wy, wz, dx, dy, dz = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
+    pose_model(r, grid, F, dF, g, dg, wx, wy, wz, dx, dy, dz)
+    J = np.empty((6, 9))
+    if not closed_form_jacobian(F, h, J):
         return np.inf, np.inf
+    D = np.empty((3, 3))  # ∂φ/∂r
+    W = np.empty((3, 3))  # ∂ω/∂r
     for a in range(3):
         for k in range(3):
             sd, sw = 0.0, 0.0
@@ -472,9 +450,11 @@ def precision_one(r, h, grid, sigma, ws):
                 sd += J[a, d] * dF[d // 3, d % 3, k]
                 sw += J[3 + a, d] * dF[d // 3, d % 3, k]
             D[a, k], W[a, k] = sd, sw
+    H = np.empty((3, 3))
     if not _inverse3(D, H):
         return np.inf, np.inf
     p2, o2 = 0.0, 0.0
+    P = np.empty(3)
     for d in range(9):
         for a in range(3):  # column d of (∂φ/∂r)⁻¹ J_φ
             P[a] = H[a, 0] * J[0, d] + H[a, 1] * J[1, d] + H[a, 2] * J[2, d]
@@ -485,23 +465,18 @@ def precision_one(r, h, grid, sigma, ws):
     return sigma * np.sqrt(p2), sigma * np.sqrt(o2)
 
 
-@numba.njit(cache=True, nogil=True)
-def precision_serial(r, h, grid, sigma, position_out, orientation_out):  # pragma: no cover - compiled
-    """:func:`precision_one` for every sample n (corrected positions r (n, 3)) on the calling thread with one
-    workspace: a live frame's few samples, and the loop body of :func:`precision_kernel`."""
-    ws = precision_workspace(grid[0].shape[3])
-    for n in range(r.shape[0]):
-        position_out[n], orientation_out[n] = precision_one(r[n], h, grid, sigma, ws)
-
-
 @numba.njit(parallel=True, cache=True, nogil=True)
 def precision_kernel(r, h, grid, sigma, position_out, orientation_out):  # pragma: no cover - compiled
-    """:func:`precision_serial` on blocks of :data:`BLOCK` samples on numba's threads."""
-    blocks = (r.shape[0] + BLOCK - 1) // BLOCK
-    for block in numba.prange(blocks):
-        a = BLOCK * block
-        b = min(a + BLOCK, r.shape[0])
-        precision_serial(r[a:b], h, grid, sigma, position_out[a:b], orientation_out[a:b])
+    """:func:`precision_one` for every sample n: corrected positions r (n, 3)."""
+    for n in numba.prange(r.shape[0]):
+        position_out[n], orientation_out[n] = precision_one(r[n], h, grid, sigma)
+
+
+@numba.njit(cache=True, nogil=True)
+def precision_serial(r, h, grid, sigma, position_out, orientation_out):  # pragma: no cover - compiled
+    """:func:`precision_kernel` without threads: a live frame's few samples."""
+    for n in range(r.shape[0]):
+        position_out[n], orientation_out[n] = precision_one(r[n], h, grid, sigma)
 
 
 # --- the rival search (SeedMap.rivals): probes elsewhere whose cells can map onto the reported position -----------
