@@ -94,7 +94,7 @@ def test_cli_fit_correct_evaluate(small_session, tmp_path):
     assert report["ivc"]["position_mm"]["p50"] < 0.2 * report["dipole"]["position_mm"]["p50"]
     text = runner.invoke(cli, ["evaluate", str(table_file), str(session_file)]).output
     assert "IVC position" in text and "dipole position (uncorrected)" in text and "99%" in text
-    assert "predicted precision (noise)" in text and "error / predicted precision" in text
+    assert "predicted precision" in text and "error / predicted precision" in text
     # a short sweep: the map adds error of its own above the noise (ratio 1.9 here), never far below it
     assert 0.5 < report["predicted_precision"]["error_over_predicted_median"] < 5
 

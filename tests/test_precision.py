@@ -75,6 +75,43 @@ def test_predicted_precision_is_the_spread_of_noisy_corrections_and_the_bound_at
     assert np.median(out.orientation_precision) == pytest.approx(true_a[0], rel=0.02)
 
 
+def test_a_pose_whose_residual_exceeds_the_noise_gets_a_wider_precision(exact_table, rng):
+    """Where the room's field differs from the table's (a field error the table does not hold, about 40 times the
+    noise, in a direction of its own at every pose), the noise alone predicts the poses' error ten times too small,
+    and each pose's residual says so: its precision is widened by the residual's excess over the noise (never
+    narrowed), and actual / predicted comes back near 1 (the part of the error a pose change can mimic stays
+    unseen: a few poses remain beyond 5x). Where only the noise is, the prediction is the noise's (a residual
+    over twice the noise's variance is rare)."""
+    from ivc.correct.precision import RESIDUAL_EXCESS, residual_widening
+
+    sigma = 1e-4
+    n = 400
+    r = CENTRE + 0.12 * rng.uniform(-1, 1, (n, 3))
+    T = rotations.to_matrix(rotations.random(n, rng))
+    error = 40 * sigma * rng.standard_normal((n, 3, 3)) / 3  # |error|_F about 40 sigma
+    corrector = Corrector(exact_table, signal_noise=sigma, max_precision=None)
+    for off, field in ((True, quadratic_field(r) + error), (False, quadratic_field(r))):
+        S = dipole.signal(r, T, field) + sigma * rng.standard_normal((n, 3, 3))
+        out = corrector.batch(S)
+        assert np.all(out.flags == 0)
+        noise_only = corrector.predict_precision(out.position, out.quaternion)[0]
+        widening = out.precision / noise_only
+        assert np.all(widening >= 1 - 1e-9)
+        np.testing.assert_allclose(widening, residual_widening(out.residual, S, sigma), rtol=1e-9)
+        ratio, noise_ratio = (np.linalg.norm(out.position - r, axis=1) / p for p in (out.precision, noise_only))
+        if off:
+            assert np.mean(noise_ratio > 5) > 0.5  # the noise alone: far too optimistic
+            assert np.mean(ratio > 5) < 0.1 and 0.5 < np.median(ratio) < 2.0
+        else:
+            assert np.mean(widening > 1 + 1e-9) < 0.2 and np.median(widening) == pytest.approx(1.0, abs=1e-9)
+            assert np.mean(ratio > 5) == 0
+    # the factor itself: sqrt of the residual's variance over RESIDUAL_EXCESS times the noise's share (3 sigma^2)
+    S = np.eye(3)[None].repeat(3, 0)
+    rho = np.sqrt(3 * sigma**2 * RESIDUAL_EXCESS * np.array([0.5, 1.0, 4.0])) / np.sqrt(3)
+    np.testing.assert_allclose(residual_widening(rho, S, sigma), [1.0, 1.0, 2.0])
+    assert residual_widening(np.array([np.nan]), S[:1], sigma)[0] == 1.0
+
+
 def test_covariance_is_symmetric_positive_and_scales_with_the_noise_squared(rng):
     r = CENTRE + 0.1 * rng.standard_normal((5, 3))
     q = rotations.random(5, rng)

@@ -24,8 +24,9 @@ TABLE, CHECK, CHECK_CSV, HEAD_CSV = (RECORDINGS / name for name in (
 
 def test_shipped_table_corrects_the_shipped_check_poses():
     report = evaluate(lut.read(TABLE), session_io.read(CHECK))
-    # one sample is invalid in the recording; two are predicted less precise than the default 1 mm limit
-    assert report["samples"] == 1000 and report["corrected"] >= 997
+    # one sample is invalid in the recording; five are predicted less precise than the default 0.8 mm limit (three of
+    # them only once their residual widens the noise's prediction: 0.23-0.92 mm off)
+    assert report["samples"] == 1000 and report["corrected"] >= 994
     assert report["frame"] == DECLARED_FRAME and abs(report["placement_error_mm"] - 1.25) < 0.05
     # Himberg 2010's Table 24 scale: IVC to a fraction of a millimetre, the dipole solution tens of millimetres off
     assert report["ivc"]["position_mm"]["p50"] < 0.2

@@ -45,15 +45,15 @@ def render_table(report: dict) -> str:
         lines += [_row("IVC position, rigid fit", report["ivc_aligned"]["position_mm"], "mm"),
                   _row("IVC orientation, rigid fit", report["ivc_aligned"]["orientation_mrad"], "mrad")]
     if "predicted_precision" in report:
-        lines.append(_row("predicted precision (noise)", report["predicted_precision"]["position_mm"], "mm"))
+        lines.append(_row("predicted precision", report["predicted_precision"]["position_mm"], "mm"))
     source = "reported" if report.get("input") == "reported poses" else "dipole"
     lines += [_row(f"{source} position (uncorrected)", report["dipole"]["position_mm"], "mm"),
               _row(f"{source} orientation", report["dipole"]["orientation_mrad"], "mrad")]
     if "predicted_precision" in report:
         ratio = report["predicted_precision"]
         lines += ["", f"error / predicted precision: {ratio['error_over_predicted_median']:.2f} median, "
-                      f"{ratio['error_over_predicted_p95']:.2f} p95 (the tracker's noise alone: 0.7-0.9 and 1.6-2.0; "
-                      "above: the map adds its own)"]
+                      f"{ratio['error_over_predicted_p95']:.2f} p95 (errors that are the tracker's noise alone: "
+                      "0.7-0.9 and 1.6-2.0; above: the map adds error the prediction does not hold)"]
     return "\n".join(lines)
 
 

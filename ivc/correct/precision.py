@@ -12,6 +12,13 @@ of its variance lies along one direction (far from the source the range is much 
 bearing), more than 2 mm off with probability 1.2 % (2.5 deviations) and more than 5 mm off with
 4e-10 (6.25 deviations); isotropic, 0.03 % and 3e-25. Most trusted poses sit far below the limit
 (docs/trust.md measures both). ``max_precision=None`` turns the gate off; a number replaces the limit.
+
+The noise is not all that moves a signal's pose: where the table is off (beside metal it cannot follow, close
+to the source where a tiny noise meets its error), the pose is off by more than the noise predicts. A pose solved
+from a signal says so itself, through the part of its residual the solve cannot absorb (three of the nine
+entries' worth): :func:`residual_widening` widens its predicted precision where that residual's variance is more
+than :data:`RESIDUAL_EXCESS` times what the noise explains. A reported pose has no such residual (the map is
+inverted exactly); its prediction holds the table's measured error instead (``PoseCorrector.map_error``).
 """
 
 from __future__ import annotations
@@ -32,6 +39,22 @@ MAX_PRECISION = 0.8e-3
 MAX_SIGNAL_NOISE = 1.0
 #: ``max_precision`` of a corrector that uses :data:`MAX_PRECISION` where the noise is known (no gate elsewhere)
 DEFAULT = "default"
+#: how many times the noise's share the variance of a signal pose's residual must be before its predicted precision
+#: is widened (:func:`residual_widening`). Noise alone passes 2 with probability 0.11 (three degrees of freedom)
+RESIDUAL_EXCESS = 2.0
+
+
+def residual_widening(residual: np.ndarray, S: np.ndarray, sigma: float) -> np.ndarray:
+    """The factor (N,) ≥ 1 by which the noise-only precision of poses solved from signal matrices ``S`` (N, 3, 3)
+    widens, from their relative residuals ``residual`` (N,) = rms(M − T S)/rms(S) and the white noise ``sigma`` per
+    entry: with ``χ² = (ρ |S|_F)² / (3 σ²)``, the residual's variance over what the noise leaves once the
+    six-parameter solve has absorbed its part, the factor is ``√(χ² / RESIDUAL_EXCESS)`` where that exceeds 1 (the
+    a-posteriori variance factor of a least-squares fit, taken only where the residual says the model is off
+    by more than the noise), else 1. NaN residuals give 1."""
+    scale = np.linalg.norm(np.asarray(S, float).reshape(-1, 9), axis=1)
+    with np.errstate(invalid="ignore"):
+        excess = (np.asarray(residual, float) * scale) ** 2 / (3.0 * sigma ** 2 * RESIDUAL_EXCESS)
+    return np.sqrt(np.where(excess > 1.0, excess, 1.0))
 
 
 def _positive(name: str, value: float) -> float:

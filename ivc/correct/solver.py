@@ -23,7 +23,7 @@ import numpy as np
 from ivc import compiled, dipole, rotations
 from ivc.correct import kernels as _kernels
 from ivc.correct.flags import HIGH_RESIDUAL, INVALID_INPUT, LOW_PRECISION, NOT_CONVERGED, OUTSIDE
-from ivc.correct.precision import DEFAULT, PrecisionGate
+from ivc.correct.precision import DEFAULT, PrecisionGate, residual_widening
 from ivc.correct.residual_gate import MAX_RESIDUAL, ResidualGate
 from ivc.dipole.pose import hemisphere_vector
 from ivc.errors import InputError
@@ -50,8 +50,9 @@ class Correction:
     """Corrected poses (..., 3) m and (..., 4) [w, x, y, z], with ``flags`` (...) uint8, the relative
     ``residual`` and the solver's ``iterations``. Non-finite input gives NaN poses flagged INVALID_INPUT.
     ``precision`` (...) m and ``orientation_precision`` (...) rad: each pose's predicted RMS error from the
-    tracker's signal noise (``ivc.pose.precision``; NaN where there is no pose), when the corrector was
-    asked for them, else None."""
+    tracker's signal noise (``ivc.pose.precision``; a signal's pose widened where its residual exceeds the noise,
+    ``ivc.correct.precision.residual_widening``; a reported pose's with the table's own error; NaN where there is
+    no pose), when the corrector was asked for them, else None."""
 
     position: np.ndarray
     quaternion: np.ndarray
@@ -91,9 +92,10 @@ class Corrector:
     Predicted precision (docs/trust.md): every pose carries its predicted RMS position and orientation
     error, the Cramér-Rao bound of a single frame from the table's field and the tracker's white signal
     noise ``signal_noise`` (signal units; default: the noise the table's fit measured on the session's
-    static steps), and poses predicted less precise than ``max_precision`` (m; default
-    :data:`ivc.correct.precision.MAX_PRECISION`; None: no gate) are flagged LOW_PRECISION. Where the noise is
-    unknown nothing is predicted and :attr:`gate` says so; ``precision=False`` predicts nothing.
+    static steps), widened where the pose's own residual says the table is off there by more than the noise
+    (:func:`~ivc.correct.precision.residual_widening`), and poses predicted less precise than ``max_precision``
+    (m; default :data:`ivc.correct.precision.MAX_PRECISION`; None: no gate) are flagged LOW_PRECISION. Where the
+    noise is unknown nothing is predicted and :attr:`gate` says so; ``precision=False`` predicts nothing.
     """
 
     def __init__(self, table: LookupTable | GridField, hemisphere: str | None = None, interpolation: str = "cubic",
@@ -126,7 +128,8 @@ class Corrector:
     def predict_precision(self, position: np.ndarray, quaternion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predicted RMS position error (N,) m and orientation error (N,) rad of single-frame poses at
         ``position`` (N, 3) m, ``quaternion`` (N, 4), from the table's field and :attr:`signal_noise`
-        (``ivc.pose.precision``); NaN where the pose is not finite."""
+        (``ivc.pose.precision``); NaN where the pose is not finite. The noise's share only: a corrected pose's
+        precision is also widened by its residual (:meth:`batch`), which a pose without its signal does not have."""
         if self.signal_noise is None:
             raise InputError(f"this corrector predicts no precision ({self.gate.note})")
         position = np.ascontiguousarray(np.asarray(position, float).reshape(-1, 3))
@@ -181,6 +184,10 @@ class Corrector:
         if self.signal_noise is None:
             return Correction(r, q, flags, residual, iterations)
         precision, orientation_precision = self._precision(r, T)
+        # where the pose's own residual says the table is off by more than the noise, the noise-only bound is widened
+        widening = residual_widening(residual, S, float(self.signal_noise))
+        precision *= widening
+        orientation_precision *= widening
         self.gate.apply(precision, flags, finite)
         return Correction(r, q, flags, residual, iterations, precision, orientation_precision)
 
