@@ -156,6 +156,16 @@ def solve_spd6(A, b, x):
 
 
 @numba.njit(inline="always")
+def copy_pose(r, T, r_out, T_out):
+    """r_out (3,) = r and T_out (3, 3) = T, entry by entry: an array assigned to a slice (``r_out[:] = r``) makes
+    numba compile the message of its shape check (string formatting: seconds on a cold cache, docs/kernels.md)."""
+    for a in range(3):
+        r_out[a] = r[a]
+        for b in range(3):
+            T_out[a, b] = T[a, b]
+
+
+@numba.njit(inline="always")
 def matmul3(A, B, out):
     for i in range(3):
         for j in range(3):

@@ -18,7 +18,7 @@ import numba
 import numpy as np
 
 from ivc.dipole.kernels import closed_form_one, closed_form_position
-from ivc.linalg import quaternion_of, relative_residual, rotation_polar_factor
+from ivc.linalg import copy_pose, quaternion_of, relative_residual, rotation_polar_factor
 from ivc.pose.kernels import accept_step, gauss_newton_matrix, lm_step, lm_verdict, pose_residual, residual_cost
 from ivc.pose.precision_kernels import crb_covariance_one, traces
 from ivc.table.kernels import grid_contains, grid_point_separable, grid_value, pose_model, with_dipole
@@ -195,8 +195,7 @@ def correct_best_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations
     if c and res <= retry_residual:
         return c, it, res, m
     best_r, best_T, trial_r, trial_T, candidates = ws.best_r, ws.best_T, ws.trial_r, ws.trial_T, ws.candidates
-    best_r[:] = r
-    best_T[:, :] = T
+    copy_pose(r, T, best_r, best_T)
     best = (c, it, res, m)
     for a in range(3):
         candidates[0, a] = np.nan
@@ -223,10 +222,8 @@ def correct_best_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations
         it += it2
         if (c2 and not best[0]) or (c2 == best[0] and res2 < best[2]):
             best = (c2, it, res2, m2)
-            best_r[:] = trial_r
-            best_T[:, :] = trial_T
-    r[:] = best_r
-    T[:, :] = best_T
+            copy_pose(trial_r, trial_T, best_r, best_T)
+    copy_pose(best_r, best_T, r, T)
     return best[0], it, best[2], best[3]
 
 

@@ -65,14 +65,19 @@ def make_work(n_models):
 
 @numba.njit(cache=True)
 def reset(x, P, probs, tpm, q_prev, status, est, clock, mu0, Pi0):
-    """Forget everything (start of a stream or after a restart)."""
+    """Forget everything (start of a stream or after a restart). The arrays are copied entry by entry: an array
+    assigned to a slice makes numba compile the message of its shape check (seconds of string formatting on a cold
+    cache, docs/kernels.md)."""
     x[:] = 0.0
     P[:] = 0.0
-    probs[0, :] = mu0
-    probs[1, :] = mu0
+    for m in range(mu0.shape[0]):
+        probs[0, m] = mu0[m]
+        probs[1, m] = mu0[m]
     probs[2, :] = 1.0
-    tpm[0] = Pi0
-    tpm[1] = Pi0
+    for i in range(Pi0.shape[0]):
+        for j in range(Pi0.shape[1]):
+            tpm[0, i, j] = Pi0[i, j]
+            tpm[1, i, j] = Pi0[i, j]
     q_prev[:] = 0.0
     status[:] = 0
     est[:] = 0.0
