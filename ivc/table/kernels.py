@@ -194,32 +194,10 @@ def grid_value(grid, p, value, wx, wy, wz, dx, dy, dz):
     axis_weights(tz, cubic, wz, dz)
     C = padded.shape[3]
     lo, hi = (0, 4) if cubic else (1, 3)
-    if C == 9:  # a field matrix: its nine sums in registers, not stored back at every node (1.5x faster)
-        v0 = v1 = v2 = v3 = v4 = v5 = v6 = v7 = v8 = 0.0
-        for a in range(lo, hi):
-            if wx[a] == 0.0 and dx[a] == 0.0:
-                continue
-            for b in range(lo, hi):
-                if wy[b] == 0.0 and dy[b] == 0.0:
-                    continue
-                wab = wx[a] * wy[b]
-                for d in range(lo, hi):
-                    if wz[d] == 0.0 and dz[d] == 0.0:
-                        continue
-                    w = wab * wz[d]
-                    node = padded[i + a, j + b, k + d]
-                    v0 += w * node[0]
-                    v1 += w * node[1]
-                    v2 += w * node[2]
-                    v3 += w * node[3]
-                    v4 += w * node[4]
-                    v5 += w * node[5]
-                    v6 += w * node[6]
-                    v7 += w * node[7]
-                    v8 += w * node[8]
-        value[0], value[1], value[2], value[3], value[4] = v0, v1, v2, v3, v4
-        value[5], value[6], value[7], value[8] = v5, v6, v7, v8
-        return in_x and in_y and in_z and valid_cells[i, j, k]
+    # a field matrix (9 channels) keeps its nine sums in registers instead of storing them back at every node (1.5x
+    # faster); any other table sums into value. Either way the same sums in the same order
+    nine = C == 9
+    v0 = v1 = v2 = v3 = v4 = v5 = v6 = v7 = v8 = 0.0
     for c in range(C):
         value[c] = 0.0
     for a in range(lo, hi):
@@ -233,8 +211,23 @@ def grid_value(grid, p, value, wx, wy, wz, dx, dy, dz):
                 if wz[d] == 0.0 and dz[d] == 0.0:
                     continue
                 w = wab * wz[d]
-                for c in range(C):
-                    value[c] += w * padded[i + a, j + b, k + d, c]
+                node = padded[i + a, j + b, k + d]
+                if nine:
+                    v0 += w * node[0]
+                    v1 += w * node[1]
+                    v2 += w * node[2]
+                    v3 += w * node[3]
+                    v4 += w * node[4]
+                    v5 += w * node[5]
+                    v6 += w * node[6]
+                    v7 += w * node[7]
+                    v8 += w * node[8]
+                else:
+                    for c in range(C):
+                        value[c] += w * node[c]
+    if nine:
+        value[0], value[1], value[2], value[3], value[4] = v0, v1, v2, v3, v4
+        value[5], value[6], value[7], value[8] = v5, v6, v7, v8
     return in_x and in_y and in_z and valid_cells[i, j, k]
 
 
