@@ -103,7 +103,11 @@ def _build(kernel: CPUDispatcher) -> Callable:
         return _interpreted[kernel]
     source = kernel.py_func
     scope = dict(source.__globals__)
-    function = types.FunctionType(source.__code__, scope, source.__name__, source.__defaults__, source.__closure__)
+    closure = source.__closure__
+    if closure:  # a kernel made by a factory (ivc.pose.kernels.lm_driver) calls the kernels it closes over
+        closure = tuple(types.CellType(_build(cell.cell_contents)) if isinstance(cell.cell_contents, CPUDispatcher)
+                        else cell for cell in closure)
+    function = types.FunctionType(source.__code__, scope, source.__name__, source.__defaults__, closure)
     _interpreted[kernel] = function
     for name in _code_names(source.__code__):
         value = scope.get(name)

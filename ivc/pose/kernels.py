@@ -131,3 +131,77 @@ def accept_step(r, rt, T, Tt, e, et, J, Jt):
         for a in range(6):
             J[k, a] = Jt[k, a]
 
+
+
+#: Compile options of a function that runs :func:`lm_driver`'s loop: cached, and without numba's reference
+#: counts. numba 0.68 counts a reference (an atomic add, and a subtract later) for every array a tuple carries each
+#: time an inlined function binds it, and a hook of the loop binds its model at every iteration: about 70 counts per
+#: iteration of the correction, which made the loop 6-7 % slower than written out by hand (docs/kernels.md, "One
+#: loop, not four"). Without counts, binding is free. The rule that comes with it: such a function, and everything it
+#: calls, allocates nothing (numba compiles a callee first reached from it without counts too); the caller allocates
+#: the scratch arrays and passes them in.
+NO_COUNTS = {"cache": True, "_nrt": False}
+
+
+@numba.njit(inline="always")
+def no_shortcut(model, step, r, T, rt, Tt, tolerance, state):
+    """The shortcut of a model that has none: never taken (``(False, state)``)."""
+    return False, state
+
+
+@numba.njit(inline="always")
+def no_normal(model, H, grad):
+    """The normal equations of a model whose ``H`` and ``grad`` are kept current by its accept step."""
+    return None
+
+
+def lm_driver(normal, trial, accept, shortcut=no_shortcut):
+    """One Levenberg-Marquardt loop over a pose (r (3,), T (3, 3)), given its model's kernels.
+
+    The model is one tuple of the arrays its kernels read and write; each kernel is a compiled function:
+
+    - ``normal(model, H, grad)``: ``H = JᵀJ`` (6, 6) and ``grad = −Jᵀe`` (6,) at the current pose
+      (:func:`no_normal` when the accept step keeps them current);
+    - ``trial(model, rt, Tt) -> (cost, state)``: the cost Σe² at the trial pose and the model's value of ``state``
+      there (a scalar the loop carries: the correction's "mapped");
+    - ``accept(model, r, rt, T, Tt)``: the trial becomes the current pose (the pose and what the model keeps of it);
+    - ``shortcut(model, step, r, T, rt, Tt, tolerance, state) -> (done, state)``: a step the model takes without
+      evaluating the trial (the correction's step below the tolerance), or :func:`no_shortcut`.
+
+    Returns the loop ``run(model, r, T, cost, state, limits, lm) -> (converged, iterations, cost, state)``, from the
+    pose in (r, T) of cost ``cost`` (updated in place); ``limits``: (max_iterations, tolerance m); ``lm``: the loop's
+    scratch (H, grad, A, step, rt, Tt), A the damped matrix ((6, 6), may be H itself). The rules are
+    :func:`lm_step` and :func:`lm_verdict`. The loop is inlined into its caller, which is compiled with
+    :data:`NO_COUNTS`; the model's kernels stay separate compiled functions, so inlining copies only the loop.
+    """
+
+    @numba.njit(inline="always")
+    def run(model, r, T, cost, state, limits, lm):
+        max_iterations, tolerance = limits
+        H, grad, A, step, rt, Tt = lm
+        damping = 1e-3
+        converged = False
+        iterations = 0
+        while iterations < max_iterations:
+            iterations += 1
+            normal(model, H, grad)
+            solved, damping = lm_step(H, grad, damping, A, step, r, T, rt, Tt)
+            if not solved:
+                if damping > 1e8:
+                    break
+                continue
+            done, state = shortcut(model, step, r, T, rt, Tt, tolerance, state)
+            if done:
+                converged = True
+                break
+            trial_cost, trial_state = trial(model, rt, Tt)
+            take, damping, converged = lm_verdict(trial_cost, cost, damping, step, tolerance)
+            if take:
+                accept(model, r, rt, T, Tt)
+                cost = trial_cost
+                state = trial_state
+            if converged:
+                break
+        return converged, iterations, cost, state
+
+    return run
