@@ -107,3 +107,20 @@ def test_large_inputs_forced_and_ready_kernels_run_compiled(monkeypatch):
 def test_is_ready_after_a_call():
     Corrector(_table(), "+x").batch(dipole.signal(np.array([[0.4, 0.0, 0.0]]), np.eye(3)[None]))
     assert compiled.is_ready(correct_kernels.correct_serial)
+
+
+def test_the_interpreted_loop_calls_the_interpreted_model():
+    """A loop made by ivc.pose.kernels.lm_driver closes over its model's kernels: its interpreted form calls
+    theirs, not the dispatchers (which would compile on a cold cache)."""
+    from numba.core.registry import CPUDispatcher
+
+    from ivc.fixtures import kernels as cube_kernels
+    from ivc.lut import rigid_kernels
+
+    for solve, name in ((correct_kernels._solve, "_lm_solve"), (cube_kernels._solve, "_lm_solve"),
+                        (rigid_kernels.solve_frame, "_lm_solve")):
+        loop = compiled.interpreted(solve).__globals__[name]
+        assert not isinstance(loop, CPUDispatcher)
+        hooks = [cell.cell_contents for cell in loop.__closure__]
+        assert len(hooks) >= 3 and callable(hooks[0])
+        assert not any(isinstance(hook, CPUDispatcher) for hook in hooks)

@@ -19,7 +19,15 @@ import numpy as np
 
 from ivc.dipole.kernels import closed_form_one, closed_form_position
 from ivc.linalg import copy_pose, quaternion_of, relative_residual, rotation_polar_factor
-from ivc.pose.kernels import accept_step, gauss_newton_matrix, lm_step, lm_verdict, pose_residual, residual_cost
+from ivc.pose.kernels import (
+    NO_COUNTS,
+    accept_pose,
+    accept_step,
+    gauss_newton_matrix,
+    lm_driver,
+    pose_residual,
+    residual_cost,
+)
 from ivc.pose.precision_kernels import crb_covariance_one, traces
 from ivc.table.kernels import grid_contains, grid_point_separable, grid_value, pose_model, with_dipole
 
@@ -65,6 +73,72 @@ def pose_model_separable(r, grid, M, dM, lookup):
     return mapped
 
 
+#: The model of one frame's Levenberg-Marquardt loop (:func:`ivc.pose.kernels.lm_driver`): the signal ``S``, the
+#: table ``grid``, its look-up's scratch ``lookup`` (a :data:`Lookup`), and of a :class:`Workspace` the model
+#: ``M``/``dM``, the residuals and Jacobians ``e``/``J`` (current pose) and ``et``/``Jt`` (trial), and ``Ma``, the
+#: model at the accepted position.
+Frame = namedtuple("Frame", "S grid lookup M dM e J et Jt Ma")
+
+
+@numba.njit(inline="always")
+def _normal(model, H, grad):
+    gauss_newton_matrix(model.J, model.e, H, grad)
+
+
+@numba.njit(inline="always")
+def _trial(model, rt, Tt):
+    mapped = pose_model_separable(rt, model.grid, model.M, model.dM, model.lookup)
+    pose_residual(model.S, model.M, model.dM, Tt, model.et, model.Jt)
+    return residual_cost(model.et), mapped
+
+
+@numba.njit(cache=True)
+def _copy_model(M, Ma):
+    for i in range(3):
+        for j in range(3):
+            Ma[i, j] = M[i, j]
+
+
+@numba.njit(inline="always")
+def _accept(model, r, rt, T, Tt):
+    _copy_model(model.M, model.Ma)
+    accept_step(r, rt, T, Tt, model.e, model.et, model.J, model.Jt)
+
+
+@numba.njit(cache=True)
+def _move_model(J, step, T, e, Ma):
+    """The model at the accepted position moved along its Jacobian by ``step`` (``e`` is scratch)."""
+    for a in range(9):
+        e[a] = J[a, 0] * step[0] + J[a, 1] * step[1] + J[a, 2] * step[2]  # −Tᵀ ∂M/∂r · δr
+    for i in range(3):
+        for j in range(3):
+            Ma[i, j] -= T[i, 0] * e[j] + T[i, 1] * e[3 + j] + T[i, 2] * e[6 + j]
+
+
+@numba.njit(inline="always")
+def _shortcut(model, step, r, T, rt, Tt, tolerance, mapped):
+    # a step below the tolerance (0.1 µm) is taken without the look-up that would confirm it: the model
+    # there is the current one moved along its Jacobian (an error of |step|², far below the noise), and
+    # whether the point is mapped comes from the grid's cell flags.
+    if not np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance:
+        return False, mapped
+    _move_model(model.J, step, T, model.e, model.Ma)
+    accept_pose(r, rt, T, Tt)
+    return True, grid_contains(model.grid, r)
+
+
+_lm_solve = lm_driver(_normal, _trial, _accept, _shortcut)
+
+
+@numba.njit(**NO_COUNTS)
+def _solve(S, grid, ws, r, T, cost, mapped, limits):
+    """The Levenberg-Marquardt loop of :func:`correct_one_in` from the pose (r, T) of cost ``cost``; ``limits``:
+    (max_iterations, tolerance m). Returns (converged, iterations, cost, mapped). Allocates nothing."""
+    lookup = Lookup(ws.g, ws.dg, ws.wx, ws.wy, ws.wz, ws.dx, ws.dy, ws.dz, ws.scratch)
+    model = Frame(S, grid, lookup, ws.M, ws.dM, ws.e, ws.J, ws.et, ws.Jt, ws.Ma)
+    return _lm_solve(model, r, T, cost, mapped, limits, (ws.H, ws.grad, ws.H, ws.step, ws.rt, ws.Tt))
+
+
 @numba.njit(cache=True)
 def workspace(channels):
     """The scratch arrays of one frame's correction (a :data:`Workspace`), allocated once and reused over many
@@ -95,7 +169,7 @@ def correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations,
     """:func:`correct_one` with its scratch arrays from ``ws`` (:func:`workspace`)."""
     M, dM, g, dg, wx, wy, wz, dx, dy, dz = ws.M, ws.dM, ws.g, ws.dg, ws.wx, ws.wy, ws.wz, ws.dx, ws.dy, ws.dz
     work_a, work_b, B, F, K, v, Sc, Ma = ws.work_a, ws.work_b, ws.B, ws.F, ws.K, ws.v, ws.Sc, ws.Ma
-    e, J, et, Jt, H, grad, step, rt, Tt = ws.e, ws.J, ws.et, ws.Jt, ws.H, ws.grad, ws.step, ws.rt, ws.Tt
+    e, J = ws.e, ws.J
     lookup = Lookup(g, dg, wx, wy, wz, dx, dy, dz, ws.scratch)
     seeded = np.isfinite(seed[0]) and np.isfinite(seed[1]) and np.isfinite(seed[2])
     if seeded:
@@ -129,48 +203,8 @@ def correct_one_in(S, seed, hemisphere, grid, seed_map, use_map, max_iterations,
             K[i, j] = M[i, 0] * S[j, 0] + M[i, 1] * S[j, 1] + M[i, 2] * S[j, 2]
     rotation_polar_factor(K, work_a, work_b, T)
     pose_residual(S, M, dM, T, e, J)
-    cost = residual_cost(e)
-    damping = 1e-3
-    converged = False
-    iterations = 0
-    while iterations < max_iterations:
-        iterations += 1
-        gauss_newton_matrix(J, e, H, grad)
-        solved, damping = lm_step(H, grad, damping, H, step, r, T, rt, Tt)
-        if not solved:
-            if damping > 1e8:
-                break
-            continue
-        if np.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) < tolerance:
-            # a step below the tolerance (0.1 µm) is taken without the look-up that would confirm it:
-            # the model there is the current one moved along its Jacobian (an error of |step|², far
-            # below the noise), and whether the point is mapped comes from the grid's cell flags.
-            for a in range(9):
-                e[a] = J[a, 0] * step[0] + J[a, 1] * step[1] + J[a, 2] * step[2]  # −Tᵀ ∂M/∂r · δr
-            for i in range(3):
-                for j in range(3):
-                    Ma[i, j] -= T[i, 0] * e[j] + T[i, 1] * e[3 + j] + T[i, 2] * e[6 + j]
-            for a in range(3):
-                r[a] = rt[a]
-            for i in range(3):
-                for j in range(3):
-                    T[i, j] = Tt[i, j]
-            mapped = grid_contains(grid, r)
-            converged = True
-            break
-        trial_mapped = pose_model_separable(rt, grid, M, dM, lookup)
-        pose_residual(S, M, dM, Tt, et, Jt)
-        trial = residual_cost(et)
-        accept, damping, converged = lm_verdict(trial, cost, damping, step, tolerance)
-        if accept:
-            mapped = trial_mapped
-            for i in range(3):
-                for j in range(3):
-                    Ma[i, j] = M[i, j]
-            accept_step(r, rt, T, Tt, e, et, J, Jt)
-            cost = trial
-        if converged:
-            break
+    converged, iterations, _, mapped = _solve(S, grid, ws, r, T, residual_cost(e), mapped,
+                                              (max_iterations, tolerance))
     return converged, iterations, relative_residual(S, Ma, T), mapped
 
 

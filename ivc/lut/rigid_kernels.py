@@ -11,7 +11,7 @@ weighted by ``w = 1 / rms(S_n)``. :func:`add_sensor` adds them to ``H = JᵀJ`` 
 
 :func:`normal_equations` sums them over the wand for either problem (``field``'s ``tied``: sensor 0 in the cube's
 field, the sensors the table does not map left out), and :func:`solve_frame` is the Levenberg-Marquardt loop of one
-frame (the rules of :func:`ivc.pose.kernels.lm_step` and :func:`ivc.pose.kernels.lm_verdict`) both kernels run.
+frame (:func:`ivc.pose.kernels.lm_driver` with this model) both kernels run.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numba
 import numpy as np
 
 from ivc.fixtures.kernels import cube_model
-from ivc.pose.kernels import accept_pose, lm_step, lm_verdict, pose_residual
+from ivc.pose.kernels import NO_COUNTS, accept_pose, lm_driver, no_normal, pose_residual
 from ivc.table.kernels import pose_model
 
 #: The wand's geometry: each sensor's position ``b`` (W, 3) m and rotation ``R`` (W, 3, 3) in sensor 0's frame.
@@ -140,26 +140,34 @@ def normal_equations(S, use, scale, wand, field, r0, T0, H, grad, work):
     return cost
 
 
-@numba.njit(cache=True)
+#: The model of one frame's Levenberg-Marquardt loop (:func:`ivc.pose.kernels.lm_driver`): the frame's signals ``S``
+#: (W, 3, 3), the sensors it ``use``\ s, their ``scale``, the ``wand``, the ``field``, :func:`normal_equations`'
+#: ``work``, and the normal equations at the current pose (``H``, ``grad``) and at the trial (``Ht``, ``gradt``).
+Frame = namedtuple("Frame", "S use scale wand field work H Ht grad gradt")
+
+
+@numba.njit(inline="always")
+def _trial(model, rt, Tt):
+    cost = normal_equations(model.S, model.use, model.scale, model.wand, model.field, rt, Tt, model.Ht, model.gradt,
+                            model.work)
+    return cost, False
+
+
+@numba.njit(inline="always")
+def _accept(model, r, rt, T, Tt):
+    accept_trial(r, rt, T, Tt, model.H, model.Ht, model.grad, model.gradt)
+
+
+_lm_solve = lm_driver(no_normal, _trial, _accept)
+
+
+@numba.njit(**NO_COUNTS)
 def solve_frame(S, use, scale, wand, field, limits, r, T, work, lm):
     """Levenberg-Marquardt for one frame's sensor 0 pose (r (3,), T (3, 3), updated in place from the start they
     hold) on :func:`normal_equations`; ``limits``: a :data:`Limits`; ``work``, ``lm``: :func:`workspace`.
-    Returns (converged, cost); JᵀJ at the solution is left in ``lm.H``."""
-    max_iterations, tolerance = limits
+    Returns (converged, cost); JᵀJ at the solution is left in ``lm.H``. Allocates nothing."""
     H, Ht, grad, gradt, A, step, rt, Tt = lm
     cost = normal_equations(S, use, scale, wand, field, r, T, H, grad, work)
-    damping = 1e-3
-    for _ in range(max_iterations):
-        solved, damping = lm_step(H, grad, damping, A, step, r, T, rt, Tt)
-        if not solved:
-            if damping > 1e8:
-                break
-            continue
-        trial = normal_equations(S, use, scale, wand, field, rt, Tt, Ht, gradt, work)
-        accept, damping, converged = lm_verdict(trial, cost, damping, step, tolerance)
-        if accept:
-            accept_trial(r, rt, T, Tt, H, Ht, grad, gradt)
-            cost = trial
-        if converged:
-            return True, cost
-    return False, cost
+    model = Frame(S, use, scale, wand, field, work, H, Ht, grad, gradt)
+    converged, _, cost, _ = _lm_solve(model, r, T, cost, False, limits, (H, grad, A, step, rt, Tt))
+    return converged, cost
