@@ -117,9 +117,8 @@ def test_the_interpreted_loop_calls_the_interpreted_model():
     from ivc.fixtures import kernels as cube_kernels
     from ivc.lut import rigid_kernels
 
-    for solve, name in ((correct_kernels._solve, "_lm_solve"), (cube_kernels._solve, "_lm_solve"),
-                        (rigid_kernels.solve_frame, "_lm_solve")):
-        loop = compiled.interpreted(solve).__globals__[name]
+    for solve in (correct_kernels._solve, cube_kernels._solve, rigid_kernels.solve_frame):
+        loop = compiled.interpreted(solve).__globals__["_lm_solve"]
         assert not isinstance(loop, CPUDispatcher)
         hooks = [cell.cell_contents for cell in loop.__closure__]
         assert len(hooks) >= 3 and callable(hooks[0])

@@ -22,11 +22,11 @@ from ivc.linalg import copy_pose, quaternion_of, relative_residual, rotation_pol
 from ivc.pose.kernels import (
     NO_COUNTS,
     accept_pose,
-    accept_step,
-    gauss_newton_matrix,
     lm_driver,
     pose_residual,
+    residual_accept,
     residual_cost,
+    residual_normal,
 )
 from ivc.pose.precision_kernels import crb_covariance_one, traces
 from ivc.table.kernels import grid_contains, grid_point_separable, grid_value, pose_model, with_dipole
@@ -81,11 +81,6 @@ Frame = namedtuple("Frame", "S grid lookup M dM e J et Jt Ma")
 
 
 @numba.njit(inline="always")
-def _normal(model, H, grad):
-    gauss_newton_matrix(model.J, model.e, H, grad)
-
-
-@numba.njit(inline="always")
 def _trial(model, rt, Tt):
     mapped = pose_model_separable(rt, model.grid, model.M, model.dM, model.lookup)
     pose_residual(model.S, model.M, model.dM, Tt, model.et, model.Jt)
@@ -102,7 +97,7 @@ def _copy_model(M, Ma):
 @numba.njit(inline="always")
 def _accept(model, r, rt, T, Tt):
     _copy_model(model.M, model.Ma)
-    accept_step(r, rt, T, Tt, model.e, model.et, model.J, model.Jt)
+    residual_accept(model, r, rt, T, Tt)
 
 
 @numba.njit(cache=True)
@@ -127,7 +122,7 @@ def _shortcut(model, step, r, T, rt, Tt, tolerance, mapped):
     return True, grid_contains(model.grid, r)
 
 
-_lm_solve = lm_driver(_normal, _trial, _accept, _shortcut)
+_lm_solve = lm_driver(residual_normal, _trial, _accept, _shortcut)
 
 
 @numba.njit(**NO_COUNTS)

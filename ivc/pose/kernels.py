@@ -155,13 +155,28 @@ def no_normal(model, H, grad):
     return None
 
 
+@numba.njit(inline="always")
+def residual_normal(model, H, grad):
+    """``normal`` of a model that keeps the current pose's residual ``model.e`` (9,) and Jacobian ``model.J`` (9, 6):
+    :func:`gauss_newton_matrix`."""
+    gauss_newton_matrix(model.J, model.e, H, grad)
+
+
+@numba.njit(inline="always")
+def residual_accept(model, r, rt, T, Tt):
+    """``accept`` of the same model, whose trial residual and Jacobian are ``model.et``, ``model.Jt``:
+    :func:`accept_step`."""
+    accept_step(r, rt, T, Tt, model.e, model.et, model.J, model.Jt)
+
+
 def lm_driver(normal, trial, accept, shortcut=no_shortcut):
     """One Levenberg-Marquardt loop over a pose (r (3,), T (3, 3)), given its model's kernels.
 
     The model is one tuple of the arrays its kernels read and write; each kernel is a compiled function:
 
     - ``normal(model, H, grad)``: ``H = JᵀJ`` (6, 6) and ``grad = −Jᵀe`` (6,) at the current pose
-      (:func:`no_normal` when the accept step keeps them current);
+      (:func:`residual_normal` for a model that keeps its residual and Jacobian, :func:`no_normal` when the accept
+      step keeps them current);
     - ``trial(model, rt, Tt) -> (cost, state)``: the cost Σe² at the trial pose and the model's value of ``state``
       there (a scalar the loop carries: the correction's "mapped");
     - ``accept(model, r, rt, T, Tt)``: the trial becomes the current pose (the pose and what the model keeps of it);
@@ -171,8 +186,8 @@ def lm_driver(normal, trial, accept, shortcut=no_shortcut):
     Returns the loop ``run(model, r, T, cost, state, limits, lm) -> (converged, iterations, cost, state)``, from the
     pose in (r, T) of cost ``cost`` (updated in place); ``limits``: (max_iterations, tolerance m); ``lm``: the loop's
     scratch (H, grad, A, step, rt, Tt), A the damped matrix ((6, 6), may be H itself). The rules are
-    :func:`lm_step` and :func:`lm_verdict`. The loop is inlined into its caller, which is compiled with
-    :data:`NO_COUNTS`; the model's kernels stay separate compiled functions, so inlining copies only the loop.
+    :func:`lm_step` and :func:`lm_verdict`. The loop and the model's kernels are inlined into the caller, which is
+    compiled with :data:`NO_COUNTS`; keep the kernels thin (calls of compiled functions), since inlining copies them.
     """
 
     @numba.njit(inline="always")
