@@ -62,6 +62,13 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
                      f"{_cv_text(report, scored)}")
     else:
         lines.append(f"Fit: {report.method}, {report.model_text()}; {_cv_text(report, 'pose-equivalent')}")
+    calibration = table.fit.get("self_calibration")
+    if calibration:
+        rms = calibration["rms_mm_by_iteration"]
+        lines.append(f"  self-calibration: the wand's poses and the field fitted together on {calibration['frames']} "
+                     f"frames ({len(rms) - 1} steps, residual {rms[0]:.3f} -> {rms[-1]:.3f} mm RMS); sensor 0 moved "
+                     f"{calibration['sensor0_moved_mm'].get('p50', float('nan')):.3f} mm (median) from its pose "
+                     "traced through the cube")
     if report.outliers_downweighted:
         lines.append(f"  {report.outliers_downweighted} samples down-weighted as outliers (Huber)")
     if table.fit.get("model_choice"):  # the adaptive fit says which model the cross-validation chose, and why

@@ -23,6 +23,7 @@ from ivc.lut.fit_harmonic import HarmonicFit, HarmonicModel
 from ivc.lut.fit_steps import ADVICE, check_enough, decimated, provenance
 from ivc.lut.map_error import BLOCK_SECONDS, shared_residual
 from ivc.lut.options import FitOptions
+from ivc.lut.reported_bundle import self_calibrate
 from ivc.lut.signal_noise import measure_signal_noise
 from ivc.lut.support import mapped_nodes, node_support
 from ivc.pose.precision import reported_noise
@@ -37,6 +38,8 @@ MAX_DEGREE = 10
 #: the samples disagree with the map when their median reported-position residual is more than this many times
 #: the tracker's noise there (measured: 1.9 on the default scene, 2.5 on the severe one, 19 on the strong one)
 DISAGREEMENT = 5.0
+#: pairs the first fit, the self-calibration's start, uses at most
+START_PAIRS = 8_000
 #: pairs used by the fit at most (every k-th kept pair): the Gauss-Newton passes cost per pair
 MAX_PAIRS = 40_000
 
@@ -96,9 +99,18 @@ def cube_map(session: Session, options: FitOptions | None = None, source: str | 
         raise InputError(f"harmonic degree {top}: use 1 to 12")
     counts = {d: harmonics.count(d) for d in range(1, top + 1)}
 
-    def basis(r: np.ndarray) -> np.ndarray:
-        return harmonics.gradients((r - centre) / scale, top)
+    def basis(r: np.ndarray) -> np.ndarray:  # (n, K, 3): a view of the compiled (n, 3, K) rows
+        return np.swapaxes(harmonics.gradient_rows((r - centre) / scale, top), 1, 2)
 
+    calibration = None
+    if options.refine:  # the room's field and the wand's poses together: sensor 0 no longer rests on the cube alone
+        start = used.subset(slice(None, None, max(1, -(-len(used) // START_PAIRS))))
+        first, _ = fit_through_tracker(start, basis, {top: counts[top]}, solver, session.hemisphere, top, 1)
+        mapping, _, calibration = self_calibrate(session, model, mapping, basis, first, solver)
+        progress("self-calibrating the wand's poses and the field", 0)
+        pairs = mapping.pairs
+        thin = max(1, -(-len(pairs) // max_pairs))
+        used = pairs.subset(slice(None, None, thin)) if thin > 1 else pairs
     coefficients, report = fit_through_tracker(used, basis, counts, solver, session.hemisphere,
                                                harmonic_fit.degree, harmonic_fit.cv.k,
                                                progress=progress("fitting through the tracker model", 0))
@@ -122,6 +134,7 @@ def cube_map(session: Session, options: FitOptions | None = None, source: str | 
                     "outside_grid": int(np.sum(~grid.contains(pairs.position))), "dropped": dropped},
         "cube": {k: model.report[k] for k in ("degree", "vertex_position_rms_mm", "vertex_orientation_rms_mrad")},
         "refinement": [],
+        "self_calibration": calibration,
         "grid_from": "user" if options.origin is not None else "data (one-cell margin)",
         "min_support": options.min_support,
         "valid_nodes": int(valid.sum()),

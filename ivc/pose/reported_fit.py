@@ -97,7 +97,7 @@ def pose_residuals(pairs: PosePairs, position: np.ndarray, turn: np.ndarray) -> 
 def predicted(pairs_position: np.ndarray, basis: Basis, coefficients: np.ndarray, solver: str, hemisphere: str):
     """Reported poses the model predicts at true positions (n, 3): (φ, C, ∂(φ, ω)/∂G (n, 6, 9), basis)."""
     b = basis(pairs_position)
-    G = np.einsum("nki,kj->nij", b, coefficients)
+    G = np.swapaxes(b, 1, 2) @ coefficients
     position, turn, J = reported_pose_jacobian(dipole.field(pairs_position) + G, solver, hemisphere)
     return position, turn, J, b
 
