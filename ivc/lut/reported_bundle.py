@@ -37,7 +37,7 @@ from ivc.truth import percentiles
 ITERATIONS, RELATIVE_TOLERANCE = 20, 1e-4
 INITIAL_DAMPING = 1e-4
 #: Gauss-Newton steps of each frame's pose in a fixed field
-FRAME_ITERATIONS = 4
+FRAME_ITERATIONS = 2
 #: frames the adjustment fits at most (every k-th of the traced ones): enough to pin the field, few enough to be quick
 FRAMES = 3000
 #: frames per pass's chunk (their Jacobians in the coefficients are held at once)
@@ -224,10 +224,12 @@ def residual_rms(frames: WandFrames, levers, turns, basis, c, solver, hemisphere
 
 
 
-def _frame_costs(frames: WandFrames, levers, turns, basis, c, solver, hemisphere):
-    """Each frame's sum of squared (weighted) residuals (F,), and the samples' terms for its Gauss-Newton step."""
-    e, f, Xp = sample_terms(frames, levers, turns, basis, c, solver, hemisphere, coefficients=False)
-    return np.bincount(f, np.sum(e**2, axis=1), minlength=len(frames)), e, f, Xp
+def _frame_costs(frames: WandFrames, levers, turns, basis, c, solver, hemisphere, jacobians: bool = True):
+    """Each frame's sum of squared (weighted) residuals (F,), and the samples' terms for its Gauss-Newton step
+    (residuals, frames, and with ``jacobians`` the pose Jacobians; else None)."""
+    terms = sample_terms(frames, levers, turns, basis, c, solver, hemisphere, jacobians, coefficients=False)
+    e, f = terms[0], terms[1]
+    return np.bincount(f, np.sum(e**2, axis=1), minlength=len(frames)), e, f, terms[2] if jacobians else None
 
 
 def solve_frames(frames: WandFrames, levers: np.ndarray, turns: np.ndarray, basis: Basis, c: np.ndarray,
@@ -240,27 +242,28 @@ def solve_frames(frames: WandFrames, levers: np.ndarray, turns: np.ndarray, basi
     for start in range(0, len(frames), CHUNK_FRAMES):
         part = frames.subset(slice(start, start + CHUNK_FRAMES))
         cost, e, f, Xp = _frame_costs(part, levers, turns, basis, c, solver, hemisphere)
-        for _ in range(iterations):
+        for k in range(iterations):
             H, g = np.zeros((len(part), 6, 6)), np.zeros((len(part), 6))
             np.add.at(H, f, np.swapaxes(Xp, 1, 2) @ Xp)
             np.add.at(g, f, np.einsum("nai,na->ni", Xp, e))
             ridge = 1e-12 * np.maximum(np.einsum("fii->f", H), 1e-30)[:, None, None] * np.eye(6)
             trial = part.moved(-np.linalg.solve(H + ridge, g[..., None])[..., 0])
-            new, e, f, Xp = _frame_costs(trial, levers, turns, basis, c, solver, hemisphere)
+            last = k == iterations - 1  # the last step's Jacobians are never used
+            new, e_new, _, Xp_new = _frame_costs(trial, levers, turns, basis, c, solver, hemisphere, not last)
             better = new < cost
-            if not better.any():
-                break
             part = replace(part, position=np.where(better[:, None], trial.position, part.position),
                            rotation=np.where(better[:, None, None], trial.rotation, part.rotation))
             cost = np.where(better, new, cost)
-            if not better.all():  # the terms of the frames whose step was refused, at their kept pose
-                _, e, f, Xp = _frame_costs(part, levers, turns, basis, c, solver, hemisphere)
+            if last or not better.any():
+                break
+            took = better[f]  # the samples of the frames whose step was kept take their new terms
+            e, Xp = np.where(took[:, None], e_new, e), np.where(took[:, None, None], Xp_new, Xp)
         parts.append(part)
         rms.append(np.sqrt(cost / np.maximum(np.bincount(f, minlength=len(part)), 1)))
     out = WandFrames(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("position", "rotation",
                                                                                  "reported_position",
                                                                                  "reported_rotation", "use")),
-                     None if frames.weight is None else frames.weight)
+                     frames.weight)
     return out, np.concatenate(rms)
 
 
@@ -291,9 +294,16 @@ def self_calibrate(session: Session, model: PoseFixtureModel, mapping: PoseSweep
     averaged = np.maximum(session.steps["cube_survey"].valid_mask.sum(axis=0), 1).astype(float)
     anchor_weight = np.sqrt(averaged) * unit / reported_noise(model.pairs.reported_position,
                                                               model.pairs.reported_rotation, 1.0)
-    c, _, report = adjust(everything.subset(slice(None, None, stride)), levers, turns, basis, coefficients,
-                          model.pairs, anchor_weight, solver, h, progress=progress)
-    solved, rms = solve_frames(everything, levers, turns, basis, c, solver, h)
+    subset = everything.subset(slice(None, None, stride))
+    c, adjusted, report = adjust(subset, levers, turns, basis, coefficients, model.pairs, anchor_weight, solver, h,
+                                 progress=progress)
+    # every frame starts moved as the adjusted frame nearest in time moved: sensor 0's traced error is the cube
+    # field's, smooth along the sweep, so the frames start close and two steps solve them
+    nearest = np.minimum(np.rint(np.arange(len(everything)) / stride).astype(np.int64), len(subset) - 1)
+    turn = adjusted.rotation @ np.swapaxes(subset.rotation, 1, 2)
+    start = replace(everything, position=everything.position + (adjusted.position - subset.position)[nearest],
+                    rotation=turn[nearest] @ everything.rotation)
+    solved, rms = solve_frames(start, levers, turns, basis, c, solver, h)
     positions, rots = mapping.positions.copy(), mapping.rotations.copy()
     positions[traced], rots[traced] = model.wand.propagate(solved.position, solved.rotation)
     frame, sensor = np.nonzero(keep)
