@@ -12,7 +12,9 @@ of such a session. Figures of the check poses whose true position lies in the ta
   ``ivc evaluate`` reports it) <= 2x the single-frame noise floor there (the Cramér-Rao bound at the true poses,
   ``ivc.sim.noise_floor``), p99 <= 1 mm; the trusted share under the fixed residual limit of old
   (``max_residual=1e-3``) beside the default gate scaled to the table's model error (``ivc.correct.residual_gate``);
-- reported poses: trusted share >= 90 %, aligned median within 1.5x the signals' (default fit);
+- reported poses: trusted share >= 90 %, aligned median within 1.5x the signals' (default fit); beside them the
+  share of the check poses where the room's pose-domain map does not fold (``det ∂φ/∂r > 0`` in the true field),
+  the most reported poses alone can trust (docs/strong-rooms.md, "Reported poses on a folded map");
 - the uncorrected dipole solution and the noise floor beside;
 - the share of samples the fit down-weights as outliers (all are clean: the simulator adds white noise only);
 - the mapped volume within 10 % of the default scene's for the same sweep;
@@ -41,6 +43,7 @@ from ivc.correct.residual_gate import MAX_RESIDUAL
 from ivc.errors import IvcError
 from ivc.lut import FitOptions, fit_lut
 from ivc.lut.joint import mapped_litres
+from ivc.pose.tracker_solver import distortion
 from ivc.session import Session
 from ivc.sim import Simulator, load_scene
 from ivc.sim.noise_floor import finite_difference_jacobian, pose_noise_floor
@@ -68,11 +71,26 @@ def _check(errors, table) -> dict:
     inside = table.field().mapped(errors.true_position[:, 0]) & errors.valid[:, 0]
     trusted = inside & errors.ok[:, 0]
     aligned = errors.aligned_position_mm[:, 0]
+    some = trusted.any()  # nothing trusted (every pose flagged): no error figures
     return {"inside": int(inside.sum()), "trusted": float(trusted.sum() / max(inside.sum(), 1)),
-            "median": float(np.median(aligned[trusted])), "p99": float(np.percentile(aligned[trusted], 99)),
-            "max": float(np.max(aligned[trusted])),
+            "median": float(np.median(aligned[trusted])) if some else float("nan"),
+            "p99": float(np.percentile(aligned[trusted], 99)) if some else float("nan"),
+            "max": float(np.max(aligned[trusted])) if some else float("nan"),
             "flags": {str(bit): int(np.sum((errors.flags[:, 0][inside] & bit) != 0)) for bit in (1, 2, 4, 16)},
             "trusted_mask": trusted}
+
+
+def folded_share(simulator: Simulator, r: np.ndarray) -> float:
+    """Share of the true positions r (n, 3) m where the room's pose-domain map turns space inside out,
+    ``det ∂φ/∂r < 0`` (the true field, central differences): each such pose's reported position has another true
+    position, and reported poses alone cannot tell them apart (docs/strong-rooms.md, "Reported poses on a folded
+    map"), so at most the rest can be trusted from reported poses."""
+    def phi(x):
+        return distortion(x, simulator.secondary(x))[0]
+
+    h = 1e-5
+    J = np.stack([(phi(r + h * e) - phi(r - h * e)) / (2 * h) for e in np.eye(3)], axis=-1)
+    return float(np.mean(np.linalg.det(J) < 0))
 
 
 def _fitted(session: Session, method: str | None) -> tuple:
@@ -91,7 +109,8 @@ def measure(name: str) -> dict:
     ratio = np.linalg.norm(secondary, axis=(1, 2)) / np.linalg.norm(dipole.field(truth.position[:, 0]), axis=(1, 2))
     floor = 1000 * pose_noise_floor(truth.position[:, 0], truth.quaternion[:, 0], noise_sigma(simulator.scene.noise),
                                     finite_difference_jacobian(simulator.secondary))[0]
-    out.update(ratio_median=float(np.median(ratio)), ratio_max=float(np.max(ratio)))
+    out.update(ratio_median=float(np.median(ratio)), ratio_max=float(np.max(ratio)),
+               folded=folded_share(simulator, truth.position[:, 0]))
     for method in FITS:
         table, seconds = _fitted(signals, method)
         errors = check_errors(Corrector(table, signals.hemisphere), signals)
@@ -179,6 +198,8 @@ def figures_of(m: dict, default: dict | None) -> list[Figure]:
         Figure(f"{name}, reported poses: trusted in mapped volume", 100 * p["trusted"], "%", "signals, ivc fit",
                100 * h["trusted"], f">= {100 * POSE_TRUSTED:g} %" if targets else "(reference)",
                p["trusted"] >= POSE_TRUSTED if targets else None),
+        Figure(f"{name}, reported poses: where the map does not fold", 100 * (1 - m.get("folded", np.nan)), "%",
+               target="(reference: at most this share can be trusted from reported poses)"),
         Figure(f"{name}, reported poses: aligned median", p["median"], "mm", "signals, ivc fit", h["median"],
                f"<= {POSE_MEDIAN_OVER_SIGNALS:g}x signals", p["median"] <= POSE_MEDIAN_OVER_SIGNALS * h["median"],
                higher_is_better=False),

@@ -142,7 +142,8 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
               "expansion's degree beside the dipoles (8).")
 @click.option("--refine/--no-refine", default=FitOptions.refine, show_default=True,
               help="Re-solve the wand frames as rigid bodies against the map and refit while the cross-validation "
-              "score improves (docs/lut.md, Refinement).")
+              "score improves (docs/lut.md, Refinement); from reported poses alone, fit the field and the wand's "
+              "poses together first (docs/lut.md, Pose-only trackers, step 5).")
 @click.option("--max-refinements", type=click.IntRange(0, 100), default=FitOptions.max_refinements, show_default=True)
 @click.option("--max-frames", type=click.IntRange(1), default=FitOptions.max_frames, show_default=True,
               help="Decimate the sweep to at most this many frames.")

@@ -63,8 +63,10 @@ def fit_pose_lut(session: Session, options: FitOptions | None = None, source: st
     ``solver``: the tracker's own pose solver (``ivc.pose.tracker_solver.SOLVERS``), recorded in the
     table so that corrections invert the same model. ``options``: as :func:`ivc.lut.fit_lut` (the
     fitter must be a :class:`~ivc.lut.fit_harmonic.HarmonicFit`, whose ``degree`` (None: cross-validated
-    up to MAX_DEGREE) and number of folds apply; ``refine`` does not apply). The map covers the wand's reach
-    around the cube; with extension sweeps :func:`ivc.lut.reported_joint.fit_pose_joint_lut` maps more.
+    up to MAX_DEGREE) and number of folds apply; ``refine``: fit the field and the sweep's wand poses together
+    first, :func:`ivc.lut.reported_bundle.self_calibrate`, rather than rest sensor 0 on the cube's field). The map
+    covers the wand's reach around the cube; with extension sweeps :func:`ivc.lut.reported_joint.fit_pose_joint_lut`
+    maps more.
     """
     return cube_map(session, options, source, progress, solver, max_pairs)[0]
 
@@ -102,18 +104,18 @@ def cube_map(session: Session, options: FitOptions | None = None, source: str | 
     def basis(r: np.ndarray) -> np.ndarray:  # (n, K, 3): a view of the compiled (n, 3, K) rows
         return np.swapaxes(harmonics.gradient_rows((r - centre) / scale, top), 1, 2)
 
-    calibration = None
+    calibration = first = None
     if options.refine:  # the room's field and the wand's poses together: sensor 0 no longer rests on the cube alone
         start = used.subset(slice(None, None, max(1, -(-len(used) // START_PAIRS))))
-        first, _ = fit_through_tracker(start, basis, {top: counts[top]}, solver, session.hemisphere, top, 1)
-        mapping, _, calibration = self_calibrate(session, model, mapping, basis, first, solver)
         progress("self-calibrating the wand's poses and the field", 0)
+        first, _ = fit_through_tracker(start, basis, {top: counts[top]}, solver, session.hemisphere, top, 1)
+        mapping, first, calibration = self_calibrate(session, model, mapping, basis, first, solver)
         pairs = mapping.pairs
         thin = max(1, -(-len(pairs) // max_pairs))
         used = pairs.subset(slice(None, None, thin)) if thin > 1 else pairs
     coefficients, report = fit_through_tracker(used, basis, counts, solver, session.hemisphere,
                                                harmonic_fit.degree, harmonic_fit.cv.k,
-                                               progress=progress("fitting through the tracker model", 0))
+                                               progress=progress("fitting through the tracker model", 0), start=first)
     K = harmonics.count(report["degree"])
     harmonic = HarmonicModel(centre, scale, report["degree"], coefficients[:K])
     if options.origin is not None:

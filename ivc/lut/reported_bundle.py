@@ -28,7 +28,7 @@ from scipy.linalg.blas import dsyrk
 from ivc import rotations
 from ivc.fixtures.reported_mapping import PoseFixtureModel, PoseSweepMapping
 from ivc.pose.precision import reported_noise
-from ivc.pose.reported_fit import ORIENTATION_LENGTH, Basis, PosePairs, _design, pose_residuals, predicted
+from ivc.pose.reported_fit import ORIENTATION_LENGTH, ROW_WEIGHT, Basis, PosePairs, design, pose_residuals, predicted
 from ivc.pose.tracker_solver import distortion
 from ivc.session import Session
 from ivc.truth import percentiles
@@ -44,7 +44,6 @@ FRAMES = 3000
 CHUNK_FRAMES = 500
 #: the step (m) of the central differences of the secondary field in position
 STEP = 1e-5
-_WEIGHT = np.array([1.0, 1.0, 1.0, ORIENTATION_LENGTH, ORIENTATION_LENGTH, ORIENTATION_LENGTH])
 
 
 @dataclass
@@ -113,7 +112,7 @@ def sample_terms(frames: WandFrames, levers: np.ndarray, turns: np.ndarray, basi
     Xp[:, 3:, 3:] -= (w * ORIENTATION_LENGTH)[:, None, None] * turn
     if not coefficients:
         return e, f, Xp
-    return e, f, -_design(J, b) * _WEIGHT[None, :, None] * w[:, None, None], Xp
+    return e, f, -design(J, b) * ROW_WEIGHT[None, :, None] * w[:, None, None], Xp
 
 
 @dataclass
@@ -156,7 +155,7 @@ def _normal(frames, levers, turns, basis, c, anchors, anchor_weight, solver, hem
     Hcc += np.triu(Hcc, 1).T
     position, turn, J, b = predicted(anchors.position, basis, c, solver, hemisphere)
     ea = anchor_weight[:, None] * pose_residuals(anchors, position, turn)
-    Xa = (-_design(J, b) * _WEIGHT[None, :, None] * anchor_weight[:, None, None]).reshape(-1, P)
+    Xa = (-design(J, b) * ROW_WEIGHT[None, :, None] * anchor_weight[:, None, None]).reshape(-1, P)
     Hcc += Xa.T @ Xa
     gc += Xa.T @ ea.reshape(-1)
     cost += float(np.sum(ea**2))

@@ -326,6 +326,7 @@ def fit_pose_joint_lut(session: Session, options: FitOptions | None = None, sour
            "samples": {"total": len(pairs), "kept": len(pairs), "used": len(pairs), "anchor": len(anchor),
                        "outside_grid": 0, "dropped": {}},
            "cube": cube.fit["cube"], "cube_map": {k: cube.fit.get(k) for k in ("degree", "cv_rms_mm", "map_error")},
+           "self_calibration": cube.fit.get("self_calibration"),
            "refinement": [], "grid_from": "data (one-cell margin)", "min_support": joint.min_support,
            "valid_nodes": int(table.valid.sum()), "map_error": map_error, "signal_noise": noise}
     parameters = {**options.describe(), "tracker_solver": solver, "max_pairs": MAX_PAIRS,
