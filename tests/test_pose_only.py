@@ -307,6 +307,12 @@ def test_a_pose_only_fit_says_it_left_extension_sweeps_out(small_session):
     assert table.fit["extension_sweeps_ignored"] == ["extension_sweep_1"]
     assert table.report.extension_sweeps_ignored == ("extension_sweep_1",)
     assert "warning: extension_sweep_1 not used" in render_fit(table)
+    # the self-calibration ran (refine, the default), lowered the wand's residual and says so
+    calibration = table.fit["self_calibration"]
+    assert calibration["rms_mm_by_iteration"][-1] < calibration["rms_mm_by_iteration"][0]
+    assert "self-calibration: the wand's poses and the field fitted together" in render_fit(table)
+    bare = fit_pose_lut(poses, FitOptions(fitter=HarmonicFit(degree=3), max_frames=500, refine=False))
+    assert bare.fit["self_calibration"] is None and "self-calibration" not in render_fit(bare)
     plain = lut.fit_lut(poses, FitOptions(fitter=HarmonicFit(degree=3), max_frames=500))
     assert "extension_sweeps_ignored" not in plain.fit and plain.report.extension_sweeps_ignored == ()
     assert "not used" not in render_fit(plain)

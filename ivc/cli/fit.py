@@ -117,10 +117,14 @@ def render_fit(table: lut.LookupTable, seconds: float | None = None) -> str:
         lines.append(f"Map error: {error['position_mm']:.4f} mm / {error['orientation_mrad']:.4f} mrad RMS in the "
                      "reported pose; added to each pose's predicted precision")
         if error.get("excess_position_mm"):
+            cause = ("the wand's poses are off even after the self-calibration (check the wand calibration, "
+                     "and that the sweep covers the room)" if calibration else
+                     "sensor 0's poses traced through the cube's 8 vertex poses are off in this room (fit with "
+                     "--refine, the default, to self-calibrate them)")
             lines.append(
                 f"  warning: the sweep's samples disagree with the map {error['disagreement']:.1f} times more than "
-                "the tracker's noise explains (median): sensor 0's poses traced through the cube's 8 vertex poses "
-                "are off in this room, and how far off the corrections are ivc cannot tell better than the "
+                f"the tracker's noise explains (median): {cause}, and how far off the corrections are ivc cannot "
+                "tell better than the "
                 f"samples' spread about the map, {error['excess_position_mm']:.2f} mm RMS. Poses predicted worse "
                 "than the precision limit are flagged (16). Record the session with signals if the tracker gives "
                 "them, or survey the cube at a second placement (docs/trust.md)")

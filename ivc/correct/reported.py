@@ -63,6 +63,10 @@ AMBIGUITY = 1e-3
 #: a tracked sensor whose correction offset r − v moves more than this (m) between two of its samples is not
 #: continuing its track (the map's other branch, or a gap): that sample is tested as if it started a track
 TRACK_JUMP = 0.01
+#: a failed inversion is restarted from the probe nearest in image where none of this many probes nearest in image
+#: lies where the map folds (measured on the strong scene, 10,000 check poses: 47.6 % trusted without the restart,
+#: 56.0 % with it, none more than 0.77 mm off; 27 probes: 52.8 %, 2: 57.9 %, on 1,955 others)
+NEAR_PROBES = 8
 #: probes per table cell edge
 SUBDIVISION = 2
 #: another mapped solution counts when it reproduces the reported position to this many times the reported
@@ -203,6 +207,8 @@ class SeedMap(RivalMap):
             raise InputError("the table has no mapped cell to correct in")
         super().__init__(field, probes, spacing, solver, hemisphere)
         self.tree = cKDTree(self.images)
+        #: where the map turns space inside out at each probe (det ∂φ/∂r < 0)
+        self.reversed = np.linalg.det(self.jacobian) < 0
         # a probe's image neighbourhood: one probe spacing, stretched as the map stretches it there
         radius = self.stretch * self.spacing
         self.partner = np.full(len(self.probes), -1)
@@ -390,6 +396,7 @@ class PoseCorrector:
         start = np.where(tracked[:, None], v + np.where(tracked[:, None], previous, 0.0), v)
         eye = np.broadcast_to(np.eye(3), (n, 3, 3))
         r, C, miss, converged, iterations, mapped = self._invert(v, start, eye, serial, restarts)
+        self._restart(v, r, C, miss, converged, iterations, mapped, finite & ~tracked, serial, restarts)
         ambiguous = np.zeros(n, dtype=bool)
         # a stream's continuing track needs no other start: its history tells which branch; nor does a sample whose
         # first inversion failed: it is flagged already, and another start's solution is not taken (measured: it is
@@ -413,6 +420,34 @@ class PoseCorrector:
         precision, orientation_precision = self.predict_precision(v, Q, r, serial)
         self.gate.apply(precision, flags, finite)
         return Correction(r, q, flags, miss, iterations, precision, orientation_precision)
+
+    def _restart(self, v, r, C, miss, converged, iterations, mapped, untracked, serial, restarts) -> None:
+        """Invert again, from the probe nearest in image (:meth:`SeedMap.starts`), the untracked samples whose
+        inversion from their reported position failed, where the map does not fold near them (in place). Next to
+        strong metal a reported position lies hundreds of millimetres from its true one, often outside the mapped
+        volume, where an inversion started there cannot go. Only where none of the :data:`NEAR_PROBES` probes
+        nearest in image has a partner (a distant probe with an image near its own) or lies where the map turns
+        space inside out: near a fold the restart can land on one sheet while the truth lies on another that the
+        rival search does not reach (measured on the strong scene: restarted everywhere, 7-8 of 1,955 check poses
+        trusted 1-130 mm off)."""
+        failed = np.flatnonzero(untracked & ~(converged & mapped & (miss <= self.max_residual)))
+        if not len(failed):
+            return
+        seeds = self.seeds
+        p_start, p_H, _, _ = seeds.starts(v[failed])
+        _, near = seeds.tree.query(v[failed], k=min(NEAR_PROBES, len(seeds.probes)))
+        near = near.reshape(len(failed), -1)
+        folds = np.any((seeds.partner[near] >= 0) | seeds.reversed[near], axis=1)
+        ok = np.all(np.isfinite(p_start), axis=1) & ~folds
+        failed, p_start, p_H = failed[ok], p_start[ok], p_H[ok]
+        if not len(failed):
+            return
+        r2, C2, miss2, conv2, it2, mapped2 = self._invert(np.ascontiguousarray(v[failed]), p_start, p_H, serial,
+                                                          restarts)
+        iterations[failed] += it2
+        took = conv2 & mapped2 & (miss2 <= self.max_residual)
+        rows = failed[took]
+        r[rows], C[rows], miss[rows], converged[rows], mapped[rows] = r2[took], C2[took], miss2[took], True, True
 
     def predict_precision(self, v: np.ndarray, Q: np.ndarray, r: np.ndarray, serial: bool = False
                           ) -> tuple[np.ndarray, np.ndarray]:
