@@ -164,7 +164,9 @@ def _normal(frames, levers, turns, basis, c, anchors, anchor_weight, solver, hem
 
 def _step(normal: _Pass, damping: float) -> tuple[np.ndarray, np.ndarray]:
     """The damped Gauss-Newton step ``(δc (P,), δpose (F, 6))`` minimising ``|e + Xc δc + Xp δpose|²``."""
-    Hff = normal.Hff + damping * np.einsum("fii->fi", normal.Hff)[..., None] * np.eye(6) + 1e-18 * np.eye(6)
+    diagonal = np.einsum("fii->fi", normal.Hff)
+    ridge = 1e-12 * np.maximum(diagonal.sum(axis=1), 1e-300)  # keeps a frame that barely sees a direction solvable
+    Hff = normal.Hff + (damping * diagonal + ridge[:, None])[..., None] * np.eye(6)
     L = np.linalg.cholesky(Hff)
     W = np.linalg.solve(L, normal.Hfc)  # L⁻¹ Hfc (F, 6, P)
     w = np.linalg.solve(L, normal.gf[..., None])[..., 0]
@@ -214,13 +216,6 @@ def adjust(frames: WandFrames, levers: np.ndarray, turns: np.ndarray, basis: Bas
             break
     n = int(frames.use.sum()) + len(anchors)
     return c, frames, {"rms_mm_by_iteration": [1000 * float(np.sqrt(h / n)) for h in history]}
-
-
-def residual_rms(frames: WandFrames, levers, turns, basis, c, solver, hemisphere) -> float:
-    """RMS pose residual (m) of the frames' samples."""
-    e, _ = sample_terms(frames, levers, turns, basis, c, solver, hemisphere, jacobians=False)
-    return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
-
 
 
 def _frame_costs(frames: WandFrames, levers, turns, basis, c, solver, hemisphere, jacobians: bool = True):
