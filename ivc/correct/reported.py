@@ -399,8 +399,8 @@ class PoseCorrector:
         self._restart(v, r, C, miss, converged, iterations, mapped, finite & ~tracked, serial, restarts)
         ambiguous = np.zeros(n, dtype=bool)
         # a stream's continuing track needs no other start: its history tells which branch; nor does a sample whose
-        # first inversion failed: it is flagged already, and another start's solution is not taken (measured: it is
-        # most often the wrong branch)
+        # inversion failed from its reported position and, away from folds, from the nearest probe (_restart): it is
+        # flagged already, and the rival starts' solutions are not taken (measured: most often the wrong branch)
         check = np.flatnonzero(finite & ~tracked & converged & mapped) if self.check_ambiguity else np.zeros(0, int)
         if len(check):
             ambiguous[check], extra = self._ambiguous(v[check], Q[check], r[check], serial)
