@@ -27,6 +27,7 @@ from scipy.linalg.blas import dsyrk
 
 from ivc import rotations
 from ivc.fixtures.reported_mapping import PoseFixtureModel, PoseSweepMapping
+from ivc.lut.refine import skew
 from ivc.pose.precision import reported_noise
 from ivc.pose.reported_fit import ORIENTATION_LENGTH, ROW_WEIGHT, Basis, PosePairs, design, pose_residuals, predicted
 from ivc.pose.tracker_solver import distortion
@@ -75,13 +76,6 @@ class WandFrames:
                           self.reported_rotation, self.use, self.weight)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return out
-
-
 def _field(basis: Basis, c: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.swapaxes(basis(r), 1, 2) @ c
 
@@ -108,7 +102,7 @@ def sample_terms(frames: WandFrames, levers: np.ndarray, turns: np.ndarray, basi
     position, turn, dphi, domega, J = distortion(r, G, dG, solver, hemisphere, jacobian=True)
     e = w[:, None] * pose_residuals(observed, position, turn)
     D = -w[:, None, None] * np.concatenate([dphi, ORIENTATION_LENGTH * domega], axis=1)  # ∂e/∂r (n, 6, 3)
-    Xp = np.concatenate([D, -D @ _skew(arm)], axis=2)
+    Xp = np.concatenate([D, -D @ skew(arm)], axis=2)
     Xp[:, 3:, 3:] -= (w * ORIENTATION_LENGTH)[:, None, None] * turn
     if not coefficients:
         return e, f, Xp
